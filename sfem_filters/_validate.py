@@ -1,0 +1,68 @@
+"""Argument checks shared by the public entry points.
+
+Every check raises ``ValueError`` (or ``TypeError``) with a message that names the
+argument, says what was expected and what was given.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+
+def _describe(value) -> str:
+    arr = np.asarray(value)
+    if arr.ndim == 0:
+        return repr(value)
+    return f"an array of shape {arr.shape} and dtype {arr.dtype}"
+
+
+def as_float_array(name: str, value, shape=None, finite: bool = True) -> np.ndarray:
+    """Return ``value`` as a float array, checking shape and finiteness.
+
+    ``shape`` is a tuple whose entries are ints or ``None`` (any size).
+    """
+    try:
+        arr = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise TypeError(f"{name}: expected an array of numbers, got {_describe(value)}") from None
+    if shape is not None:
+        if arr.ndim != len(shape) or any(s is not None and s != a for s, a in zip(shape, arr.shape)):
+            want = "(" + ", ".join("any" if s is None else str(s) for s in shape) + ")"
+            raise ValueError(f"{name}: expected shape {want}, got shape {arr.shape}")
+    if finite and not np.all(np.isfinite(arr)):
+        bad = int(np.size(arr) - np.count_nonzero(np.isfinite(arr)))
+        raise ValueError(f"{name}: expected finite values, got {bad} non-finite entries (NaN or inf)")
+    return arr
+
+
+def positive(name: str, value: float, unit: str = "") -> float:
+    """Check a positive finite scalar."""
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise TypeError(f"{name}: expected a positive number{unit and ' in ' + unit}, got {value!r}") from None
+    if not np.isfinite(v) or v <= 0:
+        raise ValueError(f"{name}: expected a positive finite number{unit and ' in ' + unit}, got {value!r}")
+    return v
+
+
+def non_negative(name: str, value: float, unit: str = "") -> float:
+    """Check a non-negative finite scalar."""
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise TypeError(f"{name}: expected a non-negative number{unit and ' in ' + unit}, got {value!r}") from None
+    if not np.isfinite(v) or v < 0:
+        raise ValueError(f"{name}: expected a non-negative finite number{unit and ' in ' + unit}, got {value!r}")
+    return v
+
+
+def check_material(E, nu, n: int | None = None):
+    """Check Young's moduli (Pa, > 0) and Poisson's ratios (0 < nu < 0.5)."""
+    E = as_float_array("E", E, shape=None if n is None else (n,))
+    nu = as_float_array("nu", nu, shape=None if n is None else (n,))
+    if np.any(E <= 0):
+        raise ValueError(f"E: expected Young's moduli > 0 Pa, got minimum {E.min()!r}")
+    if np.any((nu <= 0) | (nu >= 0.5)):
+        bad = nu[(nu <= 0) | (nu >= 0.5)]
+        raise ValueError(f"nu: expected Poisson's ratios in the open interval (0, 0.5), got {bad[0]!r}")
+    return E, nu

@@ -1,0 +1,145 @@
+"""Material fields and their estimation parameters.
+
+The filter never sees E and nu directly: it estimates unconstrained parameters
+``theta = [theta_E, theta_nu]`` mapped linearly to per-element ``s_E = log(E / 1 Pa)`` and
+``s_nu = logit(2 nu)``, so every estimate is admissible by construction (E > 0 and
+0 < nu < 0.5), never clipped. The linear maps (bases) give per-element, per-region or
+smooth low-dimensional parameterisations with one code path.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+
+from ._validate import as_float_array, check_material
+
+
+def logit2(nu):
+    """``logit(2 nu)``: maps 0 < nu < 0.5 onto the real line."""
+    s = 2.0 * np.asarray(nu, float)
+    return np.log(s) - np.log1p(-s)
+
+
+def inv_logit2(s):
+    """Inverse of :func:`logit2`: ``nu = sigmoid(s) / 2``, always in (0, 0.5)."""
+    s = np.asarray(s, float)
+    return 0.5 / (1.0 + np.exp(-s))
+
+
+def dnu_ds(nu):
+    """d nu / d logit(2 nu) = nu (1 - 2 nu)."""
+    nu = np.asarray(nu, float)
+    return nu * (1.0 - 2.0 * nu)
+
+
+@dataclass(frozen=True)
+class Material:
+    """Per-element linear isotropic material.
+
+    Parameters
+    ----------
+    E : (n_elements,) array
+        Young's modulus of each element in Pa (> 0).
+    nu : (n_elements,) array
+        Poisson's ratio of each element (0 < nu < 0.5).
+    """
+
+    E: np.ndarray
+    nu: np.ndarray
+
+    def __post_init__(self):
+        E, nu = check_material(np.atleast_1d(self.E), np.atleast_1d(self.nu))
+        if E.shape != nu.shape:
+            raise ValueError(f"nu: expected the shape of E {E.shape}, got {nu.shape}")
+        object.__setattr__(self, "E", E)
+        object.__setattr__(self, "nu", nu)
+
+    @classmethod
+    def uniform(cls, n_elements: int, E: float, nu: float) -> "Material":
+        """The same E (Pa) and nu in every element."""
+        return cls(np.full(n_elements, float(E)), np.full(n_elements, float(nu)))
+
+    @property
+    def n_elements(self) -> int:
+        return len(self.E)
+
+
+@dataclass(frozen=True)
+class Parameterisation:
+    """Linear map from estimation parameters to per-element log E and logit(2 nu).
+
+    ``s_E = basis_E @ theta_E`` and ``s_nu = basis_nu @ theta_nu`` with sparse or dense
+    (n_elements, k) bases. Build it with :meth:`per_element`, :meth:`per_region` or
+    :meth:`from_basis`.
+    """
+
+    basis_E: sp.csr_matrix
+    basis_nu: sp.csr_matrix
+    names: tuple = ()
+
+    @classmethod
+    def per_element(cls, n_elements: int) -> "Parameterisation":
+        """One log E and one logit(2 nu) per element (the paper's choice)."""
+        eye = sp.identity(n_elements, format="csr")
+        return cls(eye, eye, tuple(f"element {e}" for e in range(n_elements)))
+
+    @classmethod
+    def per_region(cls, labels) -> "Parameterisation":
+        """One log E and one logit(2 nu) per region; ``labels`` gives each element's region."""
+        labels = np.asarray(labels)
+        if labels.ndim != 1:
+            raise ValueError(f"labels: expected one label per element, got shape {labels.shape}")
+        uniq, idx = np.unique(labels, return_inverse=True)
+        B = sp.csr_matrix((np.ones(len(labels)), (np.arange(len(labels)), idx)),
+                          shape=(len(labels), len(uniq)))
+        return cls(B, B, tuple(f"region {u}" for u in uniq))
+
+    @classmethod
+    def from_basis(cls, basis_E, basis_nu=None) -> "Parameterisation":
+        """Smooth or any other linear basis, (n_elements, k) arrays (same for nu if omitted)."""
+        bE = sp.csr_matrix(as_float_array("basis_E", basis_E, shape=(None, None)))
+        bnu = bE if basis_nu is None else sp.csr_matrix(
+            as_float_array("basis_nu", basis_nu, shape=(bE.shape[0], None)))
+        return cls(bE, bnu)
+
+    @property
+    def n_elements(self) -> int:
+        return self.basis_E.shape[0]
+
+    @property
+    def n_E(self) -> int:
+        return self.basis_E.shape[1]
+
+    @property
+    def n_params(self) -> int:
+        return self.basis_E.shape[1] + self.basis_nu.shape[1]
+
+    def material(self, theta) -> Material:
+        """Per-element material of parameters ``theta`` (length :attr:`n_params`)."""
+        theta = np.asarray(theta, float).ravel()
+        if theta.shape != (self.n_params,):
+            raise ValueError(f"theta: expected {self.n_params} parameters, got {theta.shape[0]}")
+        sE = self.basis_E @ theta[: self.n_E]
+        snu = self.basis_nu @ theta[self.n_E:]
+        return Material(np.exp(sE), inv_logit2(snu))
+
+    def theta_of(self, material: Material) -> np.ndarray:
+        """Parameters whose material best fits ``material`` (least squares in s_E, s_nu)."""
+        if material.n_elements != self.n_elements:
+            raise ValueError(f"material: expected {self.n_elements} elements, got {material.n_elements}")
+        out = []
+        for B, s in ((self.basis_E, np.log(material.E)), (self.basis_nu, logit2(material.nu))):
+            out.append(np.linalg.lstsq(B.toarray(), s, rcond=None)[0])
+        return np.concatenate(out)
+
+    def element_jacobian(self, material: Material) -> sp.csr_matrix:
+        """d(log E_e, nu_e)/d theta as a sparse (2 n_elements, n_params) matrix.
+
+        Rows 0..n-1 are d log E_e / d theta, rows n..2n-1 are d nu_e / d theta; the
+        element stiffness sensitivities ``E_e dK_e/dE_e`` and ``dK_e/dnu_e`` times this
+        matrix give dK/dtheta (the chain rule of section 2.5 through the parameterisation).
+        """
+        return sp.block_diag([self.basis_E, sp.diags(dnu_ds(material.nu)) @ self.basis_nu],
+                             format="csr")

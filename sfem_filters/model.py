@@ -1,0 +1,294 @@
+"""The stochastic finite-element model of the myocardium as a filterpy plug-in.
+
+:class:`SFEMModel` supplies everything filterpy's ``ExtendedKalmanFilter`` needs: the
+transition ``fx`` (Eq. 19) and its Jacobian ``F_jacobian`` (Eq. 31 with M_t of Eq. 33),
+the measurement ``hx`` and its Jacobian ``H_jacobian`` (Eqs. 21-22), and ``Q``, ``R``,
+``x0``, ``P0`` (Eq. 34). The paper's three strategies are configurations of this one class:
+
+* material fixed (``estimate=None``): a linear Kalman filter on ``x = [U; U']`` with the
+  given material, uniform (``"uniform_kf"``) or the true one (``"perfect_kf"``);
+* material estimated (``estimate=Parameterisation``): the joint EKF on ``z = [x; theta]``
+  (``"joint_ekf"``), theta being log E and logit(2 nu) through the parameterisation.
+
+Frame indices ``t`` are 0-based. ``fx(z, t)`` moves the state from frame t to frame t + 1
+under the load ``loads[t + 1]``, held over that interval (zero-order hold).
+"""
+from __future__ import annotations
+
+from collections import OrderedDict
+
+import numpy as np
+import scipy.sparse as sp
+
+from ._validate import as_float_array, positive
+from .fem import (DofMap, element_stiffness, mass_matrix, plane_strain_matrix,
+                  plane_strain_matrix_dnu, stiffness_matrix)
+from .material import Material, Parameterisation
+from .mesh import TriMesh
+from .statespace import ModalSystem, reference_sensitivity
+
+
+def _std_vector(name: str, value, n: int, unit: str) -> np.ndarray:
+    v = np.broadcast_to(as_float_array(name, value), (n,)) if np.ndim(value) == 0 else \
+        as_float_array(name, value, shape=(n,))
+    if np.any(v <= 0):
+        raise ValueError(f"{name}: expected standard deviations > 0 {unit}, got minimum {v.min()!r}")
+    return np.array(v, float)
+
+
+class SFEMModel:
+    """Linear-elastic FEM dynamics with optional material estimation (Shi & Liu 2003).
+
+    Parameters
+    ----------
+    mesh : TriMesh
+        Mesh in metres.
+    material : Material
+        The material used when it is not estimated, and the initial estimate when it is.
+    loads : (n_frames, n_dofs) array
+        Global nodal loads in N; ``loads[t]`` is held over the interval from frame t-1 to
+        frame t (``loads[0]`` is unused).
+    observation : (n_obs, n_dofs) array or sparse matrix
+        D of Eq. (12): the observed combinations of global displacements (m).
+    frame_interval : float
+        Time between frames in s.
+    fixed_dofs : array of int
+        Global dofs held at zero; they are removed from the state.
+    density : float
+        Mass density in kg/m^3.
+    alpha, beta : float
+        Rayleigh damping ``C = alpha M + beta K`` (alpha in 1/s, beta in s).
+    measurement_std : float or (n_obs,) array
+        Standard deviation of the observation noise in m; ``R`` is diagonal.
+    process_std : (float, float)
+        Per-frame process noise standard deviations of displacement (m) and velocity (m/s).
+    initial_std : (float, float)
+        Standard deviations of P1(0) for displacement (m) and velocity (m/s).
+    estimate : Parameterisation, optional
+        Append these material parameters to the state (joint EKF). ``None``: material fixed.
+    prior_std : (float, float)
+        P3(0) standard deviations of theta_E (log E) and theta_nu (logit 2 nu).
+    material_process_std : (float, float)
+        Process noise of theta per frame (default 0: the material is constant).
+    penalty : (n_dofs, n_dofs) sparse matrix, optional
+        Penalty springs (N/m) added to K, section 2.7 (their load goes into ``loads``).
+    thickness : float
+        Out-of-plane thickness in m.
+    lumped_mass : bool
+        Lumped instead of consistent mass.
+    jacobian : {"modal", "expm_frechet"}
+        How M_t is computed: the exact modal Daleckii-Krein form (fast) or one
+        ``scipy.linalg.expm_frechet`` per parameter (reference).
+    """
+
+    def __init__(self, mesh: TriMesh, material: Material, loads, observation, frame_interval: float,
+                 fixed_dofs=(), *, density: float = 1050.0, alpha: float = 0.0, beta: float = 0.0,
+                 measurement_std=1e-4, process_std=(5e-5, 5e-3), initial_std=(1e-4, 1e-3),
+                 estimate: Parameterisation | None = None, prior_std=(0.3, 1.0),
+                 material_process_std=(0.0, 0.0), penalty=None, thickness: float = 1.0,
+                 lumped_mass: bool = False, jacobian: str = "modal"):
+        if not isinstance(mesh, TriMesh):
+            raise TypeError(f"mesh: expected a TriMesh, got {type(mesh).__name__}")
+        if not isinstance(material, Material):
+            raise TypeError(f"material: expected a Material, got {type(material).__name__}")
+        if material.n_elements != mesh.n_elements:
+            raise ValueError(f"material: expected {mesh.n_elements} elements, got {material.n_elements}")
+        if jacobian not in ("modal", "expm_frechet"):
+            raise ValueError(f"jacobian: expected 'modal' or 'expm_frechet', got {jacobian!r}")
+        self.mesh = mesh
+        self.material = material
+        self.frame_interval = positive("frame_interval", frame_interval, "s")
+        self.density = positive("density", density, "kg/m^3")
+        self.thickness = positive("thickness", thickness, "m")
+        self.alpha, self.beta = float(alpha), float(beta)
+        self.jacobian = jacobian
+        self.dofmap = DofMap(mesh.n_dofs, fixed_dofs)
+        n = self.dofmap.n_free
+        loads = as_float_array("loads", loads, shape=(None, mesh.n_dofs))
+        if len(loads) < 2:
+            raise ValueError(f"loads: expected at least 2 frames, got {len(loads)}")
+        self.loads = loads
+        self._w = self.dofmap.restrict(loads)
+        D = sp.csr_matrix(observation) if not sp.issparse(observation) else observation.tocsr()
+        if D.shape[1] != mesh.n_dofs:
+            raise ValueError(f"observation: expected {mesh.n_dofs} columns (n_dofs), got {D.shape[1]}")
+        self.observation = D
+        self.M = self.dofmap.restrict_matrix(mass_matrix(mesh, density, thickness, lumped_mass)).toarray()
+        self.penalty = None if penalty is None else self.dofmap.restrict_matrix(sp.csr_matrix(penalty)).toarray()
+        self.estimate = estimate
+        if estimate is not None and estimate.n_elements != mesh.n_elements:
+            raise ValueError(f"estimate: expected a parameterisation of {mesh.n_elements} elements, "
+                             f"got {estimate.n_elements}")
+        self.dim_x = 2 * n
+        self.dim_theta = 0 if estimate is None else estimate.n_params
+        self.dim_state = self.dim_x + self.dim_theta
+        self.dim_obs = D.shape[0]
+        # H = [D 0] over the free dofs (Eq. 22)
+        H = np.zeros((self.dim_obs, self.dim_state))
+        H[:, :n] = D[:, self.dofmap.free].toarray()
+        self._H = H
+        sd_m = _std_vector("measurement_std", measurement_std, self.dim_obs, "m")
+        self.R = np.diag(sd_m ** 2)
+        pu, pv = process_std
+        q = [np.full(n, positive("process_std[0]", pu, "m")) ** 2,
+             np.full(n, positive("process_std[1]", pv, "m/s")) ** 2]
+        iu, iv = initial_std
+        p1 = [np.full(n, positive("initial_std[0]", iu, "m")) ** 2,
+              np.full(n, positive("initial_std[1]", iv, "m/s")) ** 2]
+        if estimate is not None:
+            self.theta0 = estimate.theta_of(material)
+            sE, snu = prior_std
+            p3 = np.concatenate([np.full(estimate.n_E, positive("prior_std[0]", sE)) ** 2,
+                                 np.full(estimate.n_params - estimate.n_E, positive("prior_std[1]", snu)) ** 2])
+            mE, mnu = material_process_std
+            q3 = np.concatenate([np.full(estimate.n_E, float(mE)) ** 2,
+                                 np.full(estimate.n_params - estimate.n_E, float(mnu)) ** 2])
+        else:
+            self.theta0 = np.zeros(0)
+            p3 = q3 = np.zeros(0)
+        self.Q = np.diag(np.concatenate(q + [q3]))
+        # Eq. (34): P0 = diag(P1, P3) with zero cross-covariance P2.
+        self.P0 = np.diag(np.concatenate(p1 + [p3]))
+        self.x0 = np.concatenate([np.zeros(2 * n), self.theta0])
+        self._cache: OrderedDict = OrderedDict()
+        self._directions_dofs = self.dofmap.free_index()[mesh.element_dofs]
+
+    # ------------------------------------------------------------------ configuration
+    @property
+    def n_frames(self) -> int:
+        return len(self.loads)
+
+    @property
+    def estimates_material(self) -> bool:
+        return self.estimate is not None
+
+    def theta_of(self, z) -> np.ndarray:
+        """Material parameters of an augmented state (empty when the material is fixed)."""
+        return np.asarray(z, float).ravel()[self.dim_x:]
+
+    def material_of(self, z=None) -> Material:
+        """Material of state z: the estimate in the joint EKF, the fixed one otherwise."""
+        if self.estimate is None:
+            return self.material
+        return self.estimate.material(self.theta0 if z is None else self.theta_of(z))
+
+    def displacements(self, z) -> np.ndarray:
+        """Global displacement vector (m) of state(s) z, shape (..., n_dofs)."""
+        z = np.asarray(z, float)
+        return self.dofmap.expand(z[..., : self.dim_x // 2])
+
+    def velocities(self, z) -> np.ndarray:
+        """Global velocity vector (m/s) of state(s) z, shape (..., n_dofs)."""
+        z = np.asarray(z, float)
+        return self.dofmap.expand(z[..., self.dim_x // 2: self.dim_x])
+
+    # ------------------------------------------------------------------ mechanics
+    def system(self, theta=None) -> ModalSystem:
+        """The discretised dynamics for material parameters theta (cached)."""
+        mat = self.material if self.estimate is None else self.estimate.material(
+            self.theta0 if theta is None else theta)
+        return self._entry(mat)[0]
+
+    def _entry(self, mat: Material):
+        key = mat.E.tobytes() + mat.nu.tobytes()
+        hit = self._cache.get(key)
+        if hit is not None:
+            self._cache.move_to_end(key)
+            return hit
+        K = self.dofmap.restrict_matrix(stiffness_matrix(self.mesh, mat.E, mat.nu, self.thickness)).toarray()
+        if self.penalty is not None:
+            K = K + self.penalty
+        system = ModalSystem(self.M, K, self.alpha, self.beta, self.frame_interval)
+        entry = (system, K, mat)
+        self._cache[key] = entry
+        if len(self._cache) > 4:
+            self._cache.popitem(last=False)
+        return entry
+
+    def _directions(self, mat: Material) -> np.ndarray:
+        """Element stiffness sensitivities: d/dlog E_e (= K_e) and d/dnu_e, (2 n_el, 6, 6)."""
+        Ke = element_stiffness(self.mesh, plane_strain_matrix(mat.E, mat.nu), self.thickness)
+        dKnu = element_stiffness(self.mesh, plane_strain_matrix_dnu(mat.E, mat.nu), self.thickness)
+        return np.concatenate([Ke, dKnu])
+
+    def _split(self, z):
+        z = np.asarray(z, float)
+        flat = z.ravel()
+        if flat.shape != (self.dim_state,):
+            raise ValueError(f"z: expected a state of length {self.dim_state}, got {flat.shape[0]}")
+        return z, flat[: self.dim_x], flat[self.dim_x:]
+
+    def _check_frame(self, t, last: int) -> int:
+        t = int(t)
+        if not 0 <= t <= last:
+            raise ValueError(f"t: expected a frame index in [0, {last}], got {t}")
+        return t
+
+    def fx(self, z, t):
+        """State at frame t + 1 from state z at frame t, Eq. (19): [A x + B w_t; theta]."""
+        z, x, theta = self._split(z)
+        t = self._check_frame(t, self.n_frames - 2)
+        system = self.system(theta if self.estimate is not None else None)
+        out = np.concatenate([system.step(x, self._w[t + 1]), theta])
+        return out.reshape(z.shape)
+
+    def sensitivity(self, z, t) -> np.ndarray:
+        """M_t = d(A(theta) x + B(theta) w_t)/d theta (Eq. 33), shape (dim_x, dim_theta)."""
+        if self.estimate is None:
+            return np.zeros((self.dim_x, 0))
+        z, x, theta = self._split(z)
+        t = self._check_frame(t, self.n_frames - 2)
+        mat = self.estimate.material(theta)
+        system, K, _ = self._entry(mat)
+        dirs = self._directions(mat)
+        dofs = np.concatenate([self._directions_dofs, self._directions_dofs])
+        w = self._w[t + 1]
+        if self.jacobian == "modal":
+            per_element = system.sensitivity(x, w, dirs, dofs)
+        else:
+            per_element = reference_sensitivity(self.M, K, self.alpha, self.beta, self.frame_interval,
+                                                 x, w, [self._scatter(d, dd) for d, dd in zip(dirs, dofs)])
+        J = self.estimate.element_jacobian(mat)          # d(log E_e, nu_e)/d theta
+        return np.asarray((J.T @ per_element.T).T)
+
+    def _scatter(self, Ke, dofs):
+        n = self.dim_x // 2
+        out = np.zeros((n, n))
+        ok = dofs >= 0
+        out[np.ix_(dofs[ok], dofs[ok])] = Ke[np.ix_(ok, ok)]
+        return out
+
+    def F_jacobian(self, z, t) -> np.ndarray:
+        """F_t = [[A, M_t], [0, I]] (Eq. 31), the exact Jacobian of :meth:`fx`."""
+        z, x, theta = self._split(z)
+        system = self.system(theta if self.estimate is not None else None)
+        F = np.eye(self.dim_state)
+        F[: self.dim_x, : self.dim_x] = system.transition_matrix()
+        if self.estimate is not None:
+            F[: self.dim_x, self.dim_x:] = self.sensitivity(z, t)
+        return F
+
+    def hx(self, z, t=None):
+        """Predicted observation D U (m) of state z (Eq. 21); same ndim as z."""
+        z = np.asarray(z, float)
+        y = self._H @ z.ravel()
+        return y.reshape(-1, 1) if z.ndim == 2 else y
+
+    def H_jacobian(self, z=None, t=None) -> np.ndarray:
+        """H = [D 0] (Eq. 22), dense (dim_obs, dim_state)."""
+        return self._H
+
+    # ------------------------------------------------------------------ filterpy
+    def make_ekf(self):
+        """A filterpy ``ExtendedKalmanFilter`` set up with this model's x0, P0, Q and R.
+
+        Drive it as::
+
+            ekf = model.make_ekf()
+            for t, y in enumerate(observations):
+                if t > 0:
+                    ekf.predict(u=t - 1)          # u is the frame the step starts from
+                ekf.update(y.reshape(-1, 1), model.H_jacobian, model.hx, args=t, hx_args=t)
+        """
+        from .filters import SFEMExtendedKalmanFilter
+        return SFEMExtendedKalmanFilter(self)
