@@ -16,6 +16,11 @@ import scipy.sparse as sp
 from ._validate import as_float_array, check_material
 
 
+#: Beyond these, exp overflows or sigmoid rounds to 1 (nu = 0.5 exactly) in double precision.
+LOG_E_LIMIT = 700.0
+LOGIT_NU_LIMIT = 36.0
+
+
 def logit2(nu):
     """``logit(2 nu)``: maps 0 < nu < 0.5 onto the real line."""
     s = 2.0 * np.asarray(nu, float)
@@ -123,6 +128,13 @@ class Parameterisation:
             raise ValueError(f"theta: expected {self.n_params} parameters, got {theta.shape[0]}")
         sE = self.basis_E @ theta[: self.n_E]
         snu = self.basis_nu @ theta[self.n_E:]
+        if not np.all(np.isfinite(theta)):
+            raise FloatingPointError("theta: expected finite material parameters, got NaN or inf")
+        if np.any(np.abs(sE) > LOG_E_LIMIT) or np.any(snu > LOGIT_NU_LIMIT):
+            raise FloatingPointError(
+                f"theta: log E in [{sE.min():.3g}, {sE.max():.3g}] and logit(2 nu) up to {snu.max():.3g} "
+                f"leave the range where E and nu < 0.5 are representable in floating point "
+                f"(|log E| <= {LOG_E_LIMIT}, logit(2 nu) <= {LOGIT_NU_LIMIT}): the estimate diverged")
         return Material(np.exp(sE), inv_logit2(snu))
 
     def theta_of(self, material: Material) -> np.ndarray:

@@ -1,0 +1,5 @@
+#!/usr/bin/env bash
+# Set up .venv and run the main job: the paper's three-way synthetic comparison, seeds 0-4,
+# with the Table-1 style table on stdout, JSON in out/compare.json and figures in out/figures/.
+source "$(dirname "${BASH_SOURCE[0]}")/venv.sh"
+exec .venv/bin/sfem-filters compare --seed 0-4 --json out/compare.json --figures out/figures "$@"

@@ -1,0 +1,65 @@
+"""Shared pytest configuration and hypothesis strategies."""
+from __future__ import annotations
+
+import numpy as np
+from hypothesis import strategies as st
+from hypothesis.extra import numpy as hnp
+
+from sfem_filters.mesh import delaunay_mesh
+
+# ---------------------------------------------------------------------------
+# Hypothesis strategies for meshes and materials
+# (used by test_mesh.py, test_fem.py, test_strain_statistics.py)
+# ---------------------------------------------------------------------------
+
+LATTICE_STEP_M = 1e-3  # lattice spacing of the random point clouds: 1 mm
+
+
+def _not_collinear(coords) -> bool:
+    pts = np.array(coords, float)
+    return np.linalg.matrix_rank(pts - pts[0]) == 2
+
+
+@st.composite
+def lattice_point_clouds(draw, min_points=4, max_points=30, extent=40):
+    """Distinct, not-all-collinear points on a 1 mm integer lattice (metres).
+
+    Lattice points make exact collinearity and cocircularity likely (hard cases for
+    Delaunay) while keeping every non-degenerate triangle's area far above round-off.
+    """
+    coords = draw(st.lists(st.tuples(st.integers(0, extent), st.integers(0, extent)),
+                           min_size=min_points, max_size=max_points, unique=True)
+                  .filter(_not_collinear))
+    offset = draw(st.tuples(st.integers(-100, 100), st.integers(-100, 100)))
+    return (np.array(coords, float) + np.array(offset, float)) * LATTICE_STEP_M
+
+
+@st.composite
+def jittered_grid_meshes(draw, max_nodes_per_side=6):
+    """Delaunay mesh of a randomly jittered grid (metres, a few cm across), good quality."""
+    nx = draw(st.integers(3, max_nodes_per_side))
+    ny = draw(st.integers(3, max_nodes_per_side))
+    width = draw(st.floats(0.005, 0.05))
+    height = draw(st.floats(0.005, 0.05))
+    jitter = draw(st.floats(0.0, 0.2))
+    seed = draw(st.integers(0, 2**32 - 1))
+    rng = np.random.default_rng(seed)
+    X, Y = np.meshgrid(np.linspace(0.0, width, nx), np.linspace(0.0, height, ny))
+    pts = np.column_stack([X.ravel(), Y.ravel()])
+    pts += jitter * rng.uniform(-1.0, 1.0, pts.shape) * np.array([width / (nx - 1), height / (ny - 1)])
+    return delaunay_mesh(pts, min_angle_deg=1.0)
+
+
+def element_materials(n_elements, E_min=1e3, E_max=1e6, nu_min=0.05, nu_max=0.49):
+    """Per-element Young's moduli (Pa) and Poisson's ratios as a strategy of (E, nu) arrays."""
+    E = hnp.arrays(float, n_elements, elements=st.floats(E_min, E_max))
+    nu = hnp.arrays(float, n_elements, elements=st.floats(nu_min, nu_max))
+    return st.tuples(E, nu)
+
+
+@st.composite
+def meshes_with_materials(draw):
+    """A jittered-grid mesh with random per-element E (Pa) and nu."""
+    mesh = draw(jittered_grid_meshes())
+    E, nu = draw(element_materials(mesh.n_elements))
+    return mesh, E, nu

@@ -1,0 +1,57 @@
+"""Small systems shared by the tests (SI units)."""
+from __future__ import annotations
+
+import numpy as np
+
+from sfem_filters import fem
+from sfem_filters.material import Material, Parameterisation
+from sfem_filters.mesh import TriMesh, delaunay_mesh, rectangle_mesh
+from sfem_filters.model import SFEMModel
+from sfem_filters.observations import node_observation_matrix
+
+
+def random_material(rng, n, E_range=(3e4, 2e5), nu_range=(0.2, 0.49)) -> Material:
+    E = np.exp(rng.uniform(*np.log(E_range), n))
+    return Material(E, rng.uniform(*nu_range, n))
+
+
+def random_block_mesh(rng, n_interior=6, size=0.02) -> TriMesh:
+    """Delaunay mesh of a square's corners, edge midpoints and random interior points."""
+    s = size
+    ring = [(0, 0), (s / 2, 0), (s, 0), (s, s / 2), (s, s), (s / 2, s), (0, s), (0, s / 2)]
+    inner = rng.uniform(0.15 * s, 0.85 * s, (n_interior, 2))
+    return delaunay_mesh(np.vstack([ring, inner]), min_angle_deg=1.0)
+
+
+def small_model(rng, mesh=None, estimate="per_element", n_frames=5, alpha=10.0, beta=1e-3,
+                noise=1e-5, jacobian="modal", material=None) -> SFEMModel:
+    """Bottom edge fixed, random loads on every free dof, all non-fixed nodes observed."""
+    mesh = mesh or random_block_mesh(rng)
+    bottom = mesh.nodes_where(lambda x, y: y < 1e-12)
+    fixed = fem.node_dofs(bottom)
+    loads = rng.standard_normal((n_frames, mesh.n_dofs)) * 20.0
+    observed = np.setdiff1d(np.arange(mesh.n_nodes), bottom)
+    D = node_observation_matrix(mesh, observed)
+    material = material or random_material(rng, mesh.n_elements)
+    est = None
+    if estimate == "per_element":
+        est = Parameterisation.per_element(mesh.n_elements)
+    elif estimate is not None:
+        est = estimate
+    return SFEMModel(mesh, material, loads, D, 0.01, fixed, density=1050.0, alpha=alpha, beta=beta,
+                     measurement_std=noise, process_std=(1e-6, 1e-4), initial_std=(1e-5, 1e-4),
+                     estimate=est, jacobian=jacobian)
+
+
+def reduced_matrices(model, material=None):
+    """Dense M and K over the free dofs of a model."""
+    mat = material or model.material
+    K = model.dofmap.restrict_matrix(fem.stiffness_matrix(model.mesh, mat.E, mat.nu)).toarray()
+    return model.M, K
+
+
+def two_identical_squares() -> TriMesh:
+    """Two disconnected identical squares: every natural frequency is exactly repeated."""
+    a = rectangle_mesh(0.01, 0.01, 3, 3)
+    nodes = np.vstack([a.nodes, a.nodes + [0.02, 0.0]])
+    return TriMesh(nodes, np.vstack([a.elements, a.elements + a.n_nodes]))

@@ -1,0 +1,174 @@
+"""Filtering with the model: filterpy plug-in, structured engine, cyclic loops, checkpoints."""
+import numpy as np
+import pytest
+from hypothesis import given, settings, strategies as st
+
+from sfem_filters.filters import (ENGINES, SFEMExtendedKalmanFilter, cyclic_estimate, filter_loop,
+                                  load_checkpoint)
+from sfem_filters.synthetic import benchmark_model, pinned_benchmark
+
+from helpers import random_block_mesh, small_model
+
+
+def _simulate(model, rng, noise):
+    """Truth from the model's own material and noisy observations."""
+    system = model.system(model.theta_of(model.x0) if model.estimates_material else None)
+    x = np.zeros(model.dim_x)
+    w = model.dofmap.restrict(model.loads)
+    ys = []
+    for t in range(model.n_frames):
+        if t > 0:
+            x = system.step(x, w[t])
+        ys.append(model.hx(np.concatenate([x, model.x0[model.dim_x:]]), t))
+    ys = np.array(ys)
+    return ys + rng.standard_normal(ys.shape) * noise
+
+
+@pytest.fixture(scope="module")
+def bench():
+    return pinned_benchmark(0)
+
+
+def test_filterpy_and_structured_engines_agree(bench):
+    """The library's own loop gives filterpy's x and P (joint EKF, pinned benchmark, one loop)."""
+    model = benchmark_model(bench, "joint_ekf")
+    out = {}
+    for name in ("filterpy", "structured"):
+        eng = ENGINES[name](model)
+        eng.reset(model.x0, model.P0)
+        states = filter_loop(eng, model, bench.observations)
+        out[name] = (states, eng.P.copy())
+    (xa, Pa), (xb, Pb) = out["filterpy"], out["structured"]
+    assert np.abs(xa - xb).max() <= 1e-10 * np.abs(xa).max()
+    assert np.abs(Pa - Pb).max() <= 1e-10 * np.abs(Pa).max()
+
+
+def test_hand_driven_filterpy_ekf_equals_cyclic_estimate(bench):
+    """The documented user loop on filterpy's EKF reproduces cyclic_estimate's single KF loop."""
+    model = benchmark_model(bench, "perfect_kf")
+    ekf = model.make_ekf()
+    assert isinstance(ekf, SFEMExtendedKalmanFilter)
+    xs = []
+    for t, y in enumerate(bench.observations):
+        if t > 0:
+            ekf.predict(u=t - 1)
+        ekf.update(y.reshape(-1, 1), model.H_jacobian, model.hx, args=t, hx_args=t)
+        xs.append(ekf.x.ravel().copy())
+    res = cyclic_estimate(model, bench.observations, engine="structured")
+    assert res.loops == 1 and res.converged
+    np.testing.assert_allclose(np.array(xs), res.states, rtol=0, atol=1e-12 * np.abs(res.states).max())
+
+
+@settings(max_examples=8, deadline=None)
+@given(seed=st.integers(0, 10_000), noise=st.floats(1e-6, 1e-4), engine=st.sampled_from(["structured", "filterpy"]))
+def test_covariance_stays_symmetric_positive_definite(seed, noise, engine):
+    """Random meshes, materials and noise: P is SPD after every predict and update, over 3 loops."""
+    rng = np.random.default_rng(seed)
+    model = small_model(rng, mesh=random_block_mesh(rng, n_interior=int(rng.integers(2, 8))), noise=noise)
+    y = _simulate(model, rng, noise)
+    eng = ENGINES[engine](model)
+    x0, P = model.x0.copy(), model.P0.copy()
+    nx = model.dim_x
+    for loop in range(3):
+        eng.reset(x0, P)
+        for t in range(model.n_frames):
+            if t > 0:
+                eng.predict(t - 1)
+                _assert_spd(eng.P)
+            eng.update(y[t], t, np.ones(model.dim_obs, bool))
+            _assert_spd(eng.P)
+            assert np.all(np.isfinite(eng.x))
+        x0 = model.x0.copy()
+        x0[nx:] = eng.x[nx:]
+        P = model.P0.copy()
+        P[nx:, nx:] = eng.P[nx:, nx:]
+
+
+def _assert_spd(P):
+    assert np.abs(P - P.T).max() <= 1e-12 * np.abs(P).max()
+    lam = np.linalg.eigvalsh(0.5 * (P + P.T))
+    assert lam.min() > 0, lam.min()
+
+
+@pytest.mark.filterwarnings("ignore:cyclic_estimate")
+def test_material_covariance_shrinks_and_estimate_improves():
+    """On noise-free-ish data from a non-uniform material the joint EKF moves toward it."""
+    rng = np.random.default_rng(21)
+    mesh = random_block_mesh(rng)
+    from sfem_filters.material import Material
+    true = Material(np.where(mesh.centroids[:, 0] > 0.01, 1.2e5, 6e4), np.full(mesh.n_elements, 0.4))
+    truth_model = small_model(np.random.default_rng(3), mesh=mesh, material=true, estimate=None, n_frames=12)
+    y = _simulate(truth_model, rng, 1e-7)
+    start = Material.uniform(mesh.n_elements, 8.5e4, 0.4)
+    model = small_model(np.random.default_rng(3), mesh=mesh, material=start, n_frames=12, noise=1e-7)
+    res = cyclic_estimate(model, y, max_loops=15, tol=1e-3)
+    est = model.material_of(np.concatenate([np.zeros(model.dim_x), res.theta]))
+    err_before = np.mean(np.abs(start.E - true.E) / true.E)
+    err_after = np.mean(np.abs(est.E - true.E) / true.E)
+    assert err_after < 0.5 * err_before
+    assert np.all(np.diag(res.P_theta) < np.diag(model.P0)[model.dim_x:])
+
+
+def test_missing_observations_are_dropped_not_zeroed(bench):
+    """A NaN row is left out of its update; an all-NaN frame is predict-only."""
+    model = benchmark_model(bench, "perfect_kf")
+    y = bench.observations.copy()
+    y[5] = np.nan
+    y[7, :4] = np.nan
+    res = cyclic_estimate(model, y)
+    h = res.history.as_arrays()
+    assert h["n_obs"][5] == 0 and np.isnan(h["nis"][5]) and np.all(np.isnan(h["innovation"][5]))
+    assert h["n_obs"][7] == model.dim_obs - 4
+    # frame 5 posterior is the prior: propagate frame 4 by hand
+    np.testing.assert_allclose(res.states[5], model.fx(res.states[4], 4), atol=1e-15)
+    # the partially observed frame equals an update with the observed rows only
+    eng = ENGINES["filterpy"](model)
+    eng.reset(model.x0, model.P0)
+    full = filter_loop(eng, model, y)
+    np.testing.assert_allclose(full, res.states, atol=1e-12 * np.abs(full).max())
+    with pytest.raises(ValueError, match="observations: expected finite values or NaN"):
+        cyclic_estimate(model, np.where(np.isnan(y), np.inf, y))
+    with pytest.raises(ValueError, match=r"observations: expected shape \(16, 26\)"):
+        cyclic_estimate(model, y[:, :3])
+
+
+def test_checkpoint_resume_is_bit_identical(tmp_path, bench):
+    """Stopping after 3 loops and resuming ends exactly as the uninterrupted run."""
+    model = benchmark_model(bench, "joint_ekf")
+    with pytest.warns(RuntimeWarning, match="did not converge"):
+        full = cyclic_estimate(model, bench.observations, max_loops=5, tol=1e-12)
+    ckpt = tmp_path / "run.npz"
+    with pytest.warns(RuntimeWarning, match="did not converge"):
+        cyclic_estimate(benchmark_model(bench, "joint_ekf"), bench.observations, max_loops=3, tol=1e-12,
+                        checkpoint=str(ckpt))
+    assert int(load_checkpoint(ckpt)["loops_done"]) == 3
+    with pytest.warns(RuntimeWarning, match="did not converge"):
+        resumed = cyclic_estimate(benchmark_model(bench, "joint_ekf"), bench.observations, max_loops=5,
+                                  tol=1e-12, checkpoint=str(ckpt))
+    assert resumed.loops == full.loops == 5
+    np.testing.assert_array_equal(resumed.theta, full.theta)
+    np.testing.assert_array_equal(resumed.P_theta, full.P_theta)
+    np.testing.assert_array_equal(resumed.states, full.states)
+    np.testing.assert_array_equal(resumed.history.as_arrays()["x"], full.history.as_arrays()["x"])
+
+
+def test_checkpoint_errors_are_clear(tmp_path, bench):
+    model = benchmark_model(bench, "joint_ekf")
+    bad = tmp_path / "bad.npz"
+    bad.write_bytes(b"PK\x03\x04 truncated")
+    with pytest.raises(ValueError, match="is not a readable checkpoint"):
+        cyclic_estimate(model, bench.observations, max_loops=1, checkpoint=str(bad))
+    ckpt = tmp_path / "other.npz"
+    with pytest.warns(RuntimeWarning):
+        cyclic_estimate(model, bench.observations, max_loops=1, tol=1e-12, checkpoint=str(ckpt))
+    other = bench.observations + 1e-6
+    with pytest.raises(ValueError, match="belongs to a different model or data set"):
+        cyclic_estimate(benchmark_model(bench, "joint_ekf"), other, max_loops=2, checkpoint=str(ckpt))
+
+
+def test_argument_errors(bench):
+    model = benchmark_model(bench, "perfect_kf")
+    with pytest.raises(ValueError, match="engine: expected one of"):
+        cyclic_estimate(model, bench.observations, engine="fast")
+    with pytest.raises(ValueError, match="max_loops: expected an integer >= 1"):
+        cyclic_estimate(model, bench.observations, max_loops=0)

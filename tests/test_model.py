@@ -1,0 +1,177 @@
+"""The model object: transition, analytic Jacobians, measurement, covariances (Eqs. 19-22, 31-34)."""
+import numpy as np
+import pytest
+from hypothesis import given, settings, strategies as st
+
+from sfem_filters.material import Material, Parameterisation
+from sfem_filters.model import SFEMModel
+
+from helpers import random_block_mesh, random_material, small_model
+
+
+def _state(model, rng):
+    n = model.dim_x // 2
+    x = np.concatenate([rng.standard_normal(n) * 1e-4, rng.standard_normal(n) * 1e-3])
+    return np.concatenate([x, model.x0[model.dim_x:]])
+
+
+def _fd_jacobian(model, z, t, h=1e-2):
+    """Central differences of fx in the material parameters (h in log E / logit 2 nu)."""
+    nx = model.dim_x
+    cols = []
+    for j in range(model.dim_theta):
+        zp, zm = z.copy(), z.copy()
+        zp[nx + j] += h
+        zm[nx + j] -= h
+        cols.append((model.fx(zp, t)[:nx] - model.fx(zm, t)[:nx]) / (2 * h))
+    return np.array(cols).T
+
+
+@settings(max_examples=8, deadline=None)
+@given(seed=st.integers(0, 10_000))
+def test_F_jacobian_against_finite_differences(seed):
+    """The theta block M_t of F agrees with central differences (O(h^2) with h = 1e-2)."""
+    rng = np.random.default_rng(seed)
+    model = small_model(rng)
+    z = _state(model, rng)
+    F = model.F_jacobian(z, 1)
+    fd = _fd_jacobian(model, z, 1)
+    Mt = F[:model.dim_x, model.dim_x:]
+    assert np.abs(Mt - fd).max() <= 2e-3 * np.abs(fd).max()
+    # and with a smaller step the agreement improves (the error is truncation, not a bug)
+    fd2 = _fd_jacobian(model, z, 1, h=2.5e-3)
+    assert np.abs(Mt - fd2).max() < np.abs(Mt - fd).max()
+
+
+def test_F_jacobian_kinematic_block_is_A_and_theta_block_identity():
+    rng = np.random.default_rng(5)
+    model = small_model(rng)
+    z = _state(model, rng)
+    F = model.F_jacobian(z, 0)
+    nx = model.dim_x
+    theta = model.theta_of(z)
+    A = model.system(theta).transition_matrix()
+    np.testing.assert_array_equal(F[:nx, :nx], A)
+    np.testing.assert_array_equal(F[nx:, nx:], np.eye(model.dim_theta))
+    np.testing.assert_array_equal(F[nx:, :nx], 0.0)
+    # fx is linear in x: the x block of F is its exact derivative
+    dx = np.zeros_like(z)
+    dx[:nx] = rng.standard_normal(nx) * 1e-5
+    np.testing.assert_allclose(model.fx(z + dx, 0) - model.fx(z, 0), F @ dx, atol=1e-12 * np.abs(F @ dx).max())
+
+
+def test_modal_M_t_equals_expm_frechet_reference():
+    """The fast Jacobian and the reference one (expm_frechet per parameter) agree tightly."""
+    rng = np.random.default_rng(11)
+    mesh = random_block_mesh(rng)
+    mat = random_material(rng, mesh.n_elements)
+    fast = small_model(np.random.default_rng(1), mesh=mesh, material=mat)
+    ref = small_model(np.random.default_rng(1), mesh=mesh, material=mat, jacobian="expm_frechet")
+    z = _state(fast, rng)
+    a, b = fast.F_jacobian(z, 2), ref.F_jacobian(z, 2)
+    assert np.abs(a - b).max() <= 1e-8 * np.abs(b).max()
+
+
+def test_region_parameterisation_chain_rule():
+    """With one region per half of the mesh, M_t is the sum of the per-element columns of each region."""
+    rng = np.random.default_rng(7)
+    mesh = random_block_mesh(rng)
+    labels = (mesh.centroids[:, 0] > 0.01).astype(int)
+    mat = Material(np.where(labels, 9e4, 6e4), np.where(labels, 0.45, 0.35))
+    per_el = small_model(np.random.default_rng(2), mesh=mesh, material=mat)
+    per_reg = small_model(np.random.default_rng(2), mesh=mesh, material=mat,
+                          estimate=Parameterisation.per_region(labels))
+    assert per_reg.dim_theta == 4
+    np.testing.assert_allclose(per_reg.material_of().E, mat.E)
+    z_el = _state(per_el, rng)
+    z_reg = np.concatenate([z_el[:per_el.dim_x], per_reg.x0[per_reg.dim_x:]])
+    Mt_el = per_el.F_jacobian(z_el, 1)[:per_el.dim_x, per_el.dim_x:]
+    Mt_reg = per_reg.F_jacobian(z_reg, 1)[:per_reg.dim_x, per_reg.dim_x:]
+    n = mesh.n_elements
+    for r in range(2):
+        np.testing.assert_allclose(Mt_reg[:, r], Mt_el[:, :n][:, labels == r].sum(axis=1),
+                                   atol=1e-12 * np.abs(Mt_el).max())
+        np.testing.assert_allclose(Mt_reg[:, 2 + r], Mt_el[:, n:][:, labels == r].sum(axis=1),
+                                   atol=1e-12 * np.abs(Mt_el).max())
+
+
+def test_basis_parameterisation_against_finite_differences():
+    rng = np.random.default_rng(9)
+    mesh = random_block_mesh(rng)
+    c = mesh.centroids / 0.02
+    basis = np.column_stack([np.ones(mesh.n_elements), c[:, 0] - 0.5, c[:, 1] - 0.5])
+    model = small_model(rng, mesh=mesh, estimate=Parameterisation.from_basis(basis),
+                        material=Material.uniform(mesh.n_elements, 8e4, 0.4))
+    z = _state(model, rng)
+    z[model.dim_x:] += rng.standard_normal(model.dim_theta) * 0.1
+    Mt = model.F_jacobian(z, 0)[:model.dim_x, model.dim_x:]
+    fd = _fd_jacobian(model, z, 0, h=1e-3)
+    assert np.abs(Mt - fd).max() <= 1e-4 * np.abs(fd).max()
+
+
+@given(theta=st.lists(st.floats(-36.0, 36.0), min_size=8, max_size=8))
+def test_estimates_stay_admissible_for_any_theta(theta):
+    """Every representable theta maps to E > 0 and 0 < nu < 0.5: nothing to clip."""
+    mat = Parameterisation.per_element(4).material(np.array(theta))
+    assert np.all(mat.E > 0)
+    assert np.all((mat.nu > 0) & (mat.nu < 0.5))
+
+
+def test_diverged_theta_is_an_error_not_a_boundary_value():
+    """Where double precision would round nu to 0.5 (or E to inf), say so instead of clipping."""
+    p = Parameterisation.per_element(2)
+    with pytest.raises(FloatingPointError, match="theta: .* the estimate diverged"):
+        p.material(np.array([11.0, 11.0, 0.0, 40.0]))
+    with pytest.raises(FloatingPointError, match="theta: .* the estimate diverged"):
+        p.material(np.array([800.0, 11.0, 0.0, 0.0]))
+    with pytest.raises(FloatingPointError, match="theta: expected finite"):
+        p.material(np.array([np.nan, 11.0, 0.0, 0.0]))
+
+
+def test_measurement_function_and_covariances():
+    rng = np.random.default_rng(4)
+    model = small_model(rng)
+    z = _state(model, rng)
+    H = model.H_jacobian(z, 0)
+    np.testing.assert_array_equal(model.hx(z, 0), H @ z)
+    assert model.hx(z.reshape(-1, 1), 0).shape == (model.dim_obs, 1)
+    np.testing.assert_array_equal(H[:, model.dim_x // 2:], 0.0)       # velocities and theta unobserved
+    # P0 of Eq. (34): block diagonal, P2 (kinematics-material cross-covariance) zero
+    nx = model.dim_x
+    np.testing.assert_array_equal(model.P0[:nx, nx:], 0.0)
+    for M in (model.P0, model.Q, model.R):
+        np.testing.assert_array_equal(M, M.T)
+        assert np.linalg.eigvalsh(M).min() >= 0
+    np.testing.assert_allclose(model.material_of(model.x0).E, model.material.E)
+    np.testing.assert_allclose(model.material_of(model.x0).nu, model.material.nu)
+
+
+def test_fixed_material_model_is_linear_kf():
+    rng = np.random.default_rng(6)
+    model = small_model(rng, estimate=None)
+    assert model.dim_state == model.dim_x and model.dim_theta == 0
+    z = _state(model, rng)
+    F = model.F_jacobian(z, 0)
+    w = model.system().input_matrix() @ model.dofmap.restrict(model.loads[1])
+    np.testing.assert_allclose(model.fx(z, 0), F @ z + w, atol=1e-12 * np.abs(F @ z).max())
+
+
+def test_bad_arguments_are_named():
+    rng = np.random.default_rng(0)
+    model = small_model(rng)
+    with pytest.raises(ValueError, match="z: expected a state of length"):
+        model.fx(np.zeros(3), 0)
+    with pytest.raises(ValueError, match=r"t: expected a frame index in \[0, 3\]"):
+        model.fx(model.x0, 4)
+    mesh = model.mesh
+    with pytest.raises(ValueError, match="loads: expected shape"):
+        SFEMModel(mesh, model.material, np.zeros((5, 3)), model.observation, 0.01, model.dofmap.fixed)
+    with pytest.raises(ValueError, match="frame_interval: expected a positive"):
+        SFEMModel(mesh, model.material, model.loads, model.observation, -1.0, model.dofmap.fixed)
+    with pytest.raises(ValueError, match="measurement_std: expected standard deviations > 0"):
+        SFEMModel(mesh, model.material, model.loads, model.observation, 0.01, model.dofmap.fixed,
+                  measurement_std=0.0)
+    with pytest.raises(ValueError, match="nu: expected Poisson's ratios"):
+        Material(np.ones(2), np.array([0.3, 0.5]))
+    with pytest.raises(ValueError, match="E: expected Young's moduli > 0"):
+        Material(np.array([1.0, -1.0]), np.array([0.3, 0.3]))

@@ -1,0 +1,162 @@
+"""Exact discretisation and exact sensitivities of the state-space model (Eqs. 9-16, 33)."""
+import numpy as np
+import pytest
+from hypothesis import given, settings, strategies as st
+from scipy.integrate import solve_ivp
+
+from sfem_filters import fem
+from sfem_filters.material import Material
+from sfem_filters.statespace import (ModalSystem, continuous_matrices, discretize_zoh,
+                                     divided_difference_exp, reference_sensitivity)
+
+from helpers import random_block_mesh, random_material, reduced_matrices, small_model, two_identical_squares
+
+
+def _element_directions(model, mat):
+    dKE, dKnu = fem.element_stiffness_derivatives(model.mesh, mat.E, mat.nu)
+    dirs = np.concatenate([dKE * mat.E[:, None, None], dKnu])
+    dofs = model.dofmap.free_index()[model.mesh.element_dofs]
+    return dirs, np.concatenate([dofs, dofs])
+
+
+def _dense_directions(model, dirs, dofs):
+    n = model.dofmap.n_free
+    out = []
+    for Ke, dd in zip(dirs, dofs):
+        G = np.zeros((n, n))
+        ok = dd >= 0
+        G[np.ix_(dd[ok], dd[ok])] = Ke[np.ix_(ok, ok)]
+        out.append(G)
+    return out
+
+
+def test_zoh_matches_fine_ode_integration():
+    """A x + B w from the block exponential equals a tight Runge-Kutta solution of M U'' + C U' + K U = w."""
+    rng = np.random.default_rng(3)
+    model = small_model(rng, estimate=None)
+    M, K = reduced_matrices(model)
+    C = 10.0 * M + 1e-3 * K
+    A_c, B_c = continuous_matrices(M, K, C)
+    T = 0.01
+    A, B = discretize_zoh(A_c, B_c, T)
+    n = M.shape[0]
+    x0 = np.concatenate([rng.standard_normal(n) * 1e-4, rng.standard_normal(n) * 1e-3])
+    w = rng.standard_normal(n) * 10
+    sol = solve_ivp(lambda t, x: A_c @ x + B_c @ w, (0, T), x0, method="DOP853", rtol=1e-12, atol=1e-16)
+    ode = sol.y[:, -1]
+    np.testing.assert_allclose(A @ x0 + B @ w, ode, rtol=1e-7, atol=1e-9 * np.abs(ode).max())
+    # and the modal route gives the same transition
+    system = ModalSystem(M, K, 10.0, 1e-3, T)
+    np.testing.assert_allclose(system.step(x0, w), ode, rtol=1e-7, atol=1e-9 * np.abs(ode).max())
+
+
+@settings(max_examples=15, deadline=None)
+@given(seed=st.integers(0, 10_000), alpha=st.floats(0.0, 50.0), beta=st.floats(0.0, 5e-3))
+def test_modal_system_equals_block_exponential(seed, alpha, beta):
+    """A, B and the step of ModalSystem agree with expm([[A_c, B_c], [0, 0]] T)."""
+    rng = np.random.default_rng(seed)
+    model = small_model(rng, estimate=None, alpha=alpha, beta=beta)
+    M, K = reduced_matrices(model)
+    A, B = discretize_zoh(*continuous_matrices(M, K, alpha * M + beta * K), 0.01)
+    system = ModalSystem(M, K, alpha, beta, 0.01)
+    np.testing.assert_allclose(system.transition_matrix(), A, atol=1e-9 * np.abs(A).max())
+    np.testing.assert_allclose(system.input_matrix(), B, atol=1e-9 * np.abs(B).max())
+    x = rng.standard_normal(2 * M.shape[0])
+    w = rng.standard_normal(M.shape[0])
+    ref = A @ x + B @ w
+    np.testing.assert_allclose(system.step(x, w), ref, atol=1e-10 * np.abs(ref).max())
+
+
+def _check_sensitivity(model, alpha, beta, rng, rtol=1e-8):
+    mat = model.material
+    M, K = reduced_matrices(model, mat)
+    system = ModalSystem(M, K, alpha, beta, model.frame_interval)
+    dirs, dofs = _element_directions(model, mat)
+    n = M.shape[0]
+    x = np.concatenate([rng.standard_normal(n) * 1e-3, rng.standard_normal(n) * 1e-2])
+    w = rng.standard_normal(n) * 5
+    fast = system.sensitivity(x, w, dirs, dofs)
+    ref = reference_sensitivity(M, K, alpha, beta, model.frame_interval, x, w,
+                                _dense_directions(model, dirs, dofs))
+    err = np.abs(fast - ref).max() / np.abs(ref).max()
+    assert err < rtol, err
+    return system
+
+
+@settings(max_examples=10, deadline=None)
+@given(seed=st.integers(0, 10_000), alpha=st.floats(0.0, 50.0), beta=st.floats(1e-5, 5e-3))
+def test_modal_sensitivity_matches_expm_frechet(seed, alpha, beta):
+    """Daleckii-Krein M_t equals one expm_frechet per parameter, to 1e-8 relative."""
+    rng = np.random.default_rng(seed)
+    model = small_model(rng, estimate=None, alpha=alpha, beta=beta)
+    _check_sensitivity(model, alpha, beta, rng)
+
+
+def test_sensitivity_with_exactly_repeated_eigenvalues():
+    """Two identical disconnected bodies: every eigenvalue is double; divided differences stay exact."""
+    rng = np.random.default_rng(0)
+    mesh = two_identical_squares()
+    n_half = mesh.n_elements // 2
+    E = rng.uniform(5e4, 1e5, n_half)
+    nu = rng.uniform(0.3, 0.45, n_half)
+    model = small_model(rng, mesh=mesh, estimate=None,
+                        material=Material(np.tile(E, 2), np.tile(nu, 2)))
+    system = _check_sensitivity(model, 10.0, 1e-3, rng)
+    w2 = np.sort(system.w2)
+    np.testing.assert_allclose(w2[0::2], w2[1::2], rtol=1e-9)
+
+
+def test_sensitivity_at_critical_damping():
+    """A mode damped exactly critically (defective 2x2 block) takes the block-exponential route."""
+    rng = np.random.default_rng(1)
+    model = small_model(rng, estimate=None)
+    M, K = reduced_matrices(model)
+    w = np.sqrt(ModalSystem(M, K, 0.0, 0.0, 0.01).w2[2])
+    alpha = 10.0
+    beta = (2 * w - alpha) / w ** 2          # c = alpha + beta w^2 = 2 w
+    system = _check_sensitivity(model, alpha, beta, rng)
+    assert system.critical.sum() >= 1
+
+
+def test_sensitivity_near_incompressible():
+    """nu close to 0.5 (stiff volumetric modes, heavily overdamped) stays exact."""
+    rng = np.random.default_rng(2)
+    mesh = random_block_mesh(rng)
+    mat = Material(np.full(mesh.n_elements, 7.5e4), np.full(mesh.n_elements, 0.4995))
+    model = small_model(rng, mesh=mesh, estimate=None, material=mat)
+    _check_sensitivity(model, 10.0, 1e-3, rng, rtol=1e-7)
+
+
+def test_singular_stiffness_is_rejected():
+    """Without fixed dofs the body floats: a clear error, not NaNs."""
+    rng = np.random.default_rng(0)
+    mesh = random_block_mesh(rng)
+    mat = random_material(rng, mesh.n_elements)
+    K = fem.stiffness_matrix(mesh, mat.E, mat.nu).toarray()
+    M = fem.mass_matrix(mesh, 1000.0).toarray()
+    with pytest.raises(ValueError, match="K: expected a positive definite stiffness"):
+        ModalSystem(M, K, 1.0, 1e-3, 0.01)
+
+
+def test_frame_interval_must_be_positive():
+    with pytest.raises(ValueError, match="T: expected a positive"):
+        ModalSystem(np.eye(2), np.eye(2), 0.0, 0.0, 0.0)
+
+
+@settings(max_examples=50, deadline=None)
+@given(re=st.floats(-50, 0), im=st.floats(-50, 50), dre=st.floats(-1e-6, 1e-6), dim=st.floats(-1e-6, 1e-6))
+def test_divided_difference_of_exp_is_stable(re, im, dre, dim):
+    """(e^a - e^b)/(a - b) for nearly equal complex a, b tends to e^a without cancellation."""
+    a = complex(re, im)
+    b = a + complex(dre, dim)
+    got = divided_difference_exp(a, b)
+    # Taylor about the midpoint: e^m (1 + d^2/6), d = (a - b)/2
+    m, d = (a + b) / 2, (a - b) / 2
+    expected = np.exp(m) * (1 + d * d / 6)
+    assert abs(got - expected) <= 1e-13 * max(abs(expected), 1e-300)
+
+
+def test_divided_difference_far_apart():
+    a, b = -3.0 + 2.0j, -0.5 - 1.0j
+    np.testing.assert_allclose(divided_difference_exp(a, b), (np.exp(a) - np.exp(b)) / (a - b), rtol=1e-14)
+    assert divided_difference_exp(-800.0, -1.0) == pytest.approx((0 - np.exp(-1.0)) / (-799.0), rel=1e-14)
