@@ -61,8 +61,8 @@ def check_material(E, nu, n: int | None = None):
     E = as_float_array("E", E, shape=None if n is None else (n,))
     nu = as_float_array("nu", nu, shape=None if n is None else (n,))
     if np.any(E <= 0):
-        raise ValueError(f"E: expected Young's moduli > 0 Pa, got minimum {E.min()!r}")
+        raise ValueError(f"E: expected Young's moduli > 0 Pa, got minimum {float(E.min())!r}")
     if np.any((nu <= 0) | (nu >= 0.5)):
         bad = nu[(nu <= 0) | (nu >= 0.5)]
-        raise ValueError(f"nu: expected Poisson's ratios in the open interval (0, 0.5), got {bad[0]!r}")
+        raise ValueError(f"nu: expected Poisson's ratios in the open interval (0, 0.5), got {float(bad[0])!r}")
     return E, nu

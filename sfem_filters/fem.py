@@ -140,7 +140,8 @@ def element_stiffness_derivatives(mesh: TriMesh, E, nu, thickness: float = 1.0):
     derivative of Eq. (4). Each is (n_elements, 6, 6); the global derivative with respect
     to the parameter of element e is element e's matrix scattered alone.
     """
-    E, nu = check_material(E, nu, mesh.n_elements)
+    E, nu = check_material(np.broadcast_to(E, (mesh.n_elements,)),
+                           np.broadcast_to(nu, (mesh.n_elements,)), mesh.n_elements)
     dKdE = element_stiffness(mesh, plane_strain_matrix(1.0, nu), thickness)
     dKdnu = element_stiffness(mesh, plane_strain_matrix_dnu(E, nu), thickness)
     return dKdE, dKdnu
@@ -259,9 +260,12 @@ def penalty_stiffness(n_dofs: int, dofs, stiffness: float, confidence=1.0) -> sp
 
 def penalty_load(n_dofs: int, dofs, stiffness: float, targets, confidence=1.0) -> np.ndarray:
     """Load ``k * c_i * b_i`` (N) that pulls the penalised dofs towards ``targets`` (m)."""
+    positive("stiffness", stiffness, "N/m")
     dofs = np.asarray(dofs, np.int64).ravel()
     b = as_float_array("targets", targets, shape=dofs.shape)
     c = np.broadcast_to(as_float_array("confidence", confidence), dofs.shape)
+    if np.any((c < 0) | (c > 1)):
+        raise ValueError("confidence: expected values in [0, 1]")
     out = np.zeros(n_dofs)
     np.add.at(out, dofs, stiffness * c * b)
     return out

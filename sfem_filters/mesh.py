@@ -14,7 +14,7 @@ from scipy.spatial import Delaunay
 from ._validate import as_float_array, positive
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class TriMesh:
     """A 2D mesh of linear triangles.
 
@@ -24,7 +24,8 @@ class TriMesh:
         Node coordinates in metres.
     elements : (n_elements, 3) array of int
         Node indices of each triangle. Clockwise triangles are reoriented to
-        counter-clockwise; degenerate triangles and duplicate nodes are rejected.
+        counter-clockwise; degenerate triangles, duplicate nodes and nodes that belong to no
+        triangle are rejected. Meshes compare by identity.
     """
 
     nodes: np.ndarray
@@ -52,6 +53,10 @@ class TriMesh:
         if np.any((elements[:, 0] == elements[:, 1]) | (elements[:, 1] == elements[:, 2])
                   | (elements[:, 0] == elements[:, 2])):
             raise ValueError("elements: a triangle repeats a node index")
+        unused = np.setdiff1d(np.arange(len(nodes)), elements)
+        if unused.size:
+            raise ValueError(f"nodes: node {int(unused[0])} belongs to no triangle "
+                             f"({unused.size} unused nodes); drop them")
         rounded = np.round(nodes / max(np.ptp(nodes), 1e-300), 12)
         if len(np.unique(rounded, axis=0)) != len(nodes):
             raise ValueError("nodes: expected distinct node coordinates, got duplicate nodes")
@@ -168,7 +173,7 @@ def triangle_angles(mesh: TriMesh) -> np.ndarray:
     """Interior angles of every triangle in degrees, shape (n_elements, 3)."""
     p = mesh.nodes[mesh.elements]
     out = np.empty((mesh.n_elements, 3))
-    for k in range(3):
+    for k in range(3):  # the angle at vertex k
         u = p[:, (k + 1) % 3] - p[:, k]
         v = p[:, (k + 2) % 3] - p[:, k]
         cosang = np.sum(u * v, axis=1) / (np.linalg.norm(u, axis=1) * np.linalg.norm(v, axis=1))
@@ -216,28 +221,49 @@ def delaunay_mesh(points, keep=None, min_angle_deg: float = 5.0) -> TriMesh:
         raise ValueError(f"points: expected at least 3 points, got {len(pts)}")
     if len(np.unique(pts, axis=0)) != len(pts):
         raise ValueError("points: expected distinct points, got duplicates")
-    tri = Delaunay(pts).simplices
+    min_angle_deg = float(min_angle_deg)
+    if not 0 <= min_angle_deg < 60:
+        raise ValueError(f"min_angle_deg: expected an angle in [0, 60) degrees, got {min_angle_deg!r}")
+    try:
+        tri = Delaunay(pts).simplices
+    except Exception as exc:  # scipy's QhullError: all points collinear, or too few distinct
+        raise ValueError(f"points: cannot be triangulated (collinear or degenerate point set): {exc}") from None
     if keep is not None:
         tri = tri[np.asarray(keep(pts[tri].mean(axis=1)), bool)]
+    scale = max(np.ptp(pts[:, 0]), np.ptp(pts[:, 1])) ** 2
     while True:
         if len(tri) == 0:
-            raise ValueError("keep: no triangle is left inside the tissue")
-        angles = triangle_angles(TriMesh(pts, tri)).min(axis=1) if len(tri) else np.zeros(0)
-        bad = angles < min_angle_deg
+            raise ValueError("keep: no triangle is left inside the tissue" if keep is not None else
+                             "points: no triangle of acceptable quality is left")
+        flat = np.abs(_signed_double_area(pts, tri)) <= 1e-12 * scale
+        angles = np.where(flat, 0.0, _min_angles(pts, tri))
+        bad = flat | (angles < min_angle_deg)
         if not bad.any():
             break
-        # Slivers on the convex hull are artefacts of Delaunay: peel them off while they touch
-        # the boundary; a sliver inside the tissue is a real quality problem.
-        on_boundary = _touches_boundary(tri)
-        if np.any(bad & ~on_boundary):
+        # Slivers and flat triangles on the hull are artefacts of Delaunay: peel those that
+        # touch the boundary, layer by layer; a bad triangle that never reaches the boundary
+        # lies inside the tissue and is a real quality problem.
+        peel = bad & _touches_boundary(tri)
+        if not peel.any():
             raise ValueError(
                 f"points: the triangulation has an interior triangle with a {angles[bad].min():.2f} "
                 f"degree angle (min_angle_deg={min_angle_deg}); add or move points")
-        tri = tri[~bad]
+        tri = tri[~peel]
     used = np.unique(tri)
     remap = -np.ones(len(pts), np.int64)
     remap[used] = np.arange(len(used))
     return TriMesh(pts[used], remap[tri])
+
+
+def _min_angles(nodes: np.ndarray, tri: np.ndarray) -> np.ndarray:
+    p = nodes[tri]
+    out = np.full(len(tri), 180.0)
+    for k in range(3):
+        u = p[:, (k + 1) % 3] - p[:, k]
+        v = p[:, (k + 2) % 3] - p[:, k]
+        cosang = np.sum(u * v, axis=1) / (np.linalg.norm(u, axis=1) * np.linalg.norm(v, axis=1))
+        out = np.minimum(out, np.degrees(np.arccos(np.clip(cosang, -1.0, 1.0))))
+    return out
 
 
 def _touches_boundary(tri: np.ndarray) -> np.ndarray:

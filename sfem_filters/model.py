@@ -32,7 +32,7 @@ def _std_vector(name: str, value, n: int, unit: str) -> np.ndarray:
     v = np.broadcast_to(as_float_array(name, value), (n,)) if np.ndim(value) == 0 else \
         as_float_array(name, value, shape=(n,))
     if np.any(v <= 0):
-        raise ValueError(f"{name}: expected standard deviations > 0 {unit}, got minimum {v.min()!r}")
+        raise ValueError(f"{name}: expected standard deviations > 0 {unit}, got minimum {float(v.min())!r}")
     return np.array(v, float)
 
 

@@ -57,7 +57,7 @@ def displacement_maps(comp: Comparison, path: str, frames=(1, 5, 9, 13)):
 
 
 def strain_maps(comp: Comparison, path: str, frame: int = REPORT_FRAME):
-    """Vertical normal strain e_yy at one frame (relative to frame 1): truth and strategies."""
+    """Vertical normal strain e_yy at one frame (w.r.t. frame 1): truth and strategies."""
     plt = _plt()
     rows = list(_fields(comp))
     vals = [S[frame - 1, :, 1] for _, _, S in rows]

@@ -136,6 +136,73 @@ def divided_difference_exp(a, b):
     return np.where(close, near, direct)
 
 
+def modal_exponentials(w2, c, T: float):
+    """Exact per-mode transition and held-input response of ``q'' + c q' + w^2 q = f``.
+
+    Parameters
+    ----------
+    w2 : (N,) array
+        Squared natural frequencies in 1/s^2 (> 0).
+    c : (N,) array
+        Modal damping in 1/s.
+    T : float
+        Interval in s.
+
+    Returns
+    -------
+    E : (N, 2, 2) array
+        ``e^{S T}`` with ``S = [[0, 1], [-w^2, -c]]``.
+    g : (N, 2) array
+        ``int_0^T e^{S s} ds e_2``, the response to a unit modal force held over T.
+
+    Notes
+    -----
+    With ``sigma = c/2``, ``d = sqrt(sigma^2 - w^2)`` (complex when underdamped) and the
+    exponents ``mu1 = d - sigma = -w^2 / (sigma + d)`` (computed without cancellation) and
+    ``mu2 = -(sigma + d)``, ``e^{S t} = (e^{mu1 t}(S - mu2 I) - e^{mu2 t}(S - mu1 I)) / (2 d)``.
+    Modes with ``|d T| < 1`` (close to critical damping, where that quotient cancels) are
+    exponentiated by scipy's ``expm`` instead.
+    """
+    w2 = np.asarray(w2, float)
+    c = np.asarray(c, float)
+    sig = c / 2.0
+    d = np.sqrt((sig ** 2 - w2).astype(complex))
+    mu1 = -w2 / (sig + d)
+    mu2 = -(sig + d)
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        e1, e2 = np.exp(mu1 * T), np.exp(mu2 * T)
+        two_d = 2.0 * d
+        E = np.empty((len(w2), 2, 2))
+        E[:, 0, 0] = ((e1 * (-mu2) - e2 * (-mu1)) / two_d).real
+        E[:, 0, 1] = ((e1 - e2) / two_d).real
+        E[:, 1, 0] = (-w2 * (e1 - e2) / two_d).real
+        E[:, 1, 1] = ((e1 * mu1 - e2 * mu2) / two_d).real
+        # int_0^T e^{mu s} ds = T * expm1(mu T) / (mu T), stable for small mu T
+        g = np.empty((len(w2), 2))
+        g[:, 0] = ((_phi1(mu1, T) - _phi1(mu2, T)) / two_d).real
+        g[:, 1] = E[:, 0, 1]
+    near = np.abs(d * T) < 1.0
+    if near.any():
+        k = np.flatnonzero(near)
+        S = np.zeros((len(k), 3, 3))
+        S[:, 0, 1] = T
+        S[:, 1, 0] = -w2[k] * T
+        S[:, 1, 1] = -c[k] * T
+        S[:, 1, 2] = T
+        ES = expm(S)
+        E[k] = ES[:, :2, :2]
+        g[k] = ES[:, :2, 2]
+    return E, g
+
+
+def _phi1(mu, T):
+    """int_0^T e^{mu s} ds for complex mu, without cancellation near mu = 0."""
+    z = mu * T
+    small = np.abs(z) < 1e-5
+    zs = np.where(small, 1.0, z)
+    return T * np.where(small, 1.0 + z / 2.0 + z * z / 6.0, np.expm1(zs) / zs)
+
+
 class ModalSystem:
     """Exact zero-order-hold dynamics of ``M U'' + (alpha M + beta K) U' + K U = R`` in modes.
 
@@ -156,8 +223,8 @@ class ModalSystem:
     With ``K Phi = M Phi diag(w^2)``, ``Phi^T M Phi = I``, the modal coordinates
     ``q = Phi^T M U`` obey ``q_i'' + c_i q_i' + w_i^2 q_i = phi_i^T R`` with
     ``c_i = alpha + beta w_i^2``. Each mode's exact transition ``E_i = e^{S_i T}`` and
-    held-input response ``g_i = int_0^T e^{S_i s} ds e_2`` come from one batched 3 x 3
-    exponential, ``S_i = [[0, 1], [-w_i^2, -c_i]]``.
+    held-input response ``g_i = int_0^T e^{S_i s} ds e_2``, ``S_i = [[0, 1], [-w_i^2, -c_i]]``,
+    are closed forms (:func:`modal_exponentials`).
     """
 
     #: modes whose two eigenvalues are closer than this (relative) are near critical damping;
@@ -181,15 +248,7 @@ class ModalSystem:
         self.Phi = Phi
         self.PhiTM = Phi.T @ M
         self.c = self.alpha + self.beta * w2
-        N = len(w2)
-        S = np.zeros((N, 3, 3))
-        S[:, 0, 1] = T
-        S[:, 1, 0] = -w2 * T
-        S[:, 1, 1] = -self.c * T
-        S[:, 1, 2] = T
-        ES = expm(S)
-        self.E = ES[:, :2, :2]          # per-mode transition e^{S_i T}
-        self.g = ES[:, :2, 2]           # per-mode response to a unit held modal force
+        self.E, self.g = modal_exponentials(w2, self.c, self.T)
         # Eigenvalues of each S_i: lam1 = -c/2 - sqrt(c^2/4 - w^2) (the larger in modulus),
         # lam2 = w^2 / lam1 (their product is w^2): no cancellation when overdamped.
         sig = self.c / 2.0

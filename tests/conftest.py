@@ -12,7 +12,11 @@ from sfem_filters.mesh import delaunay_mesh
 # (used by test_mesh.py, test_fem.py, test_strain_statistics.py)
 # ---------------------------------------------------------------------------
 
-LATTICE_STEP_M = 1e-3  # lattice spacing of the random point clouds: 1 mm
+# Lattice spacing of the random point clouds, about 1 mm. A power of two keeps lattice
+# coordinates exact, so collinear points stay exactly collinear: with decimal steps (1e-3 m)
+# round-off makes them nearly collinear and scipy's Delaunay can return a zero-area hull
+# triangle, which delaunay_mesh rejects (see test_mesh.py::test_delaunay_nearly_collinear_hull).
+LATTICE_STEP_M = 2.0 ** -10
 
 
 def _not_collinear(coords) -> bool:
@@ -22,7 +26,7 @@ def _not_collinear(coords) -> bool:
 
 @st.composite
 def lattice_point_clouds(draw, min_points=4, max_points=30, extent=40):
-    """Distinct, not-all-collinear points on a 1 mm integer lattice (metres).
+    """Distinct, not-all-collinear points on a ~1 mm integer lattice (metres).
 
     Lattice points make exact collinearity and cocircularity likely (hard cases for
     Delaunay) while keeping every non-degenerate triangle's area far above round-off.
@@ -36,7 +40,7 @@ def lattice_point_clouds(draw, min_points=4, max_points=30, extent=40):
 
 @st.composite
 def jittered_grid_meshes(draw, max_nodes_per_side=6):
-    """Delaunay mesh of a randomly jittered grid (metres, a few cm across), good quality."""
+    """Delaunay mesh of a rectangle grid with randomly jittered interior nodes (metres, a few cm)."""
     nx = draw(st.integers(3, max_nodes_per_side))
     ny = draw(st.integers(3, max_nodes_per_side))
     width = draw(st.floats(0.005, 0.05))
@@ -46,7 +50,10 @@ def jittered_grid_meshes(draw, max_nodes_per_side=6):
     rng = np.random.default_rng(seed)
     X, Y = np.meshgrid(np.linspace(0.0, width, nx), np.linspace(0.0, height, ny))
     pts = np.column_stack([X.ravel(), Y.ravel()])
-    pts += jitter * rng.uniform(-1.0, 1.0, pts.shape) * np.array([width / (nx - 1), height / (ny - 1)])
+    interior = ((X > 0) & (X < width) & (Y > 0) & (Y < height)).ravel()
+    # Only interior nodes move, so the outline stays a rectangle (no hull slivers to peel).
+    step = np.array([width / (nx - 1), height / (ny - 1)])
+    pts[interior] += jitter * rng.uniform(-1.0, 1.0, (interior.sum(), 2)) * step
     return delaunay_mesh(pts, min_angle_deg=1.0)
 
 

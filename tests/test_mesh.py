@@ -191,8 +191,14 @@ def test_trimesh_rejects_fractional_element_indices():
     """Non-integer node indices are a TypeError naming `elements`; integral floats are accepted."""
     with pytest.raises(TypeError, match="elements: expected an integer array"):
         TriMesh(UNIT_SQUARE, [[0, 1, 2.5]])
-    mesh = TriMesh(UNIT_SQUARE, np.array([[0.0, 1.0, 2.0]]))
+    mesh = TriMesh(UNIT_SQUARE, np.array([[0.0, 1.0, 2.0], [0.0, 2.0, 3.0]]))
     assert mesh.elements.dtype.kind == "i"
+
+
+def test_trimesh_rejects_unused_nodes():
+    """A node outside every triangle would make K singular: an error naming `nodes`."""
+    with pytest.raises(ValueError, match="nodes: node 3 belongs to no triangle"):
+        TriMesh(UNIT_SQUARE, [[0, 1, 2]])
 
 
 def test_trimesh_rejects_non_numeric_nodes():
@@ -232,7 +238,7 @@ def test_delaunay_covers_convex_hull(points):
     area = signed_areas(mesh.nodes, mesh.elements)
     assert np.all(area > 0)
     assert area.sum() == pytest.approx(ConvexHull(points).volume, rel=1e-9)
-    # every output node is one of the input points
+    # the very triangles of scipy's Delaunay, none dropped or altered
     assert triangle_set(mesh.nodes, mesh.elements) == triangle_set(points, Delaunay(points).simplices)
     assert_boundary_outward(mesh)
     assert_boundary_closed(mesh)
@@ -272,20 +278,35 @@ def test_delaunay_meets_min_angle(mesh):
 
 
 def test_delaunay_peels_hull_slivers():
-    """A nearly flat triangle on the hull is removed, the rest is kept."""
-    pts = np.array([[0, 0], [1, 0], [1, 1], [0, 1], [0.5, 1.01]])
+    """A nearly flat Delaunay triangle on the hull is removed, the rest is kept."""
+    pts = np.array([[0, 0], [1, 0], [1, 1], [0, 1], [0.5, 0.99]]) * 0.01
     full = delaunay_mesh(pts, min_angle_deg=0.0)
     peeled = delaunay_mesh(pts, min_angle_deg=5.0)
+    assert triangle_angles(full).min() < 5.0
     assert peeled.n_elements == full.n_elements - 1
     assert triangle_angles(peeled).min() >= 5.0
-    assert peeled.areas.sum() == pytest.approx(1.0)
+    assert peeled.areas.sum() == pytest.approx(0.995e-4)          # square minus the sliver
+
+
+def test_delaunay_peels_nested_hull_slivers():
+    """Two stacked slivers along a slightly concave straight side are both peeled (docstring:
+    'peel them off while they touch the boundary')."""
+    pts = np.array([[0, 0], [0, 1], [0.5, 0], [0.5, 1], [0.5, 0.5],
+                    [1, 0], [1, 1], [0.995, 0.4], [0.99, 0.6]]) * 0.01
+    mesh = delaunay_mesh(pts)
+    assert triangle_angles(mesh).min() >= 5.0
 
 
 def test_delaunay_rejects_interior_sliver():
     """A sliver inside the tissue is an error that names `points` and min_angle_deg."""
-    pts = np.array([[0, 0], [1, 0], [0.5, 1], [0.5, 0.02]])
-    with pytest.raises(ValueError, match=r"points: the triangulation has an interior triangle.*min_angle_deg=5"):
-        delaunay_mesh(pts, keep=lambda c: c[:, 1] > 0.005)
+    inner = np.radians([0, 1, 90, 180, 270])            # two points 1 degree apart on a circle
+    outer = np.radians(np.arange(8) * 45 + 22.5)
+    pts = 0.01 * np.vstack([np.column_stack([np.cos(inner), np.sin(inner)]),
+                            3 * np.column_stack([np.cos(outer), np.sin(outer)])])
+    with pytest.raises(ValueError, match=r"points: the triangulation has an interior triangle "
+                                         r"with a 0\.\d+ degree angle \(min_angle_deg=5\.0\)"):
+        delaunay_mesh(pts)
+    assert delaunay_mesh(pts, min_angle_deg=0.1).n_nodes == len(pts)
 
 
 @pytest.mark.parametrize("points, match", [
@@ -307,9 +328,15 @@ def test_delaunay_keep_everything_removed():
         delaunay_mesh(pts, keep=lambda c: np.zeros(len(c), bool))
 
 
-@pytest.mark.xfail(raises=QhullError, strict=True,
-                   reason="library bug: collinear points raise scipy's QhullError, not a ValueError naming points")
 def test_delaunay_rejects_collinear_points():
     """All-collinear points cannot be triangulated: expect a ValueError naming `points`."""
     with pytest.raises(ValueError, match="points"):
         delaunay_mesh(np.array([[0.0, 0.0], [0.01, 0.0], [0.02, 0.0]]))
+
+
+def test_delaunay_nearly_collinear_hull():
+    """Three collinear hull points given in metres (1 mm lattice): Delaunay returns a flat hull
+    triangle, which is a sliver and should be peeled, leaving the two real triangles."""
+    pts = np.array([[-0.075, 0.017], [-0.073, 0.023], [-0.068, 0.038], [-0.064, 0.0]])
+    mesh = delaunay_mesh(pts)
+    assert mesh.areas.sum() == pytest.approx(ConvexHull(pts).volume)

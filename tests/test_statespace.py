@@ -160,3 +160,21 @@ def test_divided_difference_far_apart():
     a, b = -3.0 + 2.0j, -0.5 - 1.0j
     np.testing.assert_allclose(divided_difference_exp(a, b), (np.exp(a) - np.exp(b)) / (a - b), rtol=1e-14)
     assert divided_difference_exp(-800.0, -1.0) == pytest.approx((0 - np.exp(-1.0)) / (-799.0), rel=1e-14)
+
+
+@settings(max_examples=60, deadline=None)
+@given(w=st.floats(1e-2, 1e5), zeta=st.floats(0.0, 1e3), T=st.floats(1e-4, 0.1))
+def test_modal_exponentials_closed_form_against_expm(w, zeta, T):
+    """Closed-form 2x2 exponentials and held-input responses equal expm of [[S, e2], [0, 0]] T,
+    from undamped through critical to heavily overdamped modes."""
+    from scipy.linalg import expm
+    from sfem_filters.statespace import modal_exponentials
+    c = 2 * zeta * w
+    E, g = modal_exponentials(np.array([w * w]), np.array([c]), T)
+    X = np.array([[0, 1, 0], [-w * w, -c, 1], [0, 0, 0]]) * T
+    ref = expm(X)
+    # expm is accurate relative to the norm of the block matrix (about 1 and w^2 T), so the
+    # comparison is relative per entry with absolute floors at that scale.
+    floor = 1e-13 * np.array([[1, T, T * T], [w * w * T, 1, T]])
+    got = np.column_stack([E[0], g[0]])
+    assert np.all(np.abs(got - ref[:2]) <= 1e-9 * np.abs(ref[:2]) + floor), (got, ref[:2])
