@@ -34,26 +34,26 @@ def as_float_array(name: str, value, shape=None, finite: bool = True) -> np.ndar
     return arr
 
 
-def positive(name: str, value: float, unit: str = "") -> float:
-    """Check a positive finite scalar."""
+def _scalar(name: str, value, unit: str, strict: bool) -> float:
+    what = "positive" if strict else "non-negative"
+    where = f" in {unit}" if unit else ""
     try:
         v = float(value)
     except (TypeError, ValueError):
-        raise TypeError(f"{name}: expected a positive number{unit and ' in ' + unit}, got {value!r}") from None
-    if not np.isfinite(v) or v <= 0:
-        raise ValueError(f"{name}: expected a positive finite number{unit and ' in ' + unit}, got {value!r}")
+        raise TypeError(f"{name}: expected a {what} number{where}, got {value!r}") from None
+    if not np.isfinite(v) or v < 0 or (strict and v == 0):
+        raise ValueError(f"{name}: expected a {what} finite number{where}, got {value!r}")
     return v
+
+
+def positive(name: str, value: float, unit: str = "") -> float:
+    """Check a positive finite scalar (``unit`` only labels the message)."""
+    return _scalar(name, value, unit, strict=True)
 
 
 def non_negative(name: str, value: float, unit: str = "") -> float:
-    """Check a non-negative finite scalar."""
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise TypeError(f"{name}: expected a non-negative number{unit and ' in ' + unit}, got {value!r}") from None
-    if not np.isfinite(v) or v < 0:
-        raise ValueError(f"{name}: expected a non-negative finite number{unit and ' in ' + unit}, got {value!r}")
-    return v
+    """Check a non-negative finite scalar (``unit`` only labels the message)."""
+    return _scalar(name, value, unit, strict=False)
 
 
 def check_material(E, nu, n: int | None = None):
