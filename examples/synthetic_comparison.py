@@ -34,6 +34,6 @@ for strategy in STRATEGIES:
     ks = ks_test(truth_eyy, eyy)
     line = f"{strategy:<11} loops={result.loops:<3d} KS D={ks.D:.4f} p={ks.p_asymptotic:.4f} H={ks.H}"
     if model.estimates_material:
-        E = model.material_of(np.concatenate([np.zeros(model.dim_x), result.theta])).E
+        E = model.material_of_theta(result.theta).E
         line += f"  mean E middle {E[bench.middle].mean() / 1e3:.1f} kPa (true 105), outside {E[~bench.middle].mean() / 1e3:.1f} kPa (true 75)"
     print(line)

@@ -56,6 +56,28 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--checkpoint-dir", metavar="DIR",
                    help="save the joint EKF after every loop and resume from there if interrupted")
     c.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+    d = sub.add_parser("dense", help="close the loop on measured point-wise motion (DENSE, tagging, tracking)",
+                       description="Baseline joint EKF on a sequence file, residual diagnostics, ranking of "
+                                   "candidate missing effects, extended run, held-out errors before and after.")
+    d.add_argument("path", help="sequence .npz file (see the README for the format); 'example' for the "
+                                "shipped DENSE slice")
+    d.add_argument("--effects", default="auto",
+                   help="none, auto (the best-scoring effect) or a comma list of: "
+                        "active_polar, active_circumferential, active_radial, active_transmural, dilatation, "
+                        "cavity_pressure (default auto)")
+    d.add_argument("--drive", choices=("penalty", "pressure", "none"), default="penalty",
+                   help="what drives the model besides its effects (default penalty)")
+    d.add_argument("--landmarks", type=_positive_int, default=8, help="observed landmarks per contour (default 8)")
+    d.add_argument("--observe", choices=("boundary", "boundary+midwall"), default="boundary",
+                   help="observe the landmarks only, or also a seeded half of the mid-wall points")
+    d.add_argument("--holdout-seed", type=int, default=0, help="seed of the mid-wall split (default 0)")
+    d.add_argument("--material", choices=("region", "element", "none"), default="region",
+                   help="material parameterisation: 12 regions (default), per element, or fixed")
+    d.add_argument("--max-loops", type=_positive_int, default=3, help="cyclic loop limit (default 3)")
+    d.add_argument("--json", metavar="PATH", help="write the report as JSON")
+    d.add_argument("--figures", metavar="DIR", help="write the figures (PNG) into DIR")
+    d.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p
 
 
@@ -73,18 +95,39 @@ def cmd_compare(args) -> int:
                 print(f"wrote {path}", file=sys.stderr)
     print(format_table(comps))
     if args.json:
-        payload = comps[0].as_json() if len(comps) == 1 else [c.as_json() for c in comps]
-        os.makedirs(os.path.dirname(os.path.abspath(args.json)), exist_ok=True)
-        with open(args.json, "w") as f:
-            json.dump(payload, f, indent=2)
-        print(f"wrote {args.json}", file=sys.stderr)
+        _write_json(args.json, comps[0].as_json() if len(comps) == 1 else [c.as_json() for c in comps])
     return 0
+
+
+def cmd_dense(args) -> int:
+    from .dense import closing_the_loop, format_report
+    from .datasets import example_path, load_sequence
+    seq = load_sequence(example_path() if args.path == "example" else args.path)
+    effects = args.effects
+    out = closing_the_loop(seq, effects=effects, drive=args.drive, landmarks=args.landmarks, observe=args.observe,
+                           holdout_seed=args.holdout_seed, estimate=args.material, max_loops=args.max_loops,
+                           progress=not args.no_progress)
+    print(format_report(out["report"]))
+    if args.figures:
+        from .plotting import dense_figures
+        for path in dense_figures(out, args.figures):
+            print(f"wrote {path}", file=sys.stderr)
+    if args.json:
+        _write_json(args.json, out["report"])
+    return 0
+
+
+def _write_json(path, payload):
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    with open(path, "w") as f:
+        json.dump(payload, f, indent=2)
+    print(f"wrote {path}", file=sys.stderr)
 
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     try:
-        return {"compare": cmd_compare}[args.command](args)
+        return {"compare": cmd_compare, "dense": cmd_dense}[args.command](args)
     except (ValueError, TypeError, OSError) as exc:
         print(f"sfem-filters {args.command}: error: {exc}", file=sys.stderr)
         return 2

@@ -69,7 +69,7 @@ def evaluate(bench: Benchmark, model: SFEMModel, result: CyclicResult, seconds: 
         "seconds": float(seconds),
     }
     if model.estimates_material:
-        mat = model.material_of(np.concatenate([np.zeros(model.dim_x), result.theta]))
+        mat = model.material_of_theta(result.theta)
         true = bench.true_material
         eE = np.abs(mat.E - true.E) / true.E
         enu = np.abs(mat.nu - true.nu) / true.nu

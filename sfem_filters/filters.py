@@ -1,8 +1,9 @@
 """Filtering with a model object: the filterpy plug-in and cyclic (periodic) estimation.
 
 This module knows nothing of meshes: it talks to a model through ``fx``, ``F_jacobian``,
-``hx``, ``H_jacobian``, ``Q``, ``R``, ``x0``, ``P0``, ``dim_x`` (kinematic part of the state),
-``dim_state``, ``dim_obs``, ``n_frames``, ``estimates_material`` and ``material_of``.
+``hx``, ``H_jacobian``, ``Q``, ``R``, ``x0``, ``P0``, ``n_restart`` (the leading part of the
+state restarted every loop: kinematics and effect states), ``dim_state``, ``dim_obs``,
+``n_frames``, ``estimates_material`` and ``material_of_theta``.
 
 Two engines run the same filter:
 
@@ -24,7 +25,7 @@ from filterpy.kalman import ExtendedKalmanFilter
 
 from ._validate import as_float_array
 
-CHECKPOINT_FORMAT = 1
+CHECKPOINT_FORMAT = 2
 
 
 class SFEMExtendedKalmanFilter(ExtendedKalmanFilter):
@@ -48,6 +49,11 @@ class SFEMExtendedKalmanFilter(ExtendedKalmanFilter):
         t = int(u)
         self.F = self.model.F_jacobian(self.x, t)
         self.x = self.model.fx(self.x, t)
+
+    def predict_update(self, z, HJacobian, Hx, args=(), hx_args=(), u=0):
+        """``predict(u)`` then ``update(z, ...)``: filterpy's own version would use F x, not fx."""
+        self.predict(u)
+        self.update(z, HJacobian, Hx, args=args, hx_args=hx_args)
 
 
 class FilterpyEngine:
@@ -103,7 +109,7 @@ class StructuredEngine:
 
     def predict(self, t):
         m = self.model
-        nx = m.dim_x
+        nx = m.n_restart        # F = [[A', M'], [0, I]] with A' over kinematics and effect states
         F = m.F_jacobian(self._x, t)
         A, Mt = F[:nx, :nx], F[:nx, nx:]
         P = self._P
@@ -128,8 +134,10 @@ class StructuredEngine:
         K = sla.cho_solve(cho, PHt.T).T
         innov = y[mask] - m.hx(self._x, t)[mask]
         self._x = self._x + K @ innov
-        I_KH = np.eye(len(self._x)) - K @ H
-        P = I_KH @ self._P @ I_KH.T + K @ R @ K.T
+        # Joseph form (I - KH) P (I - KH)^T + K R K^T, expanded so that it costs O(n^2 m):
+        # P - K (H P) - (H P)^T K^T + K S K^T
+        KHP = K @ PHt.T
+        P = self._P - KHP - KHP.T + (K @ S) @ K.T
         self._P = 0.5 * (P + P.T)
         return innov, S
 
@@ -146,28 +154,36 @@ class History:
     x: list = field(default_factory=list)            # posterior state
     P_diag: list = field(default_factory=list)       # posterior variances
     innovation: list = field(default_factory=list)   # y - h(x_prior), NaN where unobserved
+    S: list = field(default_factory=list)            # innovation covariance, NaN rows/cols unobserved
     nis: list = field(default_factory=list)          # normalised innovation squared
     n_obs: list = field(default_factory=list)        # number of observations in the update
 
-    def append(self, loop, frame, x, P, innovation, nis, n_obs):
+    KEYS = ("loop", "frame", "x", "P_diag", "innovation", "S", "nis", "n_obs")
+
+    def append(self, loop, frame, x, P, innovation, S, nis, n_obs):
         self.loop.append(loop)
         self.frame.append(frame)
         self.x.append(np.array(x, float))
         self.P_diag.append(np.diag(P).copy())
         self.innovation.append(innovation)
+        self.S.append(S)
         self.nis.append(nis)
         self.n_obs.append(n_obs)
 
     def as_arrays(self) -> dict:
-        return {k: np.asarray(getattr(self, k)) for k in
-                ("loop", "frame", "x", "P_diag", "innovation", "nis", "n_obs")}
+        return {k: np.asarray(getattr(self, k)) for k in self.KEYS}
 
     @classmethod
     def from_arrays(cls, arrays) -> "History":
         h = cls()
-        for k in ("loop", "frame", "x", "P_diag", "innovation", "nis", "n_obs"):
+        for k in cls.KEYS:
             getattr(h, k).extend(list(np.asarray(arrays[k])))
         return h
+
+    def loop_rows(self, loop: int | None = None) -> np.ndarray:
+        """Row indices of one loop (default: the last)."""
+        loops = np.asarray(self.loop)
+        return np.flatnonzero(loops == (loops.max() if loop is None else loop))
 
 
 def _check_observations(model, observations) -> np.ndarray:
@@ -190,17 +206,19 @@ def filter_loop(engine, model, observations, loop: int = 0, history: History | N
         y = observations[t]
         mask = ~np.isnan(y)
         innov = np.full(model.dim_obs, np.nan)
+        S_full = np.full((model.dim_obs, model.dim_obs), np.nan)
         nis = np.nan
         if mask.any():
             e, S = engine.update(y, t, mask)
             innov[mask] = e
+            S_full[np.ix_(mask, mask)] = S
             nis = float(e @ sla.cho_solve(sla.cho_factor(S), e))
         x = engine.x
         if not np.all(np.isfinite(x)) or not np.all(np.isfinite(engine.P)):
             raise FloatingPointError(f"the filter produced a non-finite state at loop {loop}, frame {t}")
         states[t] = x
         if history is not None:
-            history.append(loop, t, x, engine.P, innov, nis, int(mask.sum()))
+            history.append(loop, t, x, engine.P, innov, S_full, nis, int(mask.sum()))
     return states
 
 
@@ -218,17 +236,21 @@ class CyclicResult:
     history: History
 
 
-def _fingerprint(model, observations, engine: str) -> str:
+def _fingerprint(model, observations, engine: str, max_loops, tol) -> str:
+    """Hash of everything that determines a run: the model's own fingerprint when it has one
+    (mechanics, loads, material, parameterisation, effects), the filter set-up and the data."""
     h = hashlib.sha256()
+    if hasattr(model, "fingerprint"):
+        h.update(model.fingerprint().encode())
     for a in (model.x0, model.P0, model.Q, model.R, np.nan_to_num(observations, nan=1e300),
               model.H_jacobian(model.x0, 0)):
         h.update(np.ascontiguousarray(a).tobytes())
-    h.update(f"{model.dim_state},{model.n_frames},{engine}".encode())
+    h.update(f"{model.dim_state},{model.n_frames},{engine},{tol!r}".encode())
     return h.hexdigest()
 
 
 def _physical(model, theta):
-    mat = model.material_of(np.concatenate([np.zeros(model.dim_x), theta]))
+    mat = model.material_of_theta(theta)
     return np.concatenate([mat.E, mat.nu])
 
 
@@ -237,8 +259,9 @@ def cyclic_estimate(model, observations, *, max_loops: int = 50, tol: float = 1e
                     description: str = "cyclic loops") -> CyclicResult:
     """Feed the periodic sequence again and again until the material converges (section 2.7).
 
-    Each loop restarts the kinematic state at ``model.x0`` with covariance P1(0) and no
-    cross-covariance, and carries over the material estimate and its covariance block. The
+    Each loop restarts the kinematic (and effect) states at ``model.x0`` with their initial
+    covariance and no cross-covariance, and carries over the material estimate and its
+    covariance block. The
     run stops when the relative change of (E, nu) over all elements (physical units) between
     loops is below ``tol`` or after ``max_loops`` loops. A model with a fixed material needs
     one loop.
@@ -262,14 +285,14 @@ def cyclic_estimate(model, observations, *, max_loops: int = 50, tol: float = 1e
         raise ValueError(f"tol: expected a positive relative tolerance, got {tol!r}")
     y = _check_observations(model, observations)
     eng = ENGINES[engine](model)
-    nx = model.dim_x
+    nx = model.n_restart
     P0 = np.array(model.P0, float)
     theta = np.array(model.x0[nx:], float)
     P_theta = P0[nx:, nx:].copy()
     history = History()
     rel_changes: list = []
     start = 0
-    fp = _fingerprint(model, y, engine)
+    fp = _fingerprint(model, y, engine, max_loops, tol)
     if checkpoint is not None and os.path.exists(checkpoint):
         state = load_checkpoint(checkpoint, fp)
         theta, P_theta = state["theta"], state["P_theta"]
@@ -277,7 +300,7 @@ def cyclic_estimate(model, observations, *, max_loops: int = 50, tol: float = 1e
         history = History.from_arrays(state)
         start = int(state["loops_done"])
     n_loops = 1 if not model.estimates_material else int(max_loops)
-    converged = bool(rel_changes) and rel_changes[-1] < tol
+    converged = (bool(rel_changes) and rel_changes[-1] < tol) or (not model.estimates_material and start > 0)
     bar = None
     if progress:
         from tqdm import tqdm
@@ -344,7 +367,7 @@ def load_checkpoint(path, fingerprint=None) -> dict:
     except Exception as exc:  # zipfile / format errors differ between numpy versions
         raise ValueError(f"checkpoint: {path} is not a readable checkpoint ({exc})") from None
     need = {"format_version", "fingerprint", "theta", "P_theta", "rel_changes", "loops_done",
-            "loop", "frame", "x", "P_diag", "innovation", "nis", "n_obs"}
+            *History.KEYS}
     missing = need - set(data)
     if missing:
         raise ValueError(f"checkpoint: {path} lacks {sorted(missing)}")

@@ -197,7 +197,7 @@ def mesh_quality(mesh: TriMesh) -> dict:
             "max_area_m2": float(area.max())}
 
 
-def delaunay_mesh(points, keep=None, min_angle_deg: float = 5.0) -> TriMesh:
+def delaunay_mesh(points, keep=None, min_angle_deg: float = 5.0, max_edge: float | None = None) -> TriMesh:
     """Mesh arbitrary points by Delaunay triangulation (scipy), then check quality.
 
     Parameters
@@ -211,6 +211,9 @@ def delaunay_mesh(points, keep=None, min_angle_deg: float = 5.0) -> TriMesh:
     min_angle_deg : float
         Triangles with a smaller interior angle than this (degrees) are slivers: they are
         removed from the hull; if one remains inside the tissue an error is raised.
+    max_edge : float, optional
+        Triangles with an edge longer than this (metres) are removed first (they bridge a
+        cavity or a concavity of the tissue).
 
     Returns
     -------
@@ -228,6 +231,10 @@ def delaunay_mesh(points, keep=None, min_angle_deg: float = 5.0) -> TriMesh:
         tri = Delaunay(pts).simplices
     except Exception as exc:  # scipy's QhullError: all points collinear, or too few distinct
         raise ValueError(f"points: cannot be triangulated (collinear or degenerate point set): {exc}") from None
+    if max_edge is not None:
+        q = pts[tri]
+        longest = np.linalg.norm(q - q[:, [1, 2, 0]], axis=2).max(axis=1)
+        tri = tri[longest <= positive("max_edge", max_edge, "m") * (1 + 1e-9)]
     if keep is not None:
         tri = tri[np.asarray(keep(pts[tri].mean(axis=1)), bool)]
     scale = max(np.ptp(pts[:, 0]), np.ptp(pts[:, 1])) ** 2

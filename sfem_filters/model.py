@@ -18,6 +18,7 @@ from __future__ import annotations
 from collections import OrderedDict
 
 import numpy as np
+import scipy.linalg as sla
 import scipy.sparse as sp
 
 from ._validate import as_float_array, positive
@@ -79,6 +80,20 @@ class SFEMModel:
     jacobian : {"modal", "expm_frechet"}
         How M_t is computed: the exact modal Daleckii-Krein form (fast) or one
         ``scipy.linalg.expm_frechet`` per parameter (reference).
+    effects : sequence of :class:`sfem_filters.effects.Effect`
+        Extra model terms, each a load ``G_e eta_e`` (N) linear in its states ``eta_e``
+        (random walks), appended to the state after the kinematics: ``z = [x; eta; theta]``.
+    initial_displacement : (n_dofs,) array, optional
+        Displacement (m) of the initial state (default zero: at rest in the mesh geometry).
+    process_load_std : float or (n_free,) array, optional
+        Process noise as random nodal loads (N per frame, zero allowed) on the free dofs: adds
+        ``B Sigma_w B^T`` to the kinematic block of Q, a spatially smooth (elastically
+        correlated) displacement and velocity noise, evaluated at the initial material.
+
+    Notes
+    -----
+    The state is ``z = [U; U'; eta; theta]``. Each cyclic loop restarts the first
+    :attr:`n_restart` entries (kinematics and effect states) and carries theta.
     """
 
     def __init__(self, mesh: TriMesh, material: Material, loads, observation, frame_interval: float,
@@ -86,7 +101,8 @@ class SFEMModel:
                  measurement_std=1e-4, process_std=(5e-5, 5e-3), initial_std=(1e-4, 1e-3),
                  estimate: Parameterisation | None = None, prior_std=(0.3, 1.0),
                  material_process_std=(0.0, 0.0), penalty=None, thickness: float = 1.0,
-                 lumped_mass: bool = False, jacobian: str = "modal"):
+                 lumped_mass: bool = False, jacobian: str = "modal", effects=(),
+                 initial_displacement=None, process_load_std=None):
         if not isinstance(mesh, TriMesh):
             raise TypeError(f"mesh: expected a TriMesh, got {type(mesh).__name__}")
         if not isinstance(material, Material):
@@ -115,13 +131,25 @@ class SFEMModel:
         self.observation = D
         self.M = self.dofmap.restrict_matrix(mass_matrix(mesh, density, thickness, lumped_mass)).toarray()
         self.penalty = None if penalty is None else self.dofmap.restrict_matrix(sp.csr_matrix(penalty)).toarray()
+        self._cache: OrderedDict = OrderedDict()
+        self._directions_dofs = self.dofmap.free_index()[mesh.element_dofs]
         self.estimate = estimate
         if estimate is not None and estimate.n_elements != mesh.n_elements:
             raise ValueError(f"estimate: expected a parameterisation of {mesh.n_elements} elements, "
                              f"got {estimate.n_elements}")
+        self.effects = tuple(effects)
+        for e in self.effects:
+            if e.loads.shape[0] != mesh.n_dofs:
+                raise ValueError(f"effects: effect {e.name!r} has loads for {e.loads.shape[0]} dofs, "
+                                 f"expected {mesh.n_dofs}")
+        G = [self.dofmap.restrict(np.asarray(e.state_loads(), float).T).T for e in self.effects]
+        self._G = np.hstack(G) if G else np.zeros((n, 0))
+        self._eta_transition = sla.block_diag(*[e.transition() for e in self.effects]) if G else np.zeros((0, 0))
         self.dim_x = 2 * n
+        self.dim_eta = self._G.shape[1]
+        self.n_restart = self.dim_x + self.dim_eta
         self.dim_theta = 0 if estimate is None else estimate.n_params
-        self.dim_state = self.dim_x + self.dim_theta
+        self.dim_state = self.n_restart + self.dim_theta
         self.dim_obs = D.shape[0]
         # H = [D 0] over the free dofs (Eq. 22)
         H = np.zeros((self.dim_obs, self.dim_state))
@@ -146,12 +174,23 @@ class SFEMModel:
         else:
             self.theta0 = np.zeros(0)
             p3 = q3 = np.zeros(0)
-        self.Q = np.diag(np.concatenate(q + [q3]))
-        # Eq. (34): P0 = diag(P1, P3) with zero cross-covariance P2.
-        self.P0 = np.diag(np.concatenate(p1 + [p3]))
-        self.x0 = np.concatenate([np.zeros(2 * n), self.theta0])
-        self._cache: OrderedDict = OrderedDict()
-        self._directions_dofs = self.dofmap.free_index()[mesh.element_dofs]
+        q_eta = [e.process_variances() for e in self.effects]
+        p_eta = [e.initial_variances() for e in self.effects]
+        self.Q = np.diag(np.concatenate(q + q_eta + [q3]))
+        if process_load_std is not None:
+            # random loads (N per dof per frame) through the dynamics: smooth, elastically
+            # correlated displacement noise B Sigma_w B^T (evaluated at the initial material)
+            sw = np.broadcast_to(as_float_array("process_load_std", process_load_std), (n,))
+            if np.any(sw < 0):
+                raise ValueError("process_load_std: expected standard deviations >= 0 N")
+            BS = self.system(self.theta0 if estimate is not None else None).input_response(np.diag(sw))
+            self.Q[: 2 * n, : 2 * n] += BS @ BS.T
+        # Eq. (34): P0 = diag(P1, P3) with zero cross-covariance P2 (and effect states apart).
+        self.P0 = np.diag(np.concatenate(p1 + p_eta + [p3]))
+        u0 = np.zeros(n) if initial_displacement is None else self.dofmap.restrict(
+            as_float_array("initial_displacement", initial_displacement, shape=(mesh.n_dofs,)))
+        eta0 = [e.initial_states() for e in self.effects]
+        self.x0 = np.concatenate([u0, np.zeros(n)] + eta0 + [self.theta0])
 
     # ------------------------------------------------------------------ configuration
     @property
@@ -164,13 +203,21 @@ class SFEMModel:
 
     def theta_of(self, z) -> np.ndarray:
         """Material parameters of an augmented state (empty when the material is fixed)."""
-        return np.asarray(z, float).ravel()[self.dim_x:]
+        return np.asarray(z, float).ravel()[self.n_restart:]
+
+    def eta_of(self, z) -> np.ndarray:
+        """Effect states of an augmented state, in the order of :attr:`effects`."""
+        return np.asarray(z, float).ravel()[self.dim_x:self.n_restart]
+
+    def material_of_theta(self, theta) -> Material:
+        """Material of parameters theta (the fixed material when it is not estimated)."""
+        if self.estimate is None:
+            return self.material
+        return self.estimate.material(theta)
 
     def material_of(self, z=None) -> Material:
         """Material of state z: the estimate in the joint EKF, the fixed one otherwise."""
-        if self.estimate is None:
-            return self.material
-        return self.estimate.material(self.theta0 if z is None else self.theta_of(z))
+        return self.material_of_theta(self.theta0 if z is None else self.theta_of(z))
 
     def displacements(self, z) -> np.ndarray:
         """Global displacement vector (m) of state(s) z, shape (..., n_dofs)."""
@@ -189,8 +236,25 @@ class SFEMModel:
             self.theta0 if theta is None else theta)
         return self._entry(mat)[0]
 
+    def fingerprint(self) -> str:
+        """Hash of everything that defines the model (for checkpoints)."""
+        import hashlib
+        h = hashlib.sha256()
+        parts = [self.mesh.nodes, self.mesh.elements, self.loads, self.material.E, self.material.nu, self.M,
+                 np.array([self.alpha, self.beta, self.frame_interval, self.density, self.thickness]),
+                 self.dofmap.fixed, self._G, self._H]
+        if self.penalty is not None:
+            parts.append(self.penalty)
+        if self.estimate is not None:
+            parts += [self.estimate.basis_E.toarray(), self.estimate.basis_nu.toarray()]
+        for a in parts:
+            h.update(np.ascontiguousarray(a).tobytes())
+        h.update(f"{self.jacobian},{[e.name for e in self.effects]}".encode())
+        return h.hexdigest()
+
     def _entry(self, mat: Material):
-        key = mat.E.tobytes() + mat.nu.tobytes()
+        key = (mat.E.tobytes() + mat.nu.tobytes()
+               + np.array([self.alpha, self.beta, self.frame_interval]).tobytes())
         hit = self._cache.get(key)
         if hit is not None:
             self._cache.move_to_end(key)
@@ -212,11 +276,16 @@ class SFEMModel:
         return np.concatenate([Ke, dKnu])
 
     def _split(self, z):
+        """(z, x, eta, theta) views of a state."""
         z = np.asarray(z, float)
         flat = z.ravel()
         if flat.shape != (self.dim_state,):
             raise ValueError(f"z: expected a state of length {self.dim_state}, got {flat.shape[0]}")
-        return z, flat[: self.dim_x], flat[self.dim_x:]
+        return z, flat[: self.dim_x], flat[self.dim_x:self.n_restart], flat[self.n_restart:]
+
+    def load(self, z, t) -> np.ndarray:
+        """Load over the free dofs (N) held from frame t to t + 1: external plus effects."""
+        return self._w[t + 1] + self._G @ self.eta_of(z)
 
     def _check_frame(self, t, last: int) -> int:
         t = int(t)
@@ -225,24 +294,24 @@ class SFEMModel:
         return t
 
     def fx(self, z, t):
-        """State at frame t + 1 from state z at frame t, Eq. (19): [A x + B w_t; theta]."""
-        z, x, theta = self._split(z)
+        """State at frame t + 1 from state z at frame t, Eq. (19): [A x + B w_t; eta; theta]."""
+        z, x, eta, theta = self._split(z)
         t = self._check_frame(t, self.n_frames - 2)
         system = self.system(theta if self.estimate is not None else None)
-        out = np.concatenate([system.step(x, self._w[t + 1]), theta])
+        out = np.concatenate([system.step(x, self.load(z, t)), self._eta_transition @ eta, theta])
         return out.reshape(z.shape)
 
     def sensitivity(self, z, t) -> np.ndarray:
         """M_t = d(A(theta) x + B(theta) w_t)/d theta (Eq. 33), shape (dim_x, dim_theta)."""
         if self.estimate is None:
             return np.zeros((self.dim_x, 0))
-        z, x, theta = self._split(z)
+        z, x, _, theta = self._split(z)
         t = self._check_frame(t, self.n_frames - 2)
         mat = self.estimate.material(theta)
         system, K, _ = self._entry(mat)
         dirs = self._directions(mat)
         dofs = np.concatenate([self._directions_dofs, self._directions_dofs])
-        w = self._w[t + 1]
+        w = self.load(z, t)
         if self.jacobian == "modal":
             per_element = system.sensitivity(x, w, dirs, dofs)
         else:
@@ -259,13 +328,17 @@ class SFEMModel:
         return out
 
     def F_jacobian(self, z, t) -> np.ndarray:
-        """F_t = [[A, M_t], [0, I]] (Eq. 31), the exact Jacobian of :meth:`fx`."""
-        z, x, theta = self._split(z)
+        """F_t = [[A, B G, M_t], [0, I, 0], [0, 0, I]] (Eq. 31), the exact Jacobian of :meth:`fx`."""
+        z, x, _, theta = self._split(z)
         system = self.system(theta if self.estimate is not None else None)
         F = np.eye(self.dim_state)
-        F[: self.dim_x, : self.dim_x] = system.transition_matrix()
+        nx, nr = self.dim_x, self.n_restart
+        F[:nx, :nx] = system.transition_matrix()
+        if self.dim_eta:
+            F[:nx, nx:nr] = system.input_response(self._G)
+            F[nx:nr, nx:nr] = self._eta_transition
         if self.estimate is not None:
-            F[: self.dim_x, self.dim_x:] = self.sensitivity(z, t)
+            F[:nx, nr:] = self.sensitivity(z, t)
         return F
 
     def hx(self, z, t=None):

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ._validate import positive
-from .fem import node_dofs, pressure_load
+from .fem import node_dofs, pressure_load, stiffness_matrix
 from .material import Material, Parameterisation
 from .mesh import TriMesh, rectangle_mesh
 from .model import SFEMModel
@@ -139,3 +139,69 @@ def benchmark_model(bench: Benchmark, strategy: str, parameterisation: Parameter
         initial_std=(0.1 * MM, 1 * MM),             # P1(0): 0.1 mm, 1 mm/s
         estimate=estimate, prior_std=(0.3, 1.0),    # P3(0): log E 0.3, logit(2 nu) 1.0
         jacobian=jacobian)
+
+
+# ---------------------------------------------------------------------------- annulus sequences
+def annulus_mask(r_inner: float = 8.0, r_outer: float = 12.0, size: int = 32) -> np.ndarray:
+    """A ring of pixels (radii in pixels) like a short-axis myocardium."""
+    yy, xx = np.mgrid[0:size, 0:size]
+    c = (size - 1) / 2.0
+    r = np.hypot(xx - c, yy - c)
+    return (r >= r_inner) & (r <= r_outer)
+
+
+def annulus_sequence(effect: str | None = None, amplitude=(0.15, -0.3), seed: int = 0, n_frames: int = 24,
+                     noise_px: float = 0.05, landmark_step_px: float = 0.15, landmarks: int = 8,
+                     frame_interval: float = 0.03, pixel_spacing: float = 1e-3):
+    """A sequence drawn from the filter's own generative model on a synthetic annulus.
+
+    Every pixel of :func:`annulus_mask` is a point. The motion follows exactly the model that
+    :func:`sfem_filters.dense.build_model` builds (causal penalty drive by the landmarks'
+    previous measurement, elastically correlated process noise of the spring targets with
+    ``landmark_step_px`` per frame, measurement noise ``noise_px``), plus, when ``effect`` names
+    one, that undeclared load with amplitudes ``amplitude`` (units of ``NOMINAL["E"]``) shaped
+    as a systolic bell in time. With ``effect=None`` a correct baseline filter is consistent
+    with the data by construction: what the diagnostics must not flag.
+
+    Returns a :class:`sfem_filters.datasets.Sequence` in pixels.
+    """
+    from . import dense
+    from .datasets import make_sequence
+    from .effects import build_effects
+
+    rng = np.random.default_rng(seed)
+    mask = annulus_mask()
+    rows, cols = np.nonzero(mask)
+    pts = np.column_stack([cols, rows]).astype(float)
+    stub = make_sequence(pts, np.zeros((n_frames, len(pts), 2)), frame_interval=frame_interval,
+                         pixel_spacing=pixel_spacing, reference_mask=mask)
+    setup = dense.prepare(stub, landmarks)
+    setup.noise_px = noise_px
+    model, _ = dense.build_model(setup, (), "penalty", "none", landmark_step_px=landmark_step_px)
+    s = pixel_spacing
+    system = model.system()
+    nx = model.dim_x
+    L = np.linalg.cholesky(model.Q[:nx, :nx] + 1e-30 * np.eye(nx))
+    G = np.zeros((mesh_dofs := setup.mesh.n_dofs, 0))
+    a = np.zeros((n_frames, 0))
+    if effect is not None:
+        eff = build_effects([effect], setup.mesh, setup.geometry, scale=dense.NOMINAL["E"])[0]
+        G = eff.loads
+        bell = np.sin(np.pi * np.arange(n_frames) / (n_frames - 1)) ** 2
+        a = bell[:, None] * np.broadcast_to(np.asarray(amplitude, float)[: G.shape[1]], (G.shape[1],))[None]
+    k = dense.NOMINAL["penalty"] * np.median(
+        stiffness_matrix(setup.mesh, model.material.E, model.material.nu).diagonal())
+    lm_dofs = node_dofs(setup.landmarks)
+    x = model.x0[:nx].copy()
+    disp = np.empty((n_frames, len(pts), 2))
+    for t in range(n_frames):
+        if t > 0:
+            w = np.zeros(mesh_dofs)
+            w[lm_dofs] = k * disp[t - 1][setup.landmarks].reshape(-1) * s      # measured, previous frame
+            w = w + G @ a[t]
+            x = system.step(x, model.dofmap.restrict(w)) + L @ rng.standard_normal(nx)
+        U = model.displacements(x).reshape(-1, 2) / s
+        disp[t] = U + rng.standard_normal(U.shape) * noise_px / np.sqrt(2.0)
+    return make_sequence(pts, disp, frame_interval=frame_interval, pixel_spacing=pixel_spacing,
+                         reference_mask=mask, provenance=f"sfem_filters.synthetic.annulus_sequence(effect={effect!r}, "
+                                                         f"seed={seed})")

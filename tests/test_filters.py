@@ -43,6 +43,34 @@ def test_filterpy_and_structured_engines_agree(bench):
     assert np.abs(Pa - Pb).max() <= 1e-10 * np.abs(Pa).max()
 
 
+def test_engines_agree_over_several_cyclic_loops(bench):
+    """Three loops of the joint EKF: same material estimate and covariance from both engines."""
+    model = benchmark_model(bench, "joint_ekf")
+    with pytest.warns(RuntimeWarning, match="did not converge"):
+        a = cyclic_estimate(model, bench.observations, max_loops=3, tol=1e-12, engine="filterpy")
+    with pytest.warns(RuntimeWarning, match="did not converge"):
+        b = cyclic_estimate(model, bench.observations, max_loops=3, tol=1e-12, engine="structured")
+    assert np.abs(a.theta - b.theta).max() <= 1e-10 * np.abs(a.theta).max()
+    assert np.abs(a.P_theta - b.P_theta).max() <= 1e-9 * np.abs(a.P_theta).max()
+    np.testing.assert_allclose(a.states, b.states, rtol=0, atol=1e-10 * np.abs(a.states).max())
+
+
+def test_predict_update_goes_through_the_model(bench):
+    """filterpy's predict_update must use fx (not F x with F = I)."""
+    model = benchmark_model(bench, "perfect_kf")
+    a, b = model.make_ekf(), model.make_ekf()
+    for t in range(3):
+        y = bench.observations[t].reshape(-1, 1)
+        if t == 0:
+            a.update(y, model.H_jacobian, model.hx, args=t, hx_args=t)
+            b.update(y, model.H_jacobian, model.hx, args=t, hx_args=t)
+            continue
+        a.predict(u=t - 1)
+        a.update(y, model.H_jacobian, model.hx, args=t, hx_args=t)
+        b.predict_update(y, model.H_jacobian, model.hx, args=t, hx_args=t, u=t - 1)
+    np.testing.assert_allclose(a.x, b.x, rtol=0, atol=1e-15)
+
+
 def test_hand_driven_filterpy_ekf_equals_cyclic_estimate(bench):
     """The documented user loop on filterpy's EKF reproduces cyclic_estimate's single KF loop."""
     model = benchmark_model(bench, "perfect_kf")
@@ -109,7 +137,7 @@ def test_material_covariance_shrinks_and_estimate_improves():
     start = Material.uniform(mesh.n_elements, 8.5e4, 0.4)
     model = small_model(np.random.default_rng(3), mesh=mesh, material=start, n_frames=12, noise=1e-7)
     res = cyclic_estimate(model, y, max_loops=15, tol=1e-3)
-    est = model.material_of(np.concatenate([np.zeros(model.dim_x), res.theta]))
+    est = model.material_of_theta(res.theta)
     err_before = np.mean(np.abs(start.E - true.E) / true.E)
     err_after = np.mean(np.abs(est.E - true.E) / true.E)
     assert err_after < 0.5 * err_before
@@ -171,6 +199,17 @@ def test_checkpoint_errors_are_clear(tmp_path, bench):
     other = bench.observations + 1e-6
     with pytest.raises(ValueError, match="belongs to a different model or data set"):
         cyclic_estimate(benchmark_model(bench, "joint_ekf"), other, max_loops=2, checkpoint=str(ckpt))
+    # a different model on the same data: another strategy, or the same one with other damping
+    kf = tmp_path / "kf.npz"
+    cyclic_estimate(benchmark_model(bench, "uniform_kf"), bench.observations, checkpoint=str(kf))
+    with pytest.raises(ValueError, match="belongs to a different model or data set"):
+        cyclic_estimate(benchmark_model(bench, "perfect_kf"), bench.observations, checkpoint=str(kf))
+    damped = benchmark_model(bench, "uniform_kf")
+    damped.alpha = 20.0
+    with pytest.raises(ValueError, match="belongs to a different model or data set"):
+        cyclic_estimate(damped, bench.observations, checkpoint=str(kf))
+    resumed = cyclic_estimate(benchmark_model(bench, "uniform_kf"), bench.observations, checkpoint=str(kf))
+    assert resumed.converged and resumed.loops == 1
 
 
 def test_argument_errors(bench):

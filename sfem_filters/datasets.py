@@ -1,0 +1,199 @@
+"""Point-wise motion sequences (DENSE, tagging, tracking): format, loader, example data.
+
+A sequence file is an ``.npz`` with these keys (only the first two are required):
+
+============== ================ =====================================================================
+key            shape            meaning
+============== ================ =====================================================================
+points         (P, 2)           reference positions of the tracked material points (x, y), in pixels
+                                 (or metres when ``pixel_spacing`` is absent and ``units`` = "m")
+displacement   (F, P, 2)        Lagrangian displacement of each point at each frame, same unit as
+                                 ``points``; NaN where a value is missing
+velocity       (F, P, 2)        optional: velocity, unit per second (phase-contrast); NaN if missing
+sigma          (P,) or (F, P)   optional: measurement standard deviation of each displacement, same
+                                 unit as ``points``
+confidence     (P,) or (F, P)   optional: confidence in [0, 1] of each displacement datum
+frame_interval ()               optional: time between frames in seconds
+pixel_spacing  ()               optional: size of a pixel in metres
+pressure       (F,)             optional: cavity (blood) pressure at each frame in Pa
+reference_mask (H, W) bool      optional: myocardium pixels of the reference frame (row = y, col = x)
+frame_masks    (F, H, W) bool   optional: myocardium mask of each frame
+units          ()               optional: "px" (default) or "m"
+provenance     ()               optional: free text on where the data come from
+============== ================ =====================================================================
+
+Image convention: x grows to the right (columns), y grows downwards (rows); point ``i`` is at
+``points[i] + displacement[t, i]`` in frame ``t``.
+"""
+from __future__ import annotations
+
+import os
+import zipfile
+from dataclasses import dataclass, field, fields
+from importlib import resources
+
+import numpy as np
+
+FORMAT_KEYS = ("points", "displacement", "velocity", "sigma", "confidence", "frame_interval",
+               "pixel_spacing", "pressure", "reference_mask", "frame_masks", "units", "provenance")
+
+
+@dataclass(frozen=True, eq=False)
+class Sequence:
+    """A validated motion sequence; see the module docstring for every field."""
+
+    points: np.ndarray
+    displacement: np.ndarray
+    velocity: np.ndarray | None = None
+    sigma: np.ndarray | None = None
+    confidence: np.ndarray | None = None
+    frame_interval: float | None = None
+    pixel_spacing: float | None = None
+    pressure: np.ndarray | None = None
+    reference_mask: np.ndarray | None = None
+    frame_masks: np.ndarray | None = None
+    units: str = "px"
+    provenance: str = ""
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def n_frames(self) -> int:
+        return self.displacement.shape[0]
+
+    @property
+    def n_points(self) -> int:
+        return self.points.shape[0]
+
+    def to_dict(self) -> dict:
+        out = {}
+        for f in fields(self):
+            if f.name == "extra":
+                continue
+            v = getattr(self, f.name)
+            if v is not None:
+                out[f.name] = v
+        return out
+
+
+def _float_array(name, value, shape, allow_nan=False):
+    try:
+        arr = np.asarray(value)
+    except Exception:
+        raise ValueError(f"{name}: could not be read as an array") from None
+    if arr.dtype.kind not in "fiu":
+        raise ValueError(f"{name}: expected numbers, got dtype {arr.dtype}")
+    arr = arr.astype(float)
+    if arr.ndim != len(shape) or any(s is not None and s != a for s, a in zip(shape, arr.shape)):
+        want = "(" + ", ".join("any" if s is None else str(s) for s in shape) + ")"
+        raise ValueError(f"{name}: expected shape {want}, got shape {arr.shape}")
+    if np.any(np.isinf(arr)) or (not allow_nan and np.any(np.isnan(arr))):
+        raise ValueError(f"{name}: expected finite values{' or NaN' if allow_nan else ''}, "
+                         f"got {int(np.sum(~np.isfinite(arr)))} non-finite entries")
+    return arr
+
+
+def _scalar(name, value, positive=True):
+    arr = np.asarray(value)
+    if arr.shape != () or arr.dtype.kind not in "fiu":
+        raise ValueError(f"{name}: expected a number, got {arr.dtype} array of shape {arr.shape}")
+    v = float(arr)
+    if not np.isfinite(v) or (positive and v <= 0):
+        raise ValueError(f"{name}: expected a positive finite number, got {v!r}")
+    return v
+
+
+def _mask(name, value, shape):
+    arr = np.asarray(value)
+    if arr.dtype != bool:
+        if arr.dtype.kind not in "iu" or not np.isin(arr, [0, 1]).all():
+            raise ValueError(f"{name}: expected a boolean mask, got dtype {arr.dtype}")
+        arr = arr.astype(bool)
+    if arr.ndim != len(shape) or any(s is not None and s != a for s, a in zip(shape, arr.shape)):
+        raise ValueError(f"{name}: expected {len(shape)} dimensions, got shape {arr.shape}")
+    return arr
+
+
+def make_sequence(points, displacement, **optional) -> Sequence:
+    """Validate arrays into a :class:`Sequence` (errors name the key and what was expected)."""
+    unknown = set(optional) - set(FORMAT_KEYS)
+    pts = _float_array("points", points, (None, 2))
+    P = len(pts)
+    if P < 3:
+        raise ValueError(f"points: expected at least 3 points, got {P}")
+    disp = _float_array("displacement", displacement, (None, P, 2), allow_nan=True)
+    F = disp.shape[0]
+    if F < 2:
+        raise ValueError(f"displacement: expected at least 2 frames, got {F}")
+    if np.all(np.isnan(disp)):
+        raise ValueError("displacement: every value is NaN; nothing was measured")
+    kw = {}
+    if optional.get("velocity") is not None:
+        kw["velocity"] = _float_array("velocity", optional["velocity"], (F, P, 2), allow_nan=True)
+    for key in ("sigma", "confidence"):
+        v = optional.get(key)
+        if v is not None:
+            arr = np.asarray(v)
+            arr = _float_array(key, arr, (P,) if arr.ndim == 1 else (F, P))
+            if key == "sigma" and np.any(arr <= 0):
+                raise ValueError("sigma: expected standard deviations > 0")
+            if key == "confidence" and np.any((arr < 0) | (arr > 1)):
+                raise ValueError("confidence: expected values in [0, 1]")
+            kw[key] = arr
+    for key in ("frame_interval", "pixel_spacing"):
+        if optional.get(key) is not None:
+            kw[key] = _scalar(key, optional[key])
+    if optional.get("pressure") is not None:
+        kw["pressure"] = _float_array("pressure", optional["pressure"], (F,))
+    if optional.get("reference_mask") is not None:
+        kw["reference_mask"] = _mask("reference_mask", optional["reference_mask"], (None, None))
+        if not kw["reference_mask"].any():
+            raise ValueError("reference_mask: the mask holds no tissue")
+    if optional.get("frame_masks") is not None:
+        kw["frame_masks"] = _mask("frame_masks", optional["frame_masks"], (F, None, None))
+    units = str(np.asarray(optional.get("units", "px")))
+    if units not in ("px", "m"):
+        raise ValueError(f"units: expected 'px' or 'm', got {units!r}")
+    if units == "m" and kw.get("pixel_spacing") is not None:
+        raise ValueError("pixel_spacing: given, but units is 'm' (points already in metres)")
+    kw["units"] = units
+    kw["provenance"] = str(np.asarray(optional.get("provenance", "")))
+    return Sequence(points=pts, displacement=disp,
+                    extra={k: optional[k] for k in unknown}, **kw)
+
+
+def load_sequence(path) -> Sequence:
+    """Read and validate a sequence ``.npz`` file.
+
+    Raises ``ValueError`` naming the file and the offending key for a missing, truncated or
+    malformed file; no partial sequence is ever returned.
+    """
+    path = os.fspath(path)
+    if not os.path.exists(path):
+        raise ValueError(f"path: no such file {path!r}")
+    try:
+        with np.load(path, allow_pickle=False) as f:
+            data = {k: f[k] for k in f.files}
+    except (zipfile.BadZipFile, OSError, EOFError, ValueError) as exc:
+        raise ValueError(f"{path}: not a readable .npz sequence file ({exc})") from None
+    except Exception as exc:
+        raise ValueError(f"{path}: not a readable .npz sequence file ({type(exc).__name__}: {exc})") from None
+    missing = [k for k in ("points", "displacement") if k not in data]
+    if missing:
+        raise ValueError(f"{path}: missing required key(s) {missing}; found {sorted(data)}")
+    try:
+        return make_sequence(**data)
+    except ValueError as exc:
+        raise ValueError(f"{path}: {exc}") from None
+
+
+def save_sequence(seq: Sequence, path) -> None:
+    """Write a sequence in the documented format (compressed npz)."""
+    np.savez_compressed(path, **seq.to_dict())
+
+
+def example_path(name: str = "subject_a") -> str:
+    """Path of an example sequence shipped with the package (``"subject_a"``: a DENSE LV slice)."""
+    ref = resources.files("sfem_filters") / "data" / f"{name}.npz"
+    if not ref.is_file():
+        raise ValueError(f"name: no example data set {name!r}")
+    return str(ref)
