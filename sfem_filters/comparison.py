@@ -123,11 +123,14 @@ def format_table(comparisons) -> str:
             m = r.metrics
             extra = ""
             if "loops" in m:
-                extra = (f"{m['loops']:>7d}{m['E_rel_error_middle']:>8.3f}/{m['E_rel_error_outside']:<6.3f}"
+                loops = f"{m['loops']}{'' if m['converged'] else '*'}"
+                extra = (f"{loops:>7}{m['E_rel_error_middle']:>8.3f}/{m['E_rel_error_outside']:<6.3f}"
                          f"{m['nu_rel_error_middle']:>9.3f}/{m['nu_rel_error_outside']:<6.3f}")
             lines.append(f"{c.bench.seed:>4}  {LABELS[s]:<22}{m['ks_D']:>8.4f}{'%d/%d' % (round(m['ks_D'] * n), n):>8}"
                          f"{m['ks_p_asymptotic']:>9.4f}{m['ks_p_exact']:>9.4f}{m['ks_H']:>3d}"
                          f"{m['rmse_displacement_mm']:>13.4f}{m['rmse_eyy']:>11.4f}{extra}")
+    if any(not r.metrics.get("converged", True) for c in comparisons for r in c.runs.values()):
+        lines.append("* loop limit reached before the material converged")
     lines.append("paper (Table 1):        " + "; ".join(
         f"{LABELS[s]} D={v['D']:.4f} p={v['p']:.4f} H={v['H']}" for s, v in PAPER_TABLE1.items()))
     return "\n".join(lines)

@@ -220,7 +220,8 @@ def build_model(setup: Setup, effects=(), drive: str = "penalty", estimate: str 
     noise_c = setup.noise_px / np.sqrt(2.0) * s                          # per component, m
     param = None
     if estimate == "region":
-        param = Parameterisation.per_region(setup.regions)
+        # relative stiffness between regions (mean log E fixed) and nu per region
+        param = Parameterisation.relative_regions(setup.regions, NOMINAL["E"])
     elif estimate == "element":
         param = Parameterisation.per_element(mesh.n_elements)
     elif estimate != "none":
@@ -413,9 +414,9 @@ def format_report(report: dict) -> str:
              f"material {cfg['estimate']})",
              f"noise floor {report['noise_floor_px']:.3f} px" + (
                  f"; nominal (not in the file): {report['nominal']}" if report["nominal"] else ""),
-             "", "ranking of candidate effects (score test on the baseline innovations; z, higher = explains more):"]
+             "", "ranking of candidate effects (score test on the baseline innovations; -log10 p, higher = stronger):"]
     for r in report["ranking"]:
-        lines.append(f"  {r['effect']:<24} z = {r['score']:8.1f}   LM = {r['lm']:9.1f} on {r['df']:3d} dof, "
+        lines.append(f"  {r['effect']:<24} {r['score']:9.1f}   LM = {r['lm']:9.1f} on {r['df']:3d} dof, "
                      f"explains {100 * r['explained']:5.1f}% of the NIS")
     lines += ["", f"{'':<34}{'baseline':>12}{'extended':>12}", f"{'effects':<34}{'none':>12}{','.join(e['effects']) or 'none':>12}"]
     for key, label in (("heldout_rmse_px", "held-out RMSE [px]"), ("heldout_rmse_radial_px", "  radial [px]"),

@@ -83,6 +83,7 @@ class Parameterisation:
     basis_E: sp.csr_matrix
     basis_nu: sp.csr_matrix
     names: tuple = ()
+    offset_E: np.ndarray | None = None     # s_E = offset_E + basis_E theta_E (default 0)
 
     @classmethod
     def per_element(cls, n_elements: int) -> "Parameterisation":
@@ -100,6 +101,27 @@ class Parameterisation:
         B = sp.csr_matrix((np.ones(len(labels)), (np.arange(len(labels)), idx)),
                           shape=(len(labels), len(uniq)))
         return cls(B, B, tuple(f"region {u}" for u in uniq))
+
+    @classmethod
+    def relative_regions(cls, labels, E_reference: float) -> "Parameterisation":
+        """Relative stiffness between regions and a Poisson's ratio per region.
+
+        ``log E = log E_reference + C theta_E`` with zero-mean contrasts C over the regions
+        (area-unweighted), so the mean log E stays at ``E_reference`` (Pa): absolute stiffness
+        is not identifiable from displacements without a force or pressure measurement, and
+        this keeps the filter from drifting along that direction.
+        """
+        labels = np.asarray(labels)
+        uniq, idx = np.unique(labels, return_inverse=True)
+        R = len(uniq)
+        if R < 2:
+            raise ValueError("labels: expected at least two regions for relative stiffness")
+        ind = sp.csr_matrix((np.ones(len(labels)), (np.arange(len(labels)), idx)), shape=(len(labels), R))
+        # orthonormal contrasts: columns of an orthonormal basis of the complement of ones
+        q, _ = np.linalg.qr(np.column_stack([np.ones(R), np.eye(R)[:, : R - 1]]))
+        contrasts = q[:, 1:]
+        return cls(sp.csr_matrix(ind @ contrasts), ind, tuple(f"region {u}" for u in uniq),
+                   offset_E=np.full(len(labels), np.log(float(E_reference))))
 
     @classmethod
     def from_basis(cls, basis_E, basis_nu=None) -> "Parameterisation":
@@ -126,7 +148,7 @@ class Parameterisation:
         theta = np.asarray(theta, float).ravel()
         if theta.shape != (self.n_params,):
             raise ValueError(f"theta: expected {self.n_params} parameters, got {theta.shape[0]}")
-        sE = self.basis_E @ theta[: self.n_E]
+        sE = self.basis_E @ theta[: self.n_E] + (0.0 if self.offset_E is None else self.offset_E)
         snu = self.basis_nu @ theta[self.n_E:]
         if not np.all(np.isfinite(theta)):
             raise FloatingPointError("theta: expected finite material parameters, got NaN or inf")
@@ -142,7 +164,8 @@ class Parameterisation:
         if material.n_elements != self.n_elements:
             raise ValueError(f"material: expected {self.n_elements} elements, got {material.n_elements}")
         out = []
-        for B, s in ((self.basis_E, np.log(material.E)), (self.basis_nu, logit2(material.nu))):
+        sE = np.log(material.E) - (0.0 if self.offset_E is None else self.offset_E)
+        for B, s in ((self.basis_E, sE), (self.basis_nu, logit2(material.nu))):
             out.append(np.linalg.lstsq(B.toarray(), s, rcond=None)[0])
         return np.concatenate(out)
 
@@ -155,3 +178,33 @@ class Parameterisation:
         """
         return sp.block_diag([self.basis_E, sp.diags(dnu_ds(material.nu)) @ self.basis_nu],
                              format="csr")
+
+
+def correlated_prior(param: Parameterisation, centroids, length: float, std_E: float = 0.3,
+                     std_nu: float = 1.0) -> np.ndarray:
+    """A spatially correlated prior covariance P3(0) of the parameters (alternative to diagonal).
+
+    Per element, ``log E`` (and, independently, ``logit 2 nu``) is a Gaussian field with a
+    squared-exponential correlation ``exp(-d^2 / (2 length^2))`` between element centroids
+    (``d`` and ``length`` in metres) and standard deviation ``std_E`` (``std_nu``); mapped to
+    the parameters through the pseudo-inverse of the parameterisation's bases.
+
+    Returns
+    -------
+    (n_params, n_params) symmetric positive semi-definite array
+    """
+    c = as_float_array("centroids", centroids, shape=(param.n_elements, 2))
+    if not length > 0:
+        raise ValueError(f"length: expected a positive correlation length in m, got {length!r}")
+    d2 = np.sum((c[:, None, :] - c[None, :, :]) ** 2, axis=2)
+    K = np.exp(-d2 / (2.0 * length ** 2))
+    blocks = []
+    for B, sd in ((param.basis_E, std_E), (param.basis_nu, std_nu)):
+        Bp = np.linalg.pinv(B.toarray())
+        C = sd ** 2 * Bp @ K @ Bp.T
+        blocks.append(0.5 * (C + C.T))
+    n_E = param.n_E
+    out = np.zeros((param.n_params, param.n_params))
+    out[:n_E, :n_E] = blocks[0]
+    out[n_E:, n_E:] = blocks[1]
+    return out

@@ -68,7 +68,9 @@ class SFEMModel:
     estimate : Parameterisation, optional
         Append these material parameters to the state (joint EKF). ``None``: material fixed.
     prior_std : (float, float)
-        P3(0) standard deviations of theta_E (log E) and theta_nu (logit 2 nu).
+        P3(0) standard deviations of theta_E (log E) and theta_nu (logit 2 nu) (diagonal P3).
+    prior_cov : (n_params, n_params) array, optional
+        A full P3(0) instead, e.g. :func:`sfem_filters.material.correlated_prior`.
     material_process_std : (float, float)
         Process noise of theta per frame (default 0: the material is constant).
     penalty : (n_dofs, n_dofs) sparse matrix, optional
@@ -102,7 +104,7 @@ class SFEMModel:
                  estimate: Parameterisation | None = None, prior_std=(0.3, 1.0),
                  material_process_std=(0.0, 0.0), penalty=None, thickness: float = 1.0,
                  lumped_mass: bool = False, jacobian: str = "modal", effects=(),
-                 initial_displacement=None, process_load_std=None):
+                 initial_displacement=None, process_load_std=None, prior_cov=None):
         if not isinstance(mesh, TriMesh):
             raise TypeError(f"mesh: expected a TriMesh, got {type(mesh).__name__}")
         if not isinstance(material, Material):
@@ -187,6 +189,14 @@ class SFEMModel:
             self.Q[: 2 * n, : 2 * n] += BS @ BS.T
         # Eq. (34): P0 = diag(P1, P3) with zero cross-covariance P2 (and effect states apart).
         self.P0 = np.diag(np.concatenate(p1 + p_eta + [p3]))
+        if prior_cov is not None:
+            if estimate is None:
+                raise ValueError("prior_cov: given, but the material is not estimated (estimate=None)")
+            C = as_float_array("prior_cov", prior_cov, shape=(estimate.n_params, estimate.n_params))
+            if np.abs(C - C.T).max() > 1e-12 * np.abs(C).max() or np.linalg.eigvalsh(C).min() <= 0:
+                raise ValueError("prior_cov: expected a symmetric positive definite matrix")
+            nr = 2 * n + sum(len(v) for v in p_eta)
+            self.P0[nr:, nr:] = C
         u0 = np.zeros(n) if initial_displacement is None else self.dofmap.restrict(
             as_float_array("initial_displacement", initial_displacement, shape=(mesh.n_dofs,)))
         eta0 = [e.initial_states() for e in self.effects]
@@ -247,6 +257,8 @@ class SFEMModel:
             parts.append(self.penalty)
         if self.estimate is not None:
             parts += [self.estimate.basis_E.toarray(), self.estimate.basis_nu.toarray()]
+            if self.estimate.offset_E is not None:
+                parts.append(self.estimate.offset_E)
         for a in parts:
             h.update(np.ascontiguousarray(a).tobytes())
         h.update(f"{self.jacobian},{[e.name for e in self.effects]}".encode())

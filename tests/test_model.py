@@ -178,3 +178,40 @@ def test_bad_arguments_are_named():
         Material(np.ones(2), np.array([0.3, 0.5]))
     with pytest.raises(ValueError, match="E: expected Young's moduli > 0"):
         Material(np.array([1.0, -1.0]), np.array([0.3, 0.3]))
+
+
+def test_relative_region_parameterisation_keeps_the_mean_log_E():
+    """Contrasts move E between regions but never the mean log E (not identifiable without force)."""
+    labels = np.repeat(np.arange(4), 3)
+    p = Parameterisation.relative_regions(labels, 1e4)
+    assert p.n_E == 3 and p.n_params == 7
+    rng = np.random.default_rng(0)
+    for _ in range(5):
+        mat = p.material(rng.standard_normal(7))
+        assert np.mean(np.log(mat.E)) == pytest.approx(np.log(1e4), abs=1e-12)
+    start = Material.uniform(12, 1e4, 0.45)
+    np.testing.assert_allclose(p.material(p.theta_of(start)).E, start.E)
+    np.testing.assert_allclose(p.theta_of(start)[:3], 0.0, atol=1e-12)
+
+
+def test_correlated_prior_is_spd_and_correlates_neighbours():
+    from sfem_filters.material import correlated_prior
+    rng = np.random.default_rng(3)
+    mesh = random_block_mesh(rng)
+    p = Parameterisation.per_element(mesh.n_elements)
+    C = correlated_prior(p, mesh.centroids, length=0.005, std_E=0.3, std_nu=1.0) + 1e-9 * np.eye(p.n_params)
+    np.testing.assert_allclose(C, C.T)
+    assert np.linalg.eigvalsh(C).min() > 0
+    np.testing.assert_allclose(np.diag(C)[: mesh.n_elements], 0.09 + 1e-9)
+    d = np.linalg.norm(mesh.centroids[:, None] - mesh.centroids[None], axis=2)
+    i, j = np.unravel_index(np.argmin(d + np.eye(len(d)) * 1e9), d.shape)
+    k = np.argmax(d[i])
+    assert C[i, j] > C[i, k]                                      # nearer elements correlate more
+    assert np.all(C[: mesh.n_elements, mesh.n_elements:] == 0)    # E and nu independent
+    model = small_model(rng, mesh=mesh, estimate=p)
+    m2 = SFEMModel(mesh, model.material, model.loads, model.observation, 0.01, model.dofmap.fixed,
+                   estimate=p, prior_cov=C)
+    np.testing.assert_allclose(m2.P0[m2.dim_x:, m2.dim_x:], C)
+    with pytest.raises(ValueError, match="prior_cov: expected a symmetric positive definite"):
+        SFEMModel(mesh, model.material, model.loads, model.observation, 0.01, model.dofmap.fixed,
+                  estimate=p, prior_cov=-C)
