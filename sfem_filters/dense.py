@@ -361,6 +361,7 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
         "setup": setup, "baseline_run": base, "extended_run": ext,
         "report": {
             "noise_floor_px": setup.noise_px,
+            "measured": measured_wall_kinematics(setup),
             "nominal": {k: NOMINAL[k] for k in setup.nominal},
             "config": {"drive": drive, "landmarks": landmarks, "observe": observe, "holdout_seed": holdout_seed,
                        "estimate": estimate, "max_loops": max_loops, "n_points": int(seq.n_points),
@@ -390,6 +391,52 @@ def strain_maps(setup: Setup, U_px) -> np.ndarray:
     return np.stack([proj(er, er), proj(ec, ec), 2 * proj(er, ec)], axis=-1)
 
 
+def measured_wall_kinematics(setup: Setup) -> dict:
+    """What the data themselves say about the wall, per frame and at the systolic peak.
+
+    Wall area ratio (deformed over reference area of the tissue mesh), mean wall thickness
+    (mean over angle of epicardial minus endocardial radius about the cavity centre, both
+    contours interpolated in angle), mean radial and circumferential strain w.r.t. frame 0;
+    the displacement RMS of the first frame (is it at rest?) and between the last and first
+    frames (does the cycle close?). Data units (pixels).
+    """
+    mesh, g, seq = setup.mesh, setup.geometry, setup.seq
+    P = seq.points
+    U = _filled(seq.displacement)
+    tri = mesh.elements
+    def areas(X):
+        p = X[tri]
+        return 0.5 * np.abs((p[:, 1, 0] - p[:, 0, 0]) * (p[:, 2, 1] - p[:, 0, 1])
+                            - (p[:, 2, 0] - p[:, 0, 0]) * (p[:, 1, 1] - p[:, 0, 1]))
+    a0 = areas(P).sum()
+    area_ratio = np.array([areas(P + U[t]).sum() / a0 for t in range(len(U))])
+    grid = np.linspace(0, 2 * np.pi, 90, endpoint=False)
+    def thickness(X):
+        c = _centroid(X[g.endo])
+        out = []
+        for loop in (g.endo, g.epi):
+            d = X[loop] - c
+            ang = np.mod(np.arctan2(d[:, 1], d[:, 0]), 2 * np.pi)
+            o = np.argsort(ang)
+            out.append(np.interp(grid, ang[o], np.linalg.norm(d, axis=1)[o], period=2 * np.pi))
+        return float(np.mean(out[1] - out[0]))
+    thick = np.array([thickness(P + U[t]) for t in range(len(U))])
+    eps = strain_maps(setup, U)
+    peak = int(np.argmax(area_ratio))
+    return {"peak_frame": peak, "wall_area_ratio_peak": float(area_ratio[peak]),
+            "wall_thickness_px_frame0": float(thick[0]), "wall_thickness_px_peak": float(thick[peak]),
+            "mean_radial_strain_peak": float(eps[peak, :, 0].mean()),
+            "mean_circumferential_strain_peak": float(eps[peak, :, 1].mean()),
+            "frame0_displacement_rms_px": float(np.sqrt(np.mean(np.sum(U[0] ** 2, axis=1)))),
+            "last_to_first_rms_px": float(np.sqrt(np.mean(np.sum((U[-1] - U[0]) ** 2, axis=1)))),
+            "wall_area_ratio": area_ratio.tolist(), "wall_thickness_px": thick.tolist()}
+
+
+def _centroid(xy):
+    from .myocardium import _polygon_centroid
+    return _polygon_centroid(xy)
+
+
 def equivalent_eigenstrain(effect_states, nu: float = None) -> np.ndarray:
     """Stress-free strain (eps_cc, eps_rr) equivalent to ``active_polar`` amplitudes.
 
@@ -414,6 +461,14 @@ def format_report(report: dict) -> str:
              f"material {cfg['estimate']})",
              f"noise floor {report['noise_floor_px']:.3f} px" + (
                  f"; nominal (not in the file): {report['nominal']}" if report["nominal"] else ""),
+             "data: wall area x{w:.3f} and wall thickness {t0:.2f} -> {tp:.2f} px at frame {f} (peak area); mean strain "
+             "there E_rr {er:+.3f}, E_cc {ec:+.3f} (w.r.t. frame 0); frame 0 displacement RMS {r0:.2f} px, last-to-first "
+             "{rl:.2f} px".format(w=report["measured"]["wall_area_ratio_peak"], t0=report["measured"]["wall_thickness_px_frame0"],
+                                  tp=report["measured"]["wall_thickness_px_peak"], f=report["measured"]["peak_frame"],
+                                  er=report["measured"]["mean_radial_strain_peak"],
+                                  ec=report["measured"]["mean_circumferential_strain_peak"],
+                                  r0=report["measured"]["frame0_displacement_rms_px"],
+                                  rl=report["measured"]["last_to_first_rms_px"]),
              "", "ranking of candidate effects (score test on the baseline innovations; -log10 p, higher = stronger):"]
     for r in report["ranking"]:
         lines.append(f"  {r['effect']:<24} {r['score']:9.1f}   LM = {r['lm']:9.1f} on {r['df']:3d} dof, "
