@@ -85,6 +85,10 @@ class SFEMModel:
     effects : sequence of :class:`sfem_filters.effects.Effect`
         Extra model terms, each a load ``G_e eta_e`` (N) linear in its states ``eta_e``
         (random walks), appended to the state after the kinematics: ``z = [x; eta; theta]``.
+    velocity_observation : (n_obs, n_dofs) array or sparse matrix, optional
+        Rows observing velocities (m/s), e.g. phase-contrast MR (Eq. 13): ``H = [D, D_v, 0]``;
+        with it, ``observation`` and ``velocity_observation`` are stacked, displacement rows
+        first, and ``measurement_std`` covers both (m and m/s).
     initial_displacement : (n_dofs,) array, optional
         Displacement (m) of the initial state (default zero: at rest in the mesh geometry).
     process_load_std : float or (n_free,) array, optional
@@ -104,7 +108,7 @@ class SFEMModel:
                  estimate: Parameterisation | None = None, prior_std=(0.3, 1.0),
                  material_process_std=(0.0, 0.0), penalty=None, thickness: float = 1.0,
                  lumped_mass: bool = False, jacobian: str = "modal", effects=(),
-                 initial_displacement=None, process_load_std=None, prior_cov=None):
+                 initial_displacement=None, process_load_std=None, prior_cov=None, velocity_observation=None):
         if not isinstance(mesh, TriMesh):
             raise TypeError(f"mesh: expected a TriMesh, got {type(mesh).__name__}")
         if not isinstance(material, Material):
@@ -152,10 +156,19 @@ class SFEMModel:
         self.n_restart = self.dim_x + self.dim_eta
         self.dim_theta = 0 if estimate is None else estimate.n_params
         self.dim_state = self.n_restart + self.dim_theta
-        self.dim_obs = D.shape[0]
-        # H = [D 0] over the free dofs (Eq. 22)
+        Dv = None
+        if velocity_observation is not None:
+            Dv = sp.csr_matrix(velocity_observation)
+            if Dv.shape[1] != mesh.n_dofs:
+                raise ValueError(f"velocity_observation: expected {mesh.n_dofs} columns (n_dofs), got {Dv.shape[1]}")
+        self.velocity_observation = Dv
+        n_u = D.shape[0]
+        self.dim_obs = n_u + (0 if Dv is None else Dv.shape[0])
+        # H = [D 0] over the free dofs (Eq. 22), with velocity rows [0 D_v 0] below (Eq. 13)
         H = np.zeros((self.dim_obs, self.dim_state))
-        H[:, :n] = D[:, self.dofmap.free].toarray()
+        H[:n_u, :n] = D[:, self.dofmap.free].toarray()
+        if Dv is not None:
+            H[n_u:, n:2 * n] = Dv[:, self.dofmap.free].toarray()
         self._H = H
         sd_m = _std_vector("measurement_std", measurement_std, self.dim_obs, "m")
         self.R = np.diag(sd_m ** 2)

@@ -215,3 +215,24 @@ def test_correlated_prior_is_spd_and_correlates_neighbours():
     with pytest.raises(ValueError, match="prior_cov: expected a symmetric positive definite"):
         SFEMModel(mesh, model.material, model.loads, model.observation, 0.01, model.dofmap.fixed,
                   estimate=p, prior_cov=-C)
+
+
+def test_velocity_rows_observe_the_velocity_state():
+    """H = [D 0; 0 D_v] (Eq. 13): velocity rows read U', displacement rows read U, at any point."""
+    from sfem_filters.observations import point_observation_matrix
+    rng = np.random.default_rng(8)
+    base = small_model(rng, estimate=None)
+    mesh = base.mesh
+    pts = mesh.centroids[:3]                                   # points that are not nodes
+    Dp = point_observation_matrix(mesh, pts)
+    m = SFEMModel(mesh, base.material, base.loads, Dp, 0.01, base.dofmap.fixed, velocity_observation=Dp,
+                  measurement_std=np.r_[np.full(6, 1e-5), np.full(6, 1e-3)])
+    assert m.dim_obs == 12
+    z = rng.standard_normal(m.dim_state)
+    U, V = m.displacements(z), m.velocities(z)
+    y = m.hx(z, 0)
+    np.testing.assert_allclose(y[:6], Dp @ U, atol=1e-14)
+    np.testing.assert_allclose(y[6:], Dp @ V, atol=1e-14)
+    # barycentric interpolation: a point at a centroid reads the mean of its triangle's nodes
+    e = 0
+    np.testing.assert_allclose(y[0], U[2 * mesh.elements[e]].mean(), atol=1e-14)
