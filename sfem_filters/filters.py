@@ -193,16 +193,94 @@ def _check_observations(model, observations) -> np.ndarray:
     return y
 
 
-def filter_loop(engine, model, observations, loop: int = 0, history: History | None = None):
+class FilterDivergence(RuntimeError):
+    """The innovations stayed far outside their predicted spread for several frames in a row."""
+
+
+def nearest_psd(P: np.ndarray, floor: float = 0.0) -> np.ndarray:
+    """Nearest symmetric positive semi-definite matrix in the Frobenius norm (Higham 1988).
+
+    For the symmetric part B of P, Higham's ``(B + H) / 2`` with H the polar factor equals
+    clipping B's negative eigenvalues at ``floor``.
+    """
+    B = 0.5 * (P + P.T)
+    lam, V = np.linalg.eigh(B)
+    return (V * np.maximum(lam, floor)) @ V.T
+
+
+@dataclass
+class Safeguards:
+    """Run-time checks of a filter (section 2.8 of the paper and beyond).
+
+    Parameters
+    ----------
+    covariance_repair : {"higham", "none"}
+        After every step P must admit a Cholesky factor (positive definite to round-off). If it
+        does not, ``"higham"`` replaces it by the nearest positive semi-definite matrix (plus
+        ``jitter`` times its mean diagonal) and logs a warning; ``"none"`` raises.
+    divergence_frames : int
+        Frames in a row with NIS above the ``divergence_level`` quantile of chi2(m) that make
+        the filter divergent: a warning, or :class:`FilterDivergence` with ``stop_on_divergence``.
+    """
+
+    covariance_repair: str = "higham"
+    jitter: float = 1e-12
+    divergence_level: float = 0.999
+    divergence_frames: int = 4
+    stop_on_divergence: bool = False
+    repairs: list = field(default_factory=list)
+    divergences: list = field(default_factory=list)
+
+    def __post_init__(self):
+        if self.covariance_repair not in ("higham", "none"):
+            raise ValueError(f"covariance_repair: expected 'higham' or 'none', got {self.covariance_repair!r}")
+
+    def check_covariance(self, engine, loop, t):
+        P = engine.P
+        try:
+            np.linalg.cholesky(0.5 * (P + P.T))
+            return
+        except np.linalg.LinAlgError:
+            pass
+        if self.covariance_repair == "none":
+            raise FloatingPointError(f"P lost positive definiteness at loop {loop}, frame {t}")
+        fixed = nearest_psd(P)
+        fixed[np.diag_indices_from(fixed)] += self.jitter * max(np.mean(np.diag(fixed)), 1e-300)
+        engine.reset(engine.x, fixed)
+        self.repairs.append((loop, t))
+        warnings.warn(f"covariance repaired (nearest PSD, Higham) at loop {loop}, frame {t}", RuntimeWarning)
+
+    def check_nis(self, nis_run: list, loop, t, nis, m):
+        from scipy import stats
+        if m and nis > stats.chi2.ppf(self.divergence_level, m):
+            nis_run.append(t)
+        else:
+            nis_run.clear()
+        if len(nis_run) == self.divergence_frames:
+            self.divergences.append((loop, t))
+            msg = (f"filter inconsistent: NIS above its {self.divergence_level:.1%} chi-square bound for "
+                   f"{self.divergence_frames} frames in a row (loop {loop}, frames {nis_run[0]}-{t})")
+            if self.stop_on_divergence:
+                raise FilterDivergence(msg)
+            warnings.warn(msg, RuntimeWarning)
+
+
+def filter_loop(engine, model, observations, loop: int = 0, history: History | None = None,
+                safeguards: Safeguards | None = None):
     """One pass over the sequence: update at frame 0, then predict and update each frame.
 
     NaN observations are left out of their frame's update (rows of H, R and y); a frame with
-    nothing observed is predict-only. Returns the posterior states, shape (n_frames, dim_state).
+    nothing observed is predict-only. With ``safeguards``, P is checked (and repaired) after
+    every step and the NIS is monitored for divergence. Returns the posterior states, shape
+    (n_frames, dim_state).
     """
     states = np.empty((model.n_frames, model.dim_state))
+    nis_run: list = []
     for t in range(model.n_frames):
         if t > 0:
             engine.predict(t - 1)
+            if safeguards is not None:
+                safeguards.check_covariance(engine, loop, t)
         y = observations[t]
         mask = ~np.isnan(y)
         innov = np.full(model.dim_obs, np.nan)
@@ -216,6 +294,9 @@ def filter_loop(engine, model, observations, loop: int = 0, history: History | N
         x = engine.x
         if not np.all(np.isfinite(x)) or not np.all(np.isfinite(engine.P)):
             raise FloatingPointError(f"the filter produced a non-finite state at loop {loop}, frame {t}")
+        if safeguards is not None:
+            safeguards.check_covariance(engine, loop, t)
+            safeguards.check_nis(nis_run, loop, t, nis, int(mask.sum()))
         states[t] = x
         if history is not None:
             history.append(loop, t, x, engine.P, innov, S_full, nis, int(mask.sum()))
@@ -256,7 +337,7 @@ def _physical(model, theta):
 
 def cyclic_estimate(model, observations, *, max_loops: int = 50, tol: float = 1e-3,
                     engine: str = "structured", progress: bool = False, checkpoint=None,
-                    description: str = "cyclic loops") -> CyclicResult:
+                    description: str = "cyclic loops", safeguards: Safeguards | None = None) -> CyclicResult:
     """Feed the periodic sequence again and again until the material converges (section 2.7).
 
     Each loop restarts the kinematic (and effect) states at ``model.x0`` with their initial
@@ -276,6 +357,8 @@ def cyclic_estimate(model, observations, *, max_loops: int = 50, tol: float = 1e
     checkpoint : path, optional
         Saved (npz) after every loop; if it exists and matches this run, the run resumes
         from it and ends exactly as an uninterrupted run would.
+    safeguards : Safeguards, optional
+        Covariance checks and repair, divergence monitoring (default: ``Safeguards()``).
     """
     if engine not in ENGINES:
         raise ValueError(f"engine: expected one of {sorted(ENGINES)}, got {engine!r}")
@@ -284,6 +367,7 @@ def cyclic_estimate(model, observations, *, max_loops: int = 50, tol: float = 1e
     if not tol > 0:
         raise ValueError(f"tol: expected a positive relative tolerance, got {tol!r}")
     y = _check_observations(model, observations)
+    safeguards = Safeguards() if safeguards is None else safeguards
     eng = ENGINES[engine](model)
     nx = model.n_restart
     P0 = np.array(model.P0, float)
@@ -317,7 +401,7 @@ def cyclic_estimate(model, observations, *, max_loops: int = 50, tol: float = 1e
             P[nx:, nx:] = P_theta
             eng.reset(x, P)
             before = _physical(model, theta)
-            states = filter_loop(eng, model, y, loop, history)
+            states = filter_loop(eng, model, y, loop, history, safeguards)
             theta = eng.x[nx:].copy()
             P_theta = eng.P[nx:, nx:].copy()
             loops = loop + 1
