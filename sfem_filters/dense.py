@@ -473,7 +473,7 @@ def format_report(report: dict) -> str:
     for r in report["ranking"]:
         lines.append(f"  {r['effect']:<24} {r['score']:9.1f}   LM = {r['lm']:9.1f} on {r['df']:3d} dof, "
                      f"explains {100 * r['explained']:5.1f}% of the NIS")
-    lines += ["", f"{'':<34}{'baseline':>12}{'extended':>12}", f"{'effects':<34}{'none':>12}{','.join(e['effects']) or 'none':>12}"]
+    lines += ["", f"{'':<34}{'baseline':>12}{'extended':>18}", f"{'effects':<34}{'none':>12}{','.join(e['effects']) or 'none':>18}"]
     for key, label in (("heldout_rmse_px", "held-out RMSE [px]"), ("heldout_rmse_radial_px", "  radial [px]"),
                        ("heldout_rmse_circumferential_px", "  circumferential [px]"),
                        ("heldout_rmse_worst_frame_px", "  worst frame [px]"),
@@ -481,7 +481,7 @@ def format_report(report: dict) -> str:
                        ("nis_fraction_outside_95", "frames outside 95% NIS band"),
                        ("innovation_lag1_autocorrelation", "innovation lag-1 autocorrelation"),
                        ("nis_z", "NIS z (|z| > 3: inconsistent)"), ("lag1_z", "whiteness z (|z| > 3: correlated)")):
-        lines.append(f"{label:<34}{b[key]:>12.3f}{e[key]:>12.3f}")
+        lines.append(f"{label:<34}{b[key]:>12.3f}{e[key]:>18.3f}")
     if "active_polar[0]" in e.get("effect_state_names", []):
         offset = e["effect_state_names"].index("active_polar[0]")
         st = np.array(e["effect_states"])[:, offset:offset + 2]

@@ -337,12 +337,11 @@ class SFEMModel:
         dirs = self._directions(mat)
         dofs = np.concatenate([self._directions_dofs, self._directions_dofs])
         w = self.load(z, t)
-        if self.jacobian == "modal":
-            per_element = system.sensitivity(x, w, dirs, dofs)
-        else:
-            per_element = reference_sensitivity(self.M, K, self.alpha, self.beta, self.frame_interval,
-                                                 x, w, [self._scatter(d, dd) for d, dd in zip(dirs, dofs)])
         J = self.estimate.element_jacobian(mat)          # d(log E_e, nu_e)/d theta
+        if self.jacobian == "modal":
+            return system.sensitivity(x, w, dirs, dofs, combine=J)
+        per_element = reference_sensitivity(self.M, K, self.alpha, self.beta, self.frame_interval,
+                                            x, w, [self._scatter(d, dd) for d, dd in zip(dirs, dofs)])
         return np.asarray((J.T @ per_element.T).T)
 
     def _scatter(self, Ke, dofs):

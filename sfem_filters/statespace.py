@@ -304,7 +304,7 @@ class ModalSystem:
         """B = int_0^T e^{A_c s} ds B_c (Eq. 16), dense (2n, n)."""
         return np.vstack([(self.Phi * self.g[:, r]) @ self.Phi.T for r in range(2)])
 
-    def sensitivity(self, x, w, dK_elements, dofs, chunk: int = 256) -> np.ndarray:
+    def sensitivity(self, x, w, dK_elements, dofs, chunk: int = 256, combine=None) -> np.ndarray:
         """Exact d(A x + B w)/d p for element-level stiffness perturbations (Eq. 33).
 
         Parameters
@@ -319,10 +319,13 @@ class ModalSystem:
             Free-dof index of each of those 6 dofs, -1 where the dof is fixed.
         chunk : int
             Parameters processed at once (bounds memory at ``chunk * 12 * n`` floats).
+        combine : (P, k) array or sparse matrix, optional
+            Return ``result @ combine`` (e.g. the chain rule to k material parameters),
+            contracted before the final modal-to-nodal product: cheaper when k << P.
 
         Returns
         -------
-        (2n, P) array
+        (2n, P) array, or (2n, k) with ``combine``
 
         Notes
         -----
@@ -350,7 +353,9 @@ class ModalSystem:
         dK_elements = np.asarray(dK_elements, float)
         dofs = np.where(np.asarray(dofs) < 0, n, dofs)
         P = len(dK_elements)
-        out = np.empty((2 * n, P))
+        k = P if combine is None else combine.shape[1]
+        acc = np.zeros((k, N, 2)) if combine is not None else None
+        out = np.empty((2 * n, k))
         for start in range(0, P, chunk):
             sl = slice(start, min(start + chunk, P))
             Kd, dd = dK_elements[sl], dofs[sl]
@@ -360,8 +365,16 @@ class ModalSystem:
             dq_s = -np.einsum("pci,pc->pi", Phi_e, np.einsum("pcd,pd->pc", Kd, U_s[dd])) / self.w2
             z[:, :, 0] += (1.0 - self.E[:, 0, 0]) * dq_s
             z[:, :, 1] += -self.E[:, 1, 0] * dq_s
+            if combine is not None:
+                Cs = combine[sl]
+                Cs = Cs.toarray() if hasattr(Cs, "toarray") else np.asarray(Cs)
+                acc += np.einsum("pk,pir->kir", Cs, z)
+                continue
             out[:n, sl] = self.Phi @ z[:, :, 0].T
             out[n:, sl] = self.Phi @ z[:, :, 1].T
+        if combine is not None:
+            out[:n] = self.Phi @ acc[:, :, 0].T
+            out[n:] = self.Phi @ acc[:, :, 1].T
         return out
 
     def _frechet_pairs(self, y) -> np.ndarray:
