@@ -154,17 +154,23 @@ def convergence(comp: Comparison, path: str):
     plt.close(fig)
 
 
-def comparison_figures(comp: Comparison, directory: str) -> list:
-    """Write every figure of the comparison into ``directory``; returns the paths."""
+def _write_figures(obj, directory: str, figures) -> list:
+    """Call each ``fn(obj, path)`` of ``(file name, fn)`` pairs into ``directory``; the paths."""
     os.makedirs(directory, exist_ok=True)
     out = []
-    for name, fn in (("displacement_maps.png", displacement_maps), ("eyy_frame9.png", strain_maps),
-                     ("eyy_cdfs_frame9.png", strain_cdfs), ("material_maps.png", material_maps),
-                     ("convergence.png", convergence)):
+    for name, fn in figures:
         path = os.path.join(directory, name)
-        fn(comp, path)
+        fn(obj, path)
         out.append(path)
     return out
+
+
+def comparison_figures(comp: Comparison, directory: str) -> list:
+    """Write every figure of the comparison into ``directory``; returns the paths."""
+    return _write_figures(comp, directory, (
+        ("displacement_maps.png", displacement_maps), ("eyy_frame9.png", strain_maps),
+        ("eyy_cdfs_frame9.png", strain_cdfs), ("material_maps.png", material_maps),
+        ("convergence.png", convergence)))
 
 
 # ---------------------------------------------------------------------------- measured data
@@ -276,11 +282,6 @@ def nis_trace(loop_out: dict, path: str):
 
 def dense_figures(loop_out: dict, directory: str) -> list:
     """Every figure of the closing-the-loop run into ``directory``."""
-    os.makedirs(directory, exist_ok=True)
-    out = []
-    for name, fn in (("residual_maps.png", dense_residual_maps), ("strain_maps.png", dense_strain_maps),
-                     ("material_maps.png", dense_material_maps), ("nis_trace.png", nis_trace)):
-        p = os.path.join(directory, name)
-        fn(loop_out, p)
-        out.append(p)
-    return out
+    return _write_figures(loop_out, directory, (
+        ("residual_maps.png", dense_residual_maps), ("strain_maps.png", dense_strain_maps),
+        ("material_maps.png", dense_material_maps), ("nis_trace.png", nis_trace)))
