@@ -278,9 +278,7 @@ def filter_loop(engine, model, observations, loop: int = 0, history: History | N
     nis_run: list = []
     for t in range(model.n_frames):
         if t > 0:
-            engine.predict(t - 1)
-            if safeguards is not None:
-                safeguards.check_covariance(engine, loop, t)
+            engine.predict(t - 1)      # F P F^T + Q keeps a PSD P PSD: checked after the update
         y = observations[t]
         mask = ~np.isnan(y)
         innov = np.full(model.dim_obs, np.nan)

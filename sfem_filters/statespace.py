@@ -256,7 +256,8 @@ class ModalSystem:
         if w2.min() <= 1e-14 * scale:
             raise ValueError(
                 "K: expected a positive definite stiffness over the free dofs, got a singular or "
-                "indefinite one (rigid-body motion is free): fix dofs or add penalty springs")
+                f"indefinite one (smallest / largest eigenvalue {w2.min() / scale:.1e}): rigid-body motion "
+                "is free (fix dofs or add penalty springs), or a material estimate has diverged")
         self.w2 = w2
         self.Phi = Phi
         self.PhiTM = Phi.T @ M

@@ -55,3 +55,17 @@ def two_identical_squares() -> TriMesh:
     a = rectangle_mesh(0.01, 0.01, 3, 3)
     nodes = np.vstack([a.nodes, a.nodes + [0.02, 0.0]])
     return TriMesh(nodes, np.vstack([a.elements, a.elements + a.n_nodes]))
+
+
+def simulate(model, rng, noise):
+    """Truth from the model's own material and noisy observations."""
+    system = model.system(model.theta_of(model.x0) if model.estimates_material else None)
+    x = np.zeros(model.dim_x)
+    w = model.dofmap.restrict(model.loads)
+    ys = []
+    for t in range(model.n_frames):
+        if t > 0:
+            x = system.step(x, w[t])
+        ys.append(model.hx(np.concatenate([x, model.x0[model.dim_x:]]), t))
+    ys = np.array(ys)
+    return ys + rng.standard_normal(ys.shape) * noise

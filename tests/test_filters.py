@@ -7,21 +7,7 @@ from sfem_filters.filters import (ENGINES, SFEMExtendedKalmanFilter, cyclic_esti
                                   load_checkpoint)
 from sfem_filters.synthetic import benchmark_model, pinned_benchmark
 
-from helpers import random_block_mesh, small_model
-
-
-def _simulate(model, rng, noise):
-    """Truth from the model's own material and noisy observations."""
-    system = model.system(model.theta_of(model.x0) if model.estimates_material else None)
-    x = np.zeros(model.dim_x)
-    w = model.dofmap.restrict(model.loads)
-    ys = []
-    for t in range(model.n_frames):
-        if t > 0:
-            x = system.step(x, w[t])
-        ys.append(model.hx(np.concatenate([x, model.x0[model.dim_x:]]), t))
-    ys = np.array(ys)
-    return ys + rng.standard_normal(ys.shape) * noise
+from helpers import random_block_mesh, simulate as _simulate, small_model
 
 
 @pytest.fixture(scope="module")

@@ -9,6 +9,7 @@ import warnings
 
 import numpy as np
 import pytest
+from hypothesis import given, settings, strategies as st
 
 from sfem_filters.filters import (ENGINES, FilterDivergence, Safeguards, cyclic_estimate, filter_loop,
                                   load_checkpoint, nearest_psd)
@@ -112,3 +113,34 @@ def test_divergence_is_reported_and_can_stop_the_run():
     with warnings.catch_warnings():
         warnings.simplefilter("error")                 # consistent data: no warning at all
         cyclic_estimate(model, b.observations)
+
+
+@settings(max_examples=8, deadline=None)
+@given(seed=st.integers(0, 10_000), noise=st.floats(1e-6, 1e-4), missing=st.floats(0.0, 0.6),
+       repair=st.sampled_from(["higham", "none"]))
+def test_random_missing_data_keeps_P_spd_and_material_admissible(seed, noise, missing, repair):
+    """Random meshes, materials, noise levels and missing-data masks (single values and whole
+    frames), 16 frames x 3 loops: P stays symmetric positive definite (so the 'none' setting
+    never has to stop), the material admissible, and nothing is NaN."""
+    from helpers import random_block_mesh, small_model
+    rng = np.random.default_rng(seed)
+    model = small_model(rng, mesh=random_block_mesh(rng, n_interior=int(rng.integers(2, 7))), noise=noise,
+                        n_frames=16)
+    from helpers import simulate
+    y = simulate(model, rng, noise)                                 # data the model can explain
+    y[rng.random(y.shape) < missing] = np.nan
+    y[rng.integers(1, 16)] = np.nan                                  # one frame with nothing observed
+    guard = Safeguards(covariance_repair=repair)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        res = cyclic_estimate(model, y, max_loops=3, tol=1e-12, safeguards=guard)
+    h = res.history.as_arrays()
+    assert np.all(np.isfinite(h["x"])) and np.all(np.isfinite(h["P_diag"]))
+    assert np.all(h["P_diag"] > 0)
+    assert not guard.repairs
+    C = res.P_theta / np.sqrt(np.outer(np.diag(res.P_theta), np.diag(res.P_theta)))
+    assert np.linalg.eigvalsh(0.5 * (C + C.T)).min() > 0
+    mat = model.material_of_theta(res.theta)
+    assert np.all(mat.E > 0) and np.all((mat.nu > 0) & (mat.nu < 0.5))
+    empty = np.flatnonzero(np.all(np.isnan(y), axis=1))
+    assert np.all(h["n_obs"][np.isin(h["frame"], empty)] == 0)
