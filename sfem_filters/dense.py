@@ -33,7 +33,7 @@ from .effects import CATALOGUE, build_effects
 from .fem import node_dofs, penalty_load, penalty_stiffness, pressure_load, stiffness_matrix
 from .filters import cyclic_estimate
 from .material import Material, Parameterisation
-from .myocardium import contour_landmarks, lv_geometry, mesh_from_points
+from .myocardium import _polygon_centroid, contour_landmarks, lv_geometry, mesh_from_points
 from .model import SFEMModel
 from .strain import nodal_strains
 
@@ -236,13 +236,8 @@ def build_model(setup: Setup, effects=(), drive: str = "penalty", estimate: str 
                       process_std=(0.1 * process_scale * noise_c, 0.1 * process_scale * noise_c / setup.frame_interval),
                       initial_std=(noise_c, noise_c / setup.frame_interval), estimate=param,
                       prior_std=(0.3, 1.0), penalty=penalty, effects=effs, initial_displacement=u0,
-                      process_load_std=None if load_std is None else process_scale * model_free(load_std, penalty, mesh))
+                      process_load_std=None if load_std is None else process_scale * load_std)
     return model, y
-
-
-def model_free(v, penalty, mesh):
-    """Global per-dof values restricted to the free dofs (every dof is free in these models)."""
-    return np.asarray(v, float)
 
 
 def _confidence(seq: Sequence, points) -> np.ndarray:
@@ -412,7 +407,7 @@ def measured_wall_kinematics(setup: Setup) -> dict:
     area_ratio = np.array([areas(P + U[t]).sum() / a0 for t in range(len(U))])
     grid = np.linspace(0, 2 * np.pi, 90, endpoint=False)
     def thickness(X):
-        c = _centroid(X[g.endo])
+        c = _polygon_centroid(X[g.endo])
         out = []
         for loop in (g.endo, g.epi):
             d = X[loop] - c
@@ -430,11 +425,6 @@ def measured_wall_kinematics(setup: Setup) -> dict:
             "frame0_displacement_rms_px": float(np.sqrt(np.mean(np.sum(U[0] ** 2, axis=1)))),
             "last_to_first_rms_px": float(np.sqrt(np.mean(np.sum((U[-1] - U[0]) ** 2, axis=1)))),
             "wall_area_ratio": area_ratio.tolist(), "wall_thickness_px": thick.tolist()}
-
-
-def _centroid(xy):
-    from .myocardium import _polygon_centroid
-    return _polygon_centroid(xy)
 
 
 def equivalent_eigenstrain(effect_states, nu: float = None) -> np.ndarray:

@@ -367,9 +367,8 @@ class ModalSystem:
             z[:, :, 0] += (1.0 - self.E[:, 0, 0]) * dq_s
             z[:, :, 1] += -self.E[:, 1, 0] * dq_s
             if combine is not None:
-                Cs = combine[sl]
-                Cs = Cs.toarray() if hasattr(Cs, "toarray") else np.asarray(Cs)
-                acc += np.einsum("pk,pir->kir", Cs, z)
+                # (k x p) @ (p x 2N): a sparse-dense or BLAS product, never a dense einsum
+                acc += np.asarray(combine[sl].T @ z.reshape(len(z), -1)).reshape(k, N, 2)
                 continue
             out[:n, sl] = self.Phi @ z[:, :, 0].T
             out[n:, sl] = self.Phi @ z[:, :, 1].T

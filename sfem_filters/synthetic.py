@@ -182,7 +182,8 @@ def annulus_sequence(effect: str | None = None, amplitude=(0.15, -0.3), seed: in
     system = model.system()
     nx = model.dim_x
     L = np.linalg.cholesky(model.Q[:nx, :nx] + 1e-30 * np.eye(nx))
-    G = np.zeros((mesh_dofs := setup.mesh.n_dofs, 0))
+    n_dofs = setup.mesh.n_dofs
+    G = np.zeros((n_dofs, 0))
     a = np.zeros((n_frames, 0))
     if effect is not None:
         eff = build_effects([effect], setup.mesh, setup.geometry, scale=dense.NOMINAL["E"])[0]
@@ -196,7 +197,7 @@ def annulus_sequence(effect: str | None = None, amplitude=(0.15, -0.3), seed: in
     disp = np.empty((n_frames, len(pts), 2))
     for t in range(n_frames):
         if t > 0:
-            w = np.zeros(mesh_dofs)
+            w = np.zeros(n_dofs)
             w[lm_dofs] = k * disp[t - 1][setup.landmarks].reshape(-1) * s      # measured, previous frame
             w = w + G @ a[t]
             x = system.step(x, model.dofmap.restrict(w)) + L @ rng.standard_normal(nx)

@@ -16,11 +16,16 @@ def random_material(rng, n, E_range=(3e4, 2e5), nu_range=(0.2, 0.49)) -> Materia
 
 
 def random_block_mesh(rng, n_interior=6, size=0.02) -> TriMesh:
-    """Delaunay mesh of a square's corners, edge midpoints and random interior points."""
+    """Delaunay mesh of a square's corners, edge midpoints and random interior points
+    (redrawn, deterministically from rng, until no interior triangle is a sliver)."""
     s = size
     ring = [(0, 0), (s / 2, 0), (s, 0), (s, s / 2), (s, s), (s / 2, s), (0, s), (0, s / 2)]
-    inner = rng.uniform(0.15 * s, 0.85 * s, (n_interior, 2))
-    return delaunay_mesh(np.vstack([ring, inner]), min_angle_deg=1.0)
+    while True:
+        inner = rng.uniform(0.15 * s, 0.85 * s, (n_interior, 2))
+        try:
+            return delaunay_mesh(np.vstack([ring, inner]), min_angle_deg=1.0)
+        except ValueError:
+            continue
 
 
 def small_model(rng, mesh=None, estimate="per_element", n_frames=5, alpha=10.0, beta=1e-3,

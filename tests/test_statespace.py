@@ -204,10 +204,15 @@ def test_modal_exponentials_closed_form_against_expm(w, zeta, T):
 
 
 def _complex_step_sensitivity(M, K, alpha, beta, T, x, w, dK_list, h=1e-30):
-    """d(A x + B w)/dp by complex-step differentiation of the block exponential (exact to round-off)."""
+    """d(A x + B w)/dp by complex-step differentiation of the block exponential (exact to round-off).
+
+    The exponential is taken of the balanced matrix S X S^-1, S = diag(w_s I, I, 1), as in
+    reference_sensitivity: unbalanced, expm itself loses digits when w_max^2 T is large."""
     from scipy.linalg import expm
     n = M.shape[0]
     Minv = np.linalg.inv(M)
+    ws = np.sqrt(np.abs(np.diag(Minv @ K)).max())
+    sc = np.concatenate([np.full(n, ws), np.ones(n), [1.0]])
     cols = []
     for dK in dK_list:
         Kc = K + 1j * h * dK
@@ -216,7 +221,9 @@ def _complex_step_sensitivity(M, K, alpha, beta, T, x, w, dK_list, h=1e-30):
         X[n:2 * n, :n] = -Minv @ Kc
         X[n:2 * n, n:2 * n] = -Minv @ (alpha * M + beta * Kc)
         X[n:2 * n, 2 * n] = Minv @ w
-        cols.append((expm(X * T) @ np.append(x, 1.0))[:2 * n].imag / h)
+        Xs = sc[:, None] * X / sc[None, :]
+        v = np.append(x, 1.0) * sc
+        cols.append((expm(Xs * T) @ v)[:2 * n].imag / sc[:2 * n] / h)
     return np.array(cols).T
 
 
