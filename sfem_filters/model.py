@@ -332,17 +332,43 @@ class SFEMModel:
             return np.zeros((self.dim_x, 0))
         z, x, _, theta = self._split(z)
         t = self._check_frame(t, self.n_frames - 2)
+        return self._sensitivity_at(theta, x, self.load(z, t))
+
+    def _sensitivity_at(self, theta, x, w) -> np.ndarray:
+        """d(A(theta) x + B(theta) w)/d theta for given x (m, m/s) and load w (N)."""
         mat = self.estimate.material(theta)
         system, K, _ = self._entry(mat)
         dirs = self._directions(mat)
         dofs = np.concatenate([self._directions_dofs, self._directions_dofs])
-        w = self.load(z, t)
         J = self.estimate.element_jacobian(mat)          # d(log E_e, nu_e)/d theta
         if self.jacobian == "modal":
             return system.sensitivity(x, w, dirs, dofs, combine=J)
         per_element = reference_sensitivity(self.M, K, self.alpha, self.beta, self.frame_interval,
                                             x, w, [self._scatter(d, dd) for d, dd in zip(dirs, dofs)])
         return np.asarray((J.T @ per_element.T).T)
+
+    def transition_derivatives(self, z, t=None) -> np.ndarray:
+        """dA'/dtheta_i of the restart block A' = [[A, B G], [0, T_eta]], (dim_theta, n_restart, n_restart).
+
+        Column k of dA/dtheta_i is the sensitivity of ``A e_k`` (no load), column j of
+        d(B G)/dtheta_i that of ``B G e_j``: one exact sensitivity (Eq. 33) per restart state,
+        so this costs n_restart times :meth:`sensitivity`. Used by Ljung's modification of the
+        coupling term (Eq. 40), which needs it for few parameters only.
+        """
+        if self.estimate is None:
+            return np.zeros((0, self.n_restart, self.n_restart))
+        _, _, _, theta = self._split(z)
+        n = self.dim_x // 2
+        out = np.zeros((self.dim_theta, self.n_restart, self.n_restart))
+        zero_w = np.zeros(n)
+        for k in range(self.dim_x):
+            e = np.zeros(self.dim_x)
+            e[k] = 1.0
+            out[:, : self.dim_x, k] = self._sensitivity_at(theta, e, zero_w).T
+        for j in range(self.dim_eta):
+            out[:, : self.dim_x, self.dim_x + j] = self._sensitivity_at(theta, np.zeros(self.dim_x),
+                                                                        self._G[:, j]).T
+        return out
 
     def _scatter(self, Ke, dofs):
         n = self.dim_x // 2
