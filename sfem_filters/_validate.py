@@ -56,6 +56,36 @@ def non_negative(name: str, value: float, unit: str = "") -> float:
     return _scalar(name, value, unit, strict=False)
 
 
+def integer(name: str, value, minimum: int) -> int:
+    """Check an integer >= ``minimum``."""
+    try:
+        ok = int(value) == value and value >= minimum
+    except (TypeError, ValueError):
+        ok = False
+    if not ok or isinstance(value, bool):
+        raise ValueError(f"{name}: expected an integer >= {minimum}, got {value!r}")
+    return int(value)
+
+
+def probability(name: str, value) -> float:
+    """Check a number in the open interval (0, 1)."""
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise TypeError(f"{name}: expected a number in (0, 1), got {value!r}") from None
+    if not 0 < v < 1:
+        raise ValueError(f"{name}: expected a number in the open interval (0, 1), got {value!r}")
+    return v
+
+
+def check_mesh(name: str, mesh):
+    """Check that ``mesh`` is a :class:`sfem_filters.mesh.TriMesh`."""
+    from .mesh import TriMesh
+    if not isinstance(mesh, TriMesh):
+        raise TypeError(f"{name}: expected a TriMesh, got {type(mesh).__name__}")
+    return mesh
+
+
 def check_material(E, nu, n: int | None = None):
     """Check Young's moduli (Pa, > 0) and Poisson's ratios (0 < nu < 0.5)."""
     E = as_float_array("E", E, shape=None if n is None else (n,))

@@ -10,9 +10,21 @@ import numpy as np
 import scipy.linalg as sla
 from scipy import stats
 
+from ._validate import as_float_array, integer, non_negative, positive, probability
 
-def _rows(history, loop):
-    return history.loop_rows(loop)
+
+def _rows(history, loop, min_frames: int = 1):
+    """Rows of one loop of a History, checked: the loop exists and has ``min_frames`` frames."""
+    if not hasattr(history, "loop_rows"):
+        raise TypeError(f"history: expected a sfem_filters.filters.History, got {type(history).__name__}")
+    if len(history.loop) == 0:
+        raise ValueError("history: expected a run with at least one frame, got an empty history")
+    if loop is not None and loop not in set(np.asarray(history.loop).tolist()):
+        raise ValueError(f"loop: expected one of the loops in the history (0-{max(history.loop)}), got {loop!r}")
+    rows = history.loop_rows(loop)
+    if len(rows) < min_frames:
+        raise ValueError(f"history: expected at least {min_frames} frames in the loop, got {len(rows)}")
+    return rows
 
 
 def nis_summary(history, loop: int | None = None, level: float = 0.95) -> dict:
@@ -22,6 +34,7 @@ def nis_summary(history, loop: int | None = None, level: float = 0.95) -> dict:
     mean of ``NIS_t / m_t`` (1 when consistent) and the fraction of frames outside the central
     ``level`` band of chi2(m_t).
     """
+    level = probability("level", level)
     rows = _rows(history, loop)
     nis = np.asarray(history.nis, float)[rows]
     m = np.asarray(history.n_obs)[rows]
@@ -69,6 +82,8 @@ def whiteness(history, loop: int | None = None, max_lag: int = 5) -> dict:
     both times. For a consistent filter the sequence is white: ``N_k rho_k^2`` are
     approximately chi2(1), so ``Q = sum_k N_k rho_k^2 ~ chi2(max_lag)``.
     """
+    max_lag = integer("max_lag", max_lag, 1)
+    _rows(history, loop, min_frames=3)
     v = whitened_innovations(history, loop)
     T = len(v)
     max_lag = int(min(max_lag, T - 2))
@@ -99,8 +114,9 @@ def effect_score(model, history, load_matrix, loop: int | None = None) -> dict:
     load_matrix : (n_dofs, k) array
         Global load (N) per unit amplitude of the candidate term.
     """
-    rows = _rows(history, loop)
-    G = model.dofmap.restrict(np.asarray(load_matrix, float).T).T
+    rows = _rows(history, loop, min_frames=2)
+    G = as_float_array("load_matrix", load_matrix, shape=(model.dofmap.n_dofs, None))
+    G = model.dofmap.restrict(G.T).T
     last = history.x[rows[-1]]
     system = model.system(model.theta_of(last) if model.estimates_material else None)
     BG = system.input_response(G)
@@ -135,6 +151,8 @@ def chi2_logsf(q: float, df: int) -> float:
     incomplete gamma function, ``log Gamma(a, x) = (a-1) log x - x + log(1 + (a-1)/x +
     (a-1)(a-2)/x^2 + ...) - log Gamma(a)`` with ``a = df/2``, ``x = q/2``."""
     from scipy.special import gammaln
+    q = non_negative("q", q)
+    df = integer("df", df, 0)
     if df <= 0:
         return 0.0
     v = float(stats.chi2.logsf(q, df))
@@ -153,6 +171,8 @@ def chi2_z(q: float, df: int) -> float:
 
     Larger means stronger evidence; it orders tests of different df like their p-values do,
     without the underflow of p for large q."""
+    q = non_negative("q", q)
+    df = integer("df", df, 0)
     if df <= 0:
         return 0.0
     a = 2.0 / (9.0 * df)
@@ -176,6 +196,8 @@ def consistency(history, loop: int | None = None, threshold: float = 3.0) -> dic
     whitened innovations times sqrt(N). ``inconsistent`` when either exceeds ``threshold`` in
     magnitude.
     """
+    threshold = positive("threshold", threshold)
+    _rows(history, loop, min_frames=2)
     s = nis_summary(history, loop)
     z_nis = chi2_z(float(np.sum(s["nis"])), int(np.sum(s["dof"])))
     v = whitened_innovations(history, loop)

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ._validate import as_float_array, check_mesh, positive
 from .fem import pressure_load, strain_displacement
 from .mesh import TriMesh
 from .myocardium import LVGeometry
@@ -54,6 +55,24 @@ class Effect:
     initial: object = 0.0
     description: str = ""
     rate_std: float | None = None
+
+    def __post_init__(self):
+        loads = as_float_array("loads", self.loads)
+        if loads.ndim != 2 or loads.shape[1] < 1:
+            raise ValueError(f"loads: expected an (n_dofs, k) array with k >= 1, got shape {loads.shape}")
+        object.__setattr__(self, "loads", loads)
+        k = loads.shape[1]
+        for name, value, strict in (("process_std", self.process_std, False),
+                                    ("initial_std", self.initial_std, True)):
+            v = as_float_array(name, value)
+            if v.ndim not in (0, 1) or (v.ndim == 1 and v.shape != (k,)):
+                raise ValueError(f"{name}: expected a number or {k} numbers, got shape {v.shape}")
+            if np.any(v < 0) or (strict and np.any(v == 0)):
+                raise ValueError(f"{name}: expected standard deviations {'>' if strict else '>='} 0 "
+                                 f"({self.unit}), got minimum {float(np.min(v))!r}")
+        as_float_array("initial", self.initial)
+        if self.rate_std is not None:
+            positive("rate_std", self.rate_std, f"{self.unit} per frame")
 
     @property
     def n_amplitudes(self) -> int:
@@ -94,8 +113,11 @@ class Effect:
 
 def stress_loads(mesh: TriMesh, element_stress, thickness: float = 1.0) -> np.ndarray:
     """Equivalent nodal loads (n_dofs,) of a per-element stress (n_el, 3) Pa, Voigt xx yy xy."""
+    check_mesh("mesh", mesh)
+    sigma = as_float_array("element_stress", element_stress, shape=(mesh.n_elements, 3))
+    thickness = positive("thickness", thickness, "m")
     B = strain_displacement(mesh)
-    fe = -(thickness * mesh.areas)[:, None] * np.einsum("eki,ek->ei", B, np.asarray(element_stress, float))
+    fe = -(thickness * mesh.areas)[:, None] * np.einsum("eki,ek->ei", B, sigma)
     out = np.zeros(mesh.n_dofs)
     np.add.at(out, mesh.element_dofs.ravel(), fe.ravel())
     return out
@@ -134,6 +156,9 @@ def active_stress(mesh: TriMesh, geometry: LVGeometry, direction: str = "circumf
 
     ``scale`` (Pa) is the stress of one unit of the state, so that states are O(1).
     """
+    if direction not in ("circumferential", "radial"):
+        raise ValueError(f"direction: expected 'circumferential' or 'radial', got {direction!r}")
+    positive("scale", scale, "Pa")
     vec = {"circumferential": geometry.circumferential, "radial": geometry.radial}[direction]
     sigma = _uniaxial(_element_direction(mesh, vec)) * scale
     G = stress_loads(mesh, sigma, thickness)[:, None]

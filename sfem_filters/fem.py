@@ -14,8 +14,20 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from ._validate import as_float_array, check_material, non_negative, positive
+from ._validate import as_float_array, check_material, check_mesh, non_negative, positive
 from .mesh import TriMesh
+
+
+def _material_arrays(E, nu):
+    """E (Pa, > 0) and nu (0 < nu < 0.5) as float arrays of their own shapes, checked."""
+    E = np.asarray(as_float_array("E", E), float)
+    nu = np.asarray(as_float_array("nu", nu), float)
+    check_material(E.ravel(), nu.ravel())
+    try:
+        np.broadcast(E, nu)
+    except ValueError:
+        raise ValueError(f"nu: expected a shape that broadcasts with E {E.shape}, got {nu.shape}") from None
+    return E, nu
 
 
 def plane_strain_matrix(E, nu) -> np.ndarray:
@@ -33,8 +45,7 @@ def plane_strain_matrix(E, nu) -> np.ndarray:
     (..., 3, 3) array
         Maps engineering strain (e_xx, e_yy, gamma_xy) to stress (Pa).
     """
-    E = np.asarray(E, float)
-    nu = np.asarray(nu, float)
+    E, nu = _material_arrays(E, nu)
     f = E / ((1.0 + nu) * (1.0 - 2.0 * nu))
     D = np.zeros(np.broadcast(E, nu).shape + (3, 3))
     D[..., 0, 0] = D[..., 1, 1] = f * (1.0 - nu)
@@ -45,8 +56,7 @@ def plane_strain_matrix(E, nu) -> np.ndarray:
 
 def plane_strain_matrix_dnu(E, nu) -> np.ndarray:
     """Derivative of :func:`plane_strain_matrix` with respect to nu (Pa per unit nu)."""
-    E = np.asarray(E, float)
-    nu = np.asarray(nu, float)
+    E, nu = _material_arrays(E, nu)
     g = (1.0 + nu) * (1.0 - 2.0 * nu)
     dg = -1.0 - 4.0 * nu  # d/dnu of (1 + nu)(1 - 2 nu)
     f = E / g
@@ -64,6 +74,7 @@ def strain_displacement(mesh: TriMesh) -> np.ndarray:
     ``B @ u_e`` gives (e_xx, e_yy, gamma_xy) for element dofs ordered x0 y0 x1 y1 x2 y2
     (displacements in metres, strains dimensionless).
     """
+    check_mesh("mesh", mesh)
     p = mesh.nodes[mesh.elements]
     x, y = p[..., 0], p[..., 1]
     two_a = 2.0 * mesh.areas
@@ -87,6 +98,9 @@ def element_stiffness(mesh: TriMesh, D: np.ndarray, thickness: float = 1.0) -> n
     thickness : float
         Out-of-plane thickness in metres.
     """
+    check_mesh("mesh", mesh)
+    D = as_float_array("D", D, shape=(mesh.n_elements, 3, 3))
+    thickness = positive("thickness", thickness, "m")
     B = strain_displacement(mesh)
     return (thickness * mesh.areas)[:, None, None] * np.einsum("eki,ekl,elj->eij", B, D, B)
 
@@ -101,9 +115,14 @@ def element_mass(mesh: TriMesh, density, thickness: float = 1.0, lumped: bool = 
     lumped : bool
         Row-sum lumped (diagonal, a third of the element mass per node) instead of consistent.
     """
-    rho = np.broadcast_to(as_float_array("density", density), (mesh.n_elements,))
+    check_mesh("mesh", mesh)
+    thickness = positive("thickness", thickness, "m")
+    rho = as_float_array("density", density)
+    if rho.ndim == 0:
+        rho = np.full(mesh.n_elements, float(rho))
+    rho = as_float_array("density", rho, shape=(mesh.n_elements,))
     if np.any(rho <= 0):
-        raise ValueError("density: expected a positive mass density in kg/m^3")
+        raise ValueError(f"density: expected a positive mass density in kg/m^3, got minimum {float(rho.min())!r}")
     m = rho * thickness * mesh.areas
     if lumped:
         base = np.eye(3) / 3.0
@@ -114,6 +133,8 @@ def element_mass(mesh: TriMesh, density, thickness: float = 1.0, lumped: bool = 
 
 def assemble(mesh: TriMesh, element_matrices: np.ndarray) -> sp.csr_matrix:
     """Scatter (n_elements, 6, 6) element matrices into a sparse (n_dofs, n_dofs) matrix."""
+    check_mesh("mesh", mesh)
+    element_matrices = as_float_array("element_matrices", element_matrices, shape=(mesh.n_elements, 6, 6))
     dofs = mesh.element_dofs
     rows = np.repeat(dofs, 6, axis=1).ravel()
     cols = np.tile(dofs, (1, 6)).ravel()
@@ -123,9 +144,18 @@ def assemble(mesh: TriMesh, element_matrices: np.ndarray) -> sp.csr_matrix:
 
 def stiffness_matrix(mesh: TriMesh, E, nu, thickness: float = 1.0) -> sp.csr_matrix:
     """Global stiffness K (N/m) for per-element E (Pa) and nu, Eqs. (3)-(5)."""
-    E, nu = check_material(np.broadcast_to(E, (mesh.n_elements,)),
-                           np.broadcast_to(nu, (mesh.n_elements,)), mesh.n_elements)
+    check_mesh("mesh", mesh)
+    E, nu = check_material(_per_element("E", E, mesh.n_elements),
+                           _per_element("nu", nu, mesh.n_elements), mesh.n_elements)
     return assemble(mesh, element_stiffness(mesh, plane_strain_matrix(E, nu), thickness))
+
+
+def _per_element(name, value, n):
+    """A scalar or an (n,) array as an (n,) float array (shape checked, not finiteness)."""
+    arr = as_float_array(name, value, finite=False)
+    if arr.ndim == 0:
+        return np.full(n, float(arr))
+    return as_float_array(name, arr, shape=(n,), finite=False)
 
 
 def mass_matrix(mesh: TriMesh, density, thickness: float = 1.0, lumped: bool = False) -> sp.csr_matrix:
@@ -140,8 +170,9 @@ def element_stiffness_derivatives(mesh: TriMesh, E, nu, thickness: float = 1.0):
     derivative of Eq. (4). Each is (n_elements, 6, 6); the global derivative with respect
     to the parameter of element e is element e's matrix scattered alone.
     """
-    E, nu = check_material(np.broadcast_to(E, (mesh.n_elements,)),
-                           np.broadcast_to(nu, (mesh.n_elements,)), mesh.n_elements)
+    check_mesh("mesh", mesh)
+    E, nu = check_material(_per_element("E", E, mesh.n_elements),
+                           _per_element("nu", nu, mesh.n_elements), mesh.n_elements)
     dKdE = element_stiffness(mesh, plane_strain_matrix(1.0, nu), thickness)
     dKdnu = element_stiffness(mesh, plane_strain_matrix_dnu(E, nu), thickness)
     return dKdE, dKdnu
@@ -171,7 +202,19 @@ def pressure_load(mesh: TriMesh, edges, pressure: float, thickness: float = 1.0)
         Each edge of length L gives ``-p * n * L * t / 2`` to each of its nodes, n the outward
         unit normal (exact for linear elements under uniform pressure).
     """
-    edges = np.asarray(edges, np.int64).reshape(-1, 2)
+    check_mesh("mesh", mesh)
+    edges = np.asarray(edges)
+    if edges.size == 0:
+        edges = edges.reshape(0, 2)
+    if edges.ndim != 2 or edges.shape[1] != 2 or (edges.size and edges.dtype.kind not in "iu"):
+        raise ValueError(f"edges: expected an (n_edges, 2) integer array of node pairs, got {edges.dtype} "
+                         f"array of shape {edges.shape}")
+    edges = edges.astype(np.int64)
+    if edges.size and (edges.min() < 0 or edges.max() >= mesh.n_nodes):
+        raise ValueError(f"edges: expected node indices in [0, {mesh.n_nodes - 1}], got range "
+                         f"[{edges.min()}, {edges.max()}]")
+    pressure = float(as_float_array("pressure", pressure, shape=()))
+    thickness = positive("thickness", thickness, "m")
     d = mesh.nodes[edges[:, 1]] - mesh.nodes[edges[:, 0]]
     outward_times_length = np.column_stack([d[:, 1], -d[:, 0]])
     f = -float(pressure) * thickness * 0.5 * outward_times_length
@@ -184,7 +227,13 @@ def pressure_load(mesh: TriMesh, edges, pressure: float, thickness: float = 1.0)
 
 def node_dofs(nodes, components: str = "xy") -> np.ndarray:
     """Dof indices of the given nodes, node-major, x before y (``components`` 'x', 'y' or 'xy')."""
-    nodes = np.asarray(nodes, np.int64).ravel()
+    if components not in ("x", "y", "xy", "yx"):
+        raise ValueError(f"components: expected 'x', 'y' or 'xy', got {components!r}")
+    nodes = np.asarray(nodes).ravel()
+    if nodes.size and (nodes.dtype.kind not in "iu" or nodes.min() < 0):
+        raise ValueError(f"nodes: expected non-negative integer node indices, got {nodes.dtype} values "
+                         f"down to {nodes.min().item()!r}")
+    nodes = nodes.astype(np.int64)
     comp = [{"x": 0, "y": 1}[c] for c in components]
     return (2 * nodes[:, None] + np.asarray(comp)[None]).ravel()
 
@@ -207,7 +256,8 @@ class DofMap:
     def __post_init__(self):
         fixed = np.unique(np.asarray(self.fixed, np.int64))
         if fixed.size and (fixed.min() < 0 or fixed.max() >= self.n_dofs):
-            raise ValueError(f"fixed: expected dof indices in [0, {self.n_dofs - 1}]")
+            raise ValueError(f"fixed: expected dof indices in [0, {self.n_dofs - 1}], got range "
+                             f"[{fixed.min()}, {fixed.max()}]")
         object.__setattr__(self, "fixed", fixed)
 
     @property

@@ -29,7 +29,7 @@ import numpy as np
 import scipy.linalg as sla
 from filterpy.kalman import ExtendedKalmanFilter
 
-from ._validate import as_float_array
+from ._validate import as_float_array, integer, non_negative, probability
 
 CHECKPOINT_FORMAT = 2
 
@@ -546,6 +546,9 @@ def nearest_psd(P: np.ndarray, floor: float = 0.0) -> np.ndarray:
     For the symmetric part B of P, Higham's ``(B + H) / 2`` with H the polar factor equals
     clipping B's negative eigenvalues at ``floor``.
     """
+    P = as_float_array("P", P, shape=(None, None))
+    if P.shape[0] != P.shape[1]:
+        raise ValueError(f"P: expected a square matrix, got shape {P.shape}")
     B = 0.5 * (P + P.T)
     lam, V = np.linalg.eigh(B)
     return (V * np.maximum(lam, floor)) @ V.T
@@ -577,6 +580,9 @@ class Safeguards:
     def __post_init__(self):
         if self.covariance_repair not in ("higham", "none"):
             raise ValueError(f"covariance_repair: expected 'higham' or 'none', got {self.covariance_repair!r}")
+        non_negative("jitter", self.jitter)
+        probability("divergence_level", self.divergence_level)
+        integer("divergence_frames", self.divergence_frames, 1)
 
     def check_covariance(self, engine, loop, t):
         P = engine.P

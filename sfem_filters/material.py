@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from ._validate import as_float_array, check_material
+from ._validate import as_float_array, check_material, integer, positive
 
 
 #: Beyond these, exp overflows or sigmoid rounds to 1 (nu = 0.5 exactly) in double precision.
@@ -64,6 +64,7 @@ class Material:
     @classmethod
     def uniform(cls, n_elements: int, E: float, nu: float) -> "Material":
         """The same E (Pa) and nu in every element."""
+        n_elements = integer("n_elements", n_elements, 1)
         return cls(np.full(n_elements, float(E)), np.full(n_elements, float(nu)))
 
     @property
@@ -88,6 +89,7 @@ class Parameterisation:
     @classmethod
     def per_element(cls, n_elements: int) -> "Parameterisation":
         """One log E and one logit(2 nu) per element (the paper's choice)."""
+        n_elements = integer("n_elements", n_elements, 1)
         eye = sp.identity(n_elements, format="csr")
         return cls(eye, eye, tuple(f"element {e}" for e in range(n_elements)))
 
@@ -95,7 +97,7 @@ class Parameterisation:
     def per_region(cls, labels) -> "Parameterisation":
         """One log E and one logit(2 nu) per region; ``labels`` gives each element's region."""
         labels = np.asarray(labels)
-        if labels.ndim != 1:
+        if labels.ndim != 1 or labels.size == 0:
             raise ValueError(f"labels: expected one label per element, got shape {labels.shape}")
         uniq, idx = np.unique(labels, return_inverse=True)
         B = sp.csr_matrix((np.ones(len(labels)), (np.arange(len(labels)), idx)),
@@ -112,10 +114,13 @@ class Parameterisation:
         this keeps the filter from drifting along that direction.
         """
         labels = np.asarray(labels)
+        if labels.ndim != 1 or labels.size == 0:
+            raise ValueError(f"labels: expected one label per element, got shape {labels.shape}")
+        positive("E_reference", E_reference, "Pa")
         uniq, idx = np.unique(labels, return_inverse=True)
         R = len(uniq)
         if R < 2:
-            raise ValueError("labels: expected at least two regions for relative stiffness")
+            raise ValueError(f"labels: expected at least two regions for relative stiffness, got {R}")
         ind = sp.csr_matrix((np.ones(len(labels)), (np.arange(len(labels)), idx)), shape=(len(labels), R))
         # orthonormal contrasts: columns of an orthonormal basis of the complement of ones
         q, _ = np.linalg.qr(np.column_stack([np.ones(R), np.eye(R)[:, : R - 1]]))
@@ -194,8 +199,9 @@ def correlated_prior(param: Parameterisation, centroids, length: float, std_E: f
     (n_params, n_params) symmetric positive semi-definite array
     """
     c = as_float_array("centroids", centroids, shape=(param.n_elements, 2))
-    if not length > 0:
-        raise ValueError(f"length: expected a positive correlation length in m, got {length!r}")
+    positive("length", length, "m")
+    positive("std_E", std_E)
+    positive("std_nu", std_nu)
     d2 = np.sum((c[:, None, :] - c[None, :, :]) ** 2, axis=2)
     K = np.exp(-d2 / (2.0 * length ** 2))
     blocks = []

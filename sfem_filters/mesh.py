@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import Delaunay
 
-from ._validate import as_float_array, positive
+from ._validate import as_float_array, check_mesh, positive
 
 
 @dataclass(frozen=True, eq=False)
@@ -58,16 +58,21 @@ class TriMesh:
             raise ValueError(f"nodes: node {int(unused[0])} belongs to no triangle "
                              f"({unused.size} unused nodes); drop them")
         rounded = np.round(nodes / max(np.ptp(nodes), 1e-300), 12)
-        if len(np.unique(rounded, axis=0)) != len(nodes):
-            raise ValueError("nodes: expected distinct node coordinates, got duplicate nodes")
+        uniq, first, inverse = np.unique(rounded, axis=0, return_index=True, return_inverse=True)
+        if len(uniq) != len(nodes):
+            dup = int(np.flatnonzero(first[inverse.ravel()] != np.arange(len(nodes)))[0])
+            raise ValueError(f"nodes: expected distinct node coordinates, got duplicate nodes "
+                             f"({int(first[inverse.ravel()[dup]])} and {dup} at {tuple(nodes[dup].tolist())} m)")
         area2 = _signed_double_area(nodes, elements)
         scale = max(np.ptp(nodes[:, 0]), np.ptp(nodes[:, 1])) ** 2
         if np.any(np.abs(area2) <= 1e-12 * scale):
             bad = int(np.argmin(np.abs(area2)))
-            raise ValueError(f"elements: triangle {bad} is degenerate (zero area)")
+            raise ValueError(f"elements: triangle {bad} is degenerate (zero area): expected triangles of "
+                             f"non-zero area, got collinear nodes {tuple(elements[bad].tolist())}")
         elements = elements.copy()
         cw = area2 < 0
         elements[cw] = elements[cw][:, [0, 2, 1]]
+        _check_not_folded(elements)
         nodes.setflags(write=False)
         elements.setflags(write=False)
         object.__setattr__(self, "nodes", nodes)
@@ -127,6 +132,19 @@ class TriMesh:
         return edges[ok[edges[:, 0]] & ok[edges[:, 1]]]
 
 
+def _check_not_folded(elements: np.ndarray) -> None:
+    """Reject inverted (folded) triangles: with every triangle counter-clockwise, two
+    triangles sharing an edge must traverse it in opposite directions; the same direction
+    means they lie on the same side of it, i.e. one is inverted and they overlap."""
+    edges = np.concatenate([elements[:, [0, 1]], elements[:, [1, 2]], elements[:, [2, 0]]])
+    _, inverse, counts = np.unique(edges, axis=0, return_inverse=True, return_counts=True)
+    if np.any(counts > 1):
+        k = int(np.flatnonzero(counts[inverse.ravel()] > 1)[0])
+        owners = np.flatnonzero(inverse.ravel() == inverse.ravel()[k]) % len(elements)
+        raise ValueError(f"elements: expected a mesh without inverted (folded) triangles, got triangles "
+                         f"{int(owners[0])} and {int(owners[1])} overlapping across edge {tuple(edges[k].tolist())}")
+
+
 def _signed_double_area(nodes: np.ndarray, elements: np.ndarray) -> np.ndarray:
     p = nodes[elements]
     return ((p[:, 1, 0] - p[:, 0, 0]) * (p[:, 2, 1] - p[:, 0, 1])
@@ -171,6 +189,7 @@ def rectangle_mesh(width: float, height: float, nx: int, ny: int) -> TriMesh:
 
 def triangle_angles(mesh: TriMesh) -> np.ndarray:
     """Interior angles of every triangle in degrees, shape (n_elements, 3)."""
+    check_mesh("mesh", mesh)
     p = mesh.nodes[mesh.elements]
     out = np.empty((mesh.n_elements, 3))
     for k in range(3):  # the angle at vertex k
@@ -187,6 +206,7 @@ def mesh_quality(mesh: TriMesh) -> dict:
     The aspect ratio is ``L_max * perimeter / (4 * sqrt(3) * area)``, which is 1 for an
     equilateral triangle and grows without bound as a triangle flattens.
     """
+    check_mesh("mesh", mesh)
     p = mesh.nodes[mesh.elements]
     lengths = np.linalg.norm(p - p[:, [1, 2, 0]], axis=2)
     area = mesh.areas
@@ -223,7 +243,7 @@ def delaunay_mesh(points, keep=None, min_angle_deg: float = 5.0, max_edge: float
     if len(pts) < 3:
         raise ValueError(f"points: expected at least 3 points, got {len(pts)}")
     if len(np.unique(pts, axis=0)) != len(pts):
-        raise ValueError("points: expected distinct points, got duplicates")
+        raise ValueError(f"points: expected distinct points, got duplicates ({len(pts) - len(np.unique(pts, axis=0))} repeated)")
     min_angle_deg = float(min_angle_deg)
     if not 0 <= min_angle_deg < 60:
         raise ValueError(f"min_angle_deg: expected an angle in [0, 60) degrees, got {min_angle_deg!r}")

@@ -21,7 +21,7 @@ import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
 
-from ._validate import as_float_array, positive
+from ._validate import as_float_array, non_negative, positive
 from .fem import (DofMap, element_stiffness, mass_matrix, plane_strain_matrix,
                   plane_strain_matrix_dnu, stiffness_matrix)
 from .material import Material, Parameterisation
@@ -122,7 +122,8 @@ class SFEMModel:
         self.frame_interval = positive("frame_interval", frame_interval, "s")
         self.density = positive("density", density, "kg/m^3")
         self.thickness = positive("thickness", thickness, "m")
-        self.alpha, self.beta = float(alpha), float(beta)
+        self.alpha = non_negative("alpha", alpha, "1/s")
+        self.beta = non_negative("beta", beta, "s")
         self.jacobian = jacobian
         self.dofmap = DofMap(mesh.n_dofs, fixed_dofs)
         n = self.dofmap.n_free
@@ -131,7 +132,12 @@ class SFEMModel:
             raise ValueError(f"loads: expected at least 2 frames, got {len(loads)}")
         self.loads = loads
         self._w = self.dofmap.restrict(loads)
-        D = sp.csr_matrix(observation) if not sp.issparse(observation) else observation.tocsr()
+        D = sp.csr_matrix(as_float_array("observation", observation, shape=(None, None))) \
+            if not sp.issparse(observation) else observation.tocsr()
+        if not np.all(np.isfinite(D.data)):
+            raise ValueError("observation: expected finite values, got NaN or inf entries")
+        if D.shape[0] == 0:
+            raise ValueError("observation: expected at least one observed row, got none")
         if D.shape[1] != mesh.n_dofs:
             raise ValueError(f"observation: expected {mesh.n_dofs} columns (n_dofs), got {D.shape[1]}")
         self.observation = D
@@ -183,7 +189,7 @@ class SFEMModel:
             sE, snu = prior_std
             p3 = np.concatenate([np.full(estimate.n_E, positive("prior_std[0]", sE)) ** 2,
                                  np.full(estimate.n_params - estimate.n_E, positive("prior_std[1]", snu)) ** 2])
-            mE, mnu = material_process_std
+            mE, mnu = (non_negative(f"material_process_std[{i}]", v) for i, v in enumerate(material_process_std))
             q3 = np.concatenate([np.full(estimate.n_E, float(mE)) ** 2,
                                  np.full(estimate.n_params - estimate.n_E, float(mnu)) ** 2])
         else:

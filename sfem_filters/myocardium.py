@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ._validate import positive
+from ._validate import as_float_array, check_mesh, integer, positive
 from .mesh import TriMesh, delaunay_mesh, mesh_quality
 
 
@@ -45,7 +45,9 @@ def mask_inside(mask, spacing: float, origin=(0.0, 0.0)):
     Pixel (row r, column c) covers ``x in origin_x + spacing (c +- 1/2)`` and
     ``y in origin_y + spacing (r +- 1/2)``.
     """
-    mask = np.asarray(mask, bool)
+    mask = _check_mask(mask)
+    spacing = positive("spacing", spacing, "m")
+    origin = as_float_array("origin", origin, shape=(2,))
 
     def inside(xy):
         xy = np.asarray(xy, float)
@@ -73,9 +75,9 @@ def mesh_from_mask(mask, spacing: float, step: int = 1) -> TriMesh:
     """
     from skimage.measure import label
 
-    mask = np.asarray(mask, bool)
-    if mask.ndim != 2 or not mask.any():
-        raise ValueError("mask: expected a 2D boolean array holding some tissue")
+    mask = _check_mask(mask)
+    spacing = positive("spacing", spacing, "m")
+    step = integer("step", step, 1)
     n_pieces = label(mask, connectivity=2).max()
     if n_pieces != 1:
         raise ValueError(f"mask: expected one connected piece of tissue, got {n_pieces}")
@@ -85,8 +87,22 @@ def mesh_from_mask(mask, spacing: float, step: int = 1) -> TriMesh:
     return mesh_from_points(pts, 1.5 * step * spacing)
 
 
+def _check_mask(mask) -> np.ndarray:
+    arr = np.asarray(mask)
+    if arr.ndim != 2:
+        raise ValueError(f"mask: expected a 2D boolean array (rows = y, columns = x), got shape {arr.shape}")
+    if arr.dtype.kind not in "biuf" or (arr.dtype.kind == "f" and not np.all(np.isfinite(arr))):
+        raise ValueError(f"mask: expected a boolean array, got dtype {arr.dtype}")
+    arr = arr.astype(bool)
+    if not arr.any():
+        raise ValueError(f"mask: expected a 2D boolean array holding some tissue, got no tissue pixel "
+                         f"in {arr.shape}")
+    return arr
+
+
 def boundary_loops(mesh: TriMesh) -> list:
     """Closed boundary loops as ordered node arrays, tissue on the left of each step."""
+    check_mesh("mesh", mesh)
     edges = mesh.boundary_edges()
     nxt = {}
     for a, b in edges.tolist():

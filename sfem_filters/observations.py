@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from ._validate import as_float_array
+from ._validate import as_float_array, check_mesh, non_negative
 from .fem import node_dofs
 from .mesh import TriMesh
 
@@ -26,9 +26,14 @@ def node_observation_matrix(mesh: TriMesh, nodes) -> sp.csr_matrix:
     -------
     (2 len(nodes), n_dofs) sparse matrix
     """
-    nodes = np.unique(np.asarray(nodes, np.int64))
+    check_mesh("mesh", mesh)
+    nodes = np.asarray(nodes)
+    if nodes.size and nodes.dtype.kind not in "iu":
+        raise TypeError(f"nodes: expected integer node indices, got dtype {nodes.dtype}")
+    nodes = np.unique(nodes.astype(np.int64))
     if nodes.size and (nodes.min() < 0 or nodes.max() >= mesh.n_nodes):
-        raise ValueError(f"nodes: expected node indices in [0, {mesh.n_nodes - 1}]")
+        raise ValueError(f"nodes: expected node indices in [0, {mesh.n_nodes - 1}], got range "
+                         f"[{nodes.min()}, {nodes.max()}]")
     cols = node_dofs(nodes)
     return sp.csr_matrix((np.ones(len(cols)), (np.arange(len(cols)), cols)),
                          shape=(len(cols), mesh.n_dofs))
@@ -49,7 +54,9 @@ def locate_points(mesh: TriMesh, points, tol: float = 1e-9):
     element : (p,) int array
     bary : (p, 3) array
     """
+    check_mesh("mesh", mesh)
     pts = as_float_array("points", points, shape=(None, 2))
+    tol = non_negative("tol", tol)
     tri = mesh.nodes[mesh.elements]
     v0 = tri[:, 0]
     T = np.stack([tri[:, 1] - v0, tri[:, 2] - v0], axis=2)       # (n_el, 2, 2)
@@ -62,7 +69,8 @@ def locate_points(mesh: TriMesh, points, tol: float = 1e-9):
         worst = lam.min(axis=1)
         e = int(np.argmax(worst))
         if worst[e] < -tol:
-            raise ValueError(f"points: point {k} at {tuple(p)} m lies outside the mesh")
+            raise ValueError(f"points: expected points inside the mesh, got point {k} at "
+                             f"{tuple(p.tolist())} m outside it")
         element[k] = e
         bary[k] = lam[e]
     return element, bary

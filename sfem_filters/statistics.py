@@ -7,7 +7,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from scipy import stats
 
-from ._validate import as_float_array
+from ._validate import as_float_array, integer
 
 
 def kolmogorov_asymptotic_p(D: float, n: int, m: int) -> float:
@@ -17,6 +17,10 @@ def kolmogorov_asymptotic_p(D: float, n: int, m: int) -> float:
     (Stephens' correction) and ``p = 2 sum_{j>=1} (-1)^(j-1) exp(-2 j^2 lambda^2)``,
     clipped to [0, 1]; the paper's Table 1 quotes this p.
     """
+    D = float(as_float_array("D", D, shape=()))
+    if not 0 <= D <= 1:
+        raise ValueError(f"D: expected a KS statistic in [0, 1], got {D!r}")
+    n, m = integer("n", n, 1), integer("m", m, 1)
     ne = n * m / (n + m)
     lam = max((np.sqrt(ne) + 0.12 + 0.11 / np.sqrt(ne)) * D, 0.0)
     j = np.arange(1, 102)
@@ -49,7 +53,7 @@ def ks_test(a, b, alpha: float = 0.05) -> KSResult:
     a = as_float_array("a", a, shape=(None,))
     b = as_float_array("b", b, shape=(None,))
     if len(a) < 2 or len(b) < 2:
-        raise ValueError("a, b: expected at least 2 samples each")
+        raise ValueError(f"a, b: expected at least 2 samples each, got {len(a)} and {len(b)}")
     if not 0 < alpha < 1:
         raise ValueError(f"alpha: expected a level in (0, 1), got {alpha!r}")
     with warnings.catch_warnings(record=True) as caught:

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ._validate import as_float_array, check_mesh
 from .fem import strain_displacement
 from .mesh import TriMesh
 
@@ -23,16 +24,21 @@ def element_strains(mesh: TriMesh, U) -> np.ndarray:
     -------
     (..., n_elements, 3) array (dimensionless; gamma_xy is the engineering shear strain)
     """
-    U = np.asarray(U, float)
-    if U.shape[-1] != mesh.n_dofs:
-        raise ValueError(f"U: expected last axis of length {mesh.n_dofs} (n_dofs), got {U.shape[-1]}")
+    check_mesh("mesh", mesh)
+    U = as_float_array("U", U)
+    if U.ndim == 0 or U.shape[-1] != mesh.n_dofs:
+        raise ValueError(f"U: expected last axis of length {mesh.n_dofs} (n_dofs), got {U.shape[-1] if U.ndim else 'a scalar'}")
     ue = U[..., mesh.element_dofs]                               # (..., n_el, 6)
     return np.einsum("eij,...ej->...ei", strain_displacement(mesh), ue)
 
 
 def nodal_average(mesh: TriMesh, element_values) -> np.ndarray:
     """Area-weighted mean over the elements around each node, (..., n_el, k) -> (..., n_nodes, k)."""
-    v = np.asarray(element_values, float)
+    check_mesh("mesh", mesh)
+    v = as_float_array("element_values", element_values)
+    if v.ndim < 2 or v.shape[-2] != mesh.n_elements:
+        raise ValueError(f"element_values: expected shape (..., {mesh.n_elements}, k) (n_elements rows), "
+                         f"got shape {v.shape}")
     w = np.zeros((mesh.n_nodes, mesh.n_elements))
     for a in range(3):
         w[mesh.elements[:, a], np.arange(mesh.n_elements)] += mesh.areas
