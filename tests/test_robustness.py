@@ -117,10 +117,10 @@ def test_divergence_is_reported_and_can_stop_the_run():
 
 @settings(max_examples=8, deadline=None)
 @given(seed=st.integers(0, 10_000), noise=st.floats(1e-6, 1e-4), missing=st.floats(0.0, 0.6),
-       repair=st.sampled_from(["higham", "none"]))
-def test_random_missing_data_keeps_P_spd_and_material_admissible(seed, noise, missing, repair):
+       repair=st.sampled_from(["higham", "none"]), engine=st.sampled_from(["structured", "ud"]))
+def test_random_missing_data_keeps_P_spd_and_material_admissible(seed, noise, missing, repair, engine):
     """Random meshes, materials, noise levels and missing-data masks (single values and whole
-    frames), 16 frames x 3 loops: P stays symmetric positive definite (so the 'none' setting
+    frames), 16 frames x 3 loops, Joseph-form or U-D engine: P stays symmetric positive definite (so the 'none' setting
     never has to stop), the material admissible, and nothing is NaN."""
     from helpers import random_block_mesh, small_model
     rng = np.random.default_rng(seed)
@@ -133,7 +133,7 @@ def test_random_missing_data_keeps_P_spd_and_material_admissible(seed, noise, mi
     guard = Safeguards(covariance_repair=repair)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        res = cyclic_estimate(model, y, max_loops=3, tol=1e-12, safeguards=guard)
+        res = cyclic_estimate(model, y, max_loops=3, tol=1e-12, safeguards=guard, engine=engine)
     h = res.history.as_arrays()
     assert np.all(np.isfinite(h["x"])) and np.all(np.isfinite(h["P_diag"]))
     assert np.all(h["P_diag"] > 0)
