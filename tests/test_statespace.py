@@ -244,3 +244,59 @@ def test_modal_sensitivity_in_the_stiff_regime_against_complex_step():
     cs = _complex_step_sensitivity(M, K, alpha, beta, model.frame_interval, x, w, dense)
     fast = system.sensitivity(x, w, dirs[:12], dofs[:12])
     assert np.abs(fast - cs).max() <= 1e-10 * np.abs(cs).max()
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 10_000))
+def test_real_divided_difference_equals_the_complex_one(seed):
+    """The real-argument divided differences (overdamped modes) equal the general complex ones
+    to round-off: equal, nearly equal, close and far arguments, down to underflowing exponentials."""
+    from sfem_filters.statespace import _divided_difference_exp_real
+    rng = np.random.default_rng(seed)
+    a = -np.concatenate([rng.uniform(0, 30, 20), 10.0 ** rng.uniform(-3, 5, 20), [0.0, 5.0, 800.0]])
+    b = np.concatenate([a[:10], a[:10] * (1 + 1e-13), a[:10] + 0.3, -rng.uniform(0, 40, 10)])
+    got = _divided_difference_exp_real(a, b)
+    ref = divided_difference_exp(a[:, None], b[None, :]).real
+    assert np.all(np.abs(got - ref) <= 1e-14 * np.abs(ref) + 1e-300)
+
+
+@settings(max_examples=10, deadline=None)
+@given(seed=st.integers(0, 10_000), alpha=st.floats(0.0, 50.0), beta=st.floats(0.0, 5e-3))
+def test_frechet_pairs_equal_the_plain_daleckii_krein_sum(seed, alpha, beta):
+    """The pair terms h (real arithmetic between overdamped modes, conjugate symmetry of
+    underdamped ones) equal the plain complex sum over both eigenvalues of both modes."""
+    rng = np.random.default_rng(seed)
+    model = small_model(rng, estimate=None, alpha=alpha, beta=beta)
+    M, K = reduced_matrices(model)
+    system = ModalSystem(M, K, alpha, beta, model.frame_interval)
+    y = rng.standard_normal((system.n, 2))
+    lam, T = system.lam, system.T
+    lam1, lam2 = lam[:, 0], lam[:, 1]
+    gap = np.where(system.critical, 1.0, lam2 - lam1)
+    a = np.stack([-1.0 / gap, 1.0 / gap], axis=1)
+    eta = np.stack([(lam2 * y[:, 0] - y[:, 1]) / gap, (-lam1 * y[:, 0] + y[:, 1]) / gap], axis=1)
+    u = (1.0 + beta * lam) * eta
+    D = divided_difference_exp(lam[:, :, None, None] * T, lam[None, None, :, :] * T)
+    coef = a[:, :, None] * np.einsum("iajb,jb->iaj", D, u)
+    ref = np.stack([coef.sum(axis=1).real, np.einsum("ia,iaj->ij", lam, coef).real], axis=2)
+    ok = ~system.critical
+    got = system._frechet_pairs(y)
+    assert np.abs(got - ref)[np.ix_(ok, ok)].max() <= 1e-13 * np.abs(ref).max()
+
+
+def test_sensitivity_contracted_with_a_parameter_map():
+    """``combine=J`` (contracted before the nodal product) equals the per-element result times J."""
+    import scipy.sparse as sp
+    rng = np.random.default_rng(4)
+    model = small_model(rng, estimate=None)
+    M, K = reduced_matrices(model)
+    system = ModalSystem(M, K, 10.0, 1e-3, model.frame_interval)
+    dirs, dofs = _element_directions(model, model.material)
+    n = M.shape[0]
+    x = np.concatenate([rng.standard_normal(n) * 1e-3, rng.standard_normal(n) * 1e-2])
+    w = rng.standard_normal(n) * 5
+    J = sp.random(len(dirs), 5, density=0.3, random_state=4, format="csr")
+    full = system.sensitivity(x, w, dirs, dofs, chunk=7)
+    got = system.sensitivity(x, w, dirs, dofs, chunk=7, combine=J)
+    ref = np.asarray((J.T @ full.T).T)
+    assert np.abs(got - ref).max() <= 1e-12 * np.abs(ref).max()
