@@ -1,0 +1,191 @@
+"""The DENSE slice with the 12-region material map: results and wall time, this code vs a git revision.
+
+    python benchmarks/dense_region_run.py [--baseline REV] [--check-steps 8] [--loops 3] [--repeat 1]
+                                          [--landmarks 16] [--effects none] [--no-run]
+
+The baseline is ``sfem_filters/statespace.py`` as of git revision REV (default ``a8c3f3d``,
+before the speed work of issue 5's last target), loaded as a separate module and swapped into
+``sfem_filters.model`` for the baseline model, so both are measured in the same process on the
+same machine state. Everything else (model, filter, data) is today's code.
+
+1. Check: the structured joint EKF is stepped ``--check-steps`` frames with both, and the
+   transition A, the sensitivity M_t, the state x and the covariance P are compared (largest
+   entry-wise difference relative to the largest entry of each block).
+2. Per-step split: discretisation (ModalSystem), M_t, the transition matrix A and the whole
+   predict (F and F P F^T), best of 3 with a fresh material each repetition.
+3. The full cyclic run as ``sfem-filters dense example --landmarks 16`` runs it
+   (``dense.run``: build the model, ``cyclic_estimate`` with its loop limit and tolerance),
+   alternating baseline and this code ``--repeat`` times; the wall time is the ``seconds`` the
+   CLI puts in its JSON.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+import time
+import types
+import warnings
+
+import numpy as np
+
+ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..")
+sys.path.insert(0, ROOT)
+
+import sfem_filters  # noqa: E402,F401
+import sfem_filters.model as model_mod  # noqa: E402
+from sfem_filters import dense  # noqa: E402
+from sfem_filters.datasets import example_path, load_sequence  # noqa: E402
+from sfem_filters.filters import StructuredEngine  # noqa: E402
+from sfem_filters.statespace import ModalSystem  # noqa: E402
+
+
+def baseline_statespace(rev: str):
+    """``sfem_filters/statespace.py`` at git revision ``rev`` as a module of the package."""
+    src = subprocess.run(["git", "-C", ROOT, "show", f"{rev}:sfem_filters/statespace.py"],
+                         check=True, capture_output=True, text=True).stdout
+    mod = types.ModuleType("sfem_filters._statespace_baseline")
+    mod.__package__ = "sfem_filters"
+    exec(compile(src, f"{rev}:sfem_filters/statespace.py", "exec"), mod.__dict__)
+    return mod
+
+
+class use_system:
+    """Context: models built and run inside use ``cls`` as their ModalSystem."""
+
+    def __init__(self, cls):
+        self.cls = cls
+
+    def __enter__(self):
+        self.saved = model_mod.ModalSystem
+        model_mod.ModalSystem = self.cls
+
+    def __exit__(self, *exc):
+        model_mod.ModalSystem = self.saved
+
+
+def _rel(a, b):
+    return float(np.abs(a - b).max() / max(np.abs(b).max(), 1e-300))
+
+
+def check(setup, effects, base_cls, steps):
+    """Step both filters ``steps`` frames; largest differences relative to the baseline."""
+    out = {}
+    runs = {}
+    for name, cls in (("baseline", base_cls), ("new", ModalSystem)):
+        with use_system(cls):
+            m, y = dense.build_model(setup, effects, "penalty", "region")
+            eng = StructuredEngine(m)
+            eng.reset(m.x0, m.P0)
+            mask = np.ones(m.dim_obs, bool)
+            eng.update(y[0], 0, mask)
+            F = m.F_jacobian(eng.x, 0)
+            for t in range(1, steps + 1):
+                eng.predict(t - 1)
+                eng.update(y[t], t, mask)
+            runs[name] = (m, F, eng.x.copy(), eng.P.copy())
+    m, Fb, xb, Pb = runs["baseline"]
+    _, Fn, xn, Pn = runs["new"]
+    nx, nr = m.dim_x, m.n_restart
+    out["A"] = _rel(Fn[:nx, :nx], Fb[:nx, :nx])
+    out["M_t"] = _rel(Fn[:nx, nr:], Fb[:nx, nr:])
+    out["x (kinematics)"] = _rel(xn[:nx], xb[:nx])
+    out["x (theta)"] = _rel(xn[nr:], xb[nr:])
+    out["P"] = _rel(Pn, Pb)
+    out["P (theta block)"] = _rel(Pn[nr:, nr:], Pb[nr:, nr:])
+    return out
+
+
+def _best(fn, repeat=3):
+    best = np.inf
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - t0)
+    return best
+
+
+def split(setup, effects, cls, repeat=3):
+    """Seconds of the phases of one step (best of ``repeat``), fresh material each time."""
+    with use_system(cls):
+        m, y = dense.build_model(setup, effects, "penalty", "region")
+        eng = StructuredEngine(m)
+        eng.reset(m.x0, m.P0)
+        eng.update(y[0], 0, np.ones(m.dim_obs, bool))
+        z = eng.x.copy()
+        P = eng.P.copy()
+        nr = m.n_restart
+        rng = np.random.default_rng(0)
+
+        def fresh():
+            zz = z.copy()
+            zz[nr:] += 1e-6 * rng.standard_normal(m.dim_theta)
+            return zz
+
+        system = m.system(m.theta_of(z))
+        res = {
+            "discretisation": _best(lambda: m.system(m.theta_of(fresh())), repeat),
+            "M_t": _best(lambda: m.sensitivity(z, 1), repeat),
+            "transition": _best(system.transition_matrix, repeat),
+        }
+
+        def predict():
+            eng.reset(fresh(), P)
+            eng.predict(1)
+
+        res["predict (all)"] = _best(predict, repeat)
+        return res
+
+
+def full_run(setup, effects, cls, loops, tol):
+    with use_system(cls):
+        run = dense.run(setup, effects, "penalty", "region", loops, tol=tol, name="bench")
+    return run.metrics["seconds"], run.result
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--baseline", default="a8c3f3d", help="git revision of the baseline statespace.py")
+    ap.add_argument("--landmarks", type=int, default=16)
+    ap.add_argument("--effects", default="none", help="none or a comma list of effect names")
+    ap.add_argument("--check-steps", type=int, default=8)
+    ap.add_argument("--loops", type=int, default=3, help="cyclic loop limit (the dense CLI's default: 3)")
+    ap.add_argument("--tol", type=float, default=1e-3)
+    ap.add_argument("--repeat", type=int, default=1, help="full runs of each, alternating")
+    ap.add_argument("--no-run", action="store_true", help="skip the full cyclic runs")
+    args = ap.parse_args(argv)
+    warnings.simplefilter("ignore", RuntimeWarning)
+    base = baseline_statespace(args.baseline)
+    setup = dense.prepare(load_sequence(example_path()), args.landmarks)
+    effects = () if args.effects == "none" else tuple(args.effects.split(","))
+    m, _ = dense.build_model(setup, effects, "penalty", "region")
+    print(f"DENSE subject_a, {args.landmarks} landmarks, region map: {m.mesh.n_nodes} nodes, "
+          f"{m.dim_theta} parameters, augmented n = {m.dim_state}, {m.n_frames} frames; "
+          f"baseline statespace.py @ {args.baseline}")
+    print(f"check after {args.check_steps} steps (max |new - baseline| / max |baseline|):")
+    for k, v in check(setup, effects, base.ModalSystem, args.check_steps).items():
+        print(f"  {k:<18}{v:.2e}")
+    print(f"{'phase (s, best of 3)':<22}{'baseline':>10}{'new':>10}{'ratio':>8}")
+    sb = split(setup, effects, base.ModalSystem)
+    sn = split(setup, effects, ModalSystem)
+    for k in sb:
+        print(f"  {k:<20}{sb[k]:>10.4f}{sn[k]:>10.4f}{sb[k] / sn[k]:>8.2f}")
+    if args.no_run:
+        return
+    tb, tn = [], []
+    for _ in range(args.repeat):
+        s, rb = full_run(setup, effects, base.ModalSystem, args.loops, args.tol)
+        tb.append(s)
+        s, rn = full_run(setup, effects, ModalSystem, args.loops, args.tol)
+        tn.append(s)
+        print(f"  full run ({args.loops}-loop limit): baseline {tb[-1]:.1f} s, new {tn[-1]:.1f} s", flush=True)
+    print(f"full run: loops run {rn.loops} (limit {args.loops}), converged {rn.converged}, "
+          f"relative changes {', '.join(f'{r:.2e}' for r in rn.rel_changes)}")
+    print(f"  final theta: max |new - baseline| / max |baseline| = {_rel(rn.theta, rb.theta):.2e}")
+    print(f"  wall s: baseline {min(tb):.1f}-{max(tb):.1f}, new {min(tn):.1f}-{max(tn):.1f}, "
+          f"ratio {np.median(tb) / np.median(tn):.2f}")
+
+
+if __name__ == "__main__":
+    main()
