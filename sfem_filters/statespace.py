@@ -310,13 +310,21 @@ class ModalSystem:
         pn = self.E[:, 1, 0] * q + self.E[:, 1, 1] * p + self.g[:, 1] * f
         return np.concatenate([self.Phi @ qn, self.Phi @ pn])
 
-    def transition_matrix(self) -> np.ndarray:
-        """A = e^{A_c T} (Eq. 15), dense (2n, 2n)."""
+    def transition_matrix(self, out=None) -> np.ndarray:
+        """A = e^{A_c T} (Eq. 15), dense (2n, 2n).
+
+        ``out``: a (2n, 2n) float array (or a view with unit column stride, e.g. the top-left
+        block of F) to write A into, without a temporary copy.
+        """
         n, Phi, PTM = self.n, self.Phi, self.PhiTM
-        A = np.empty((2 * n, 2 * n))
+        A = np.empty((2 * n, 2 * n)) if out is None else out
+        if A.shape != (2 * n, 2 * n):
+            raise ValueError(f"out: expected shape {(2 * n, 2 * n)}, got {A.shape}")
+        scaled = np.empty_like(Phi)
         for r in range(2):
             for s in range(2):
-                A[r * n:(r + 1) * n, s * n:(s + 1) * n] = (Phi * self.E[:, r, s]) @ PTM
+                np.multiply(Phi, self.E[:, r, s], out=scaled)
+                np.matmul(scaled, PTM, out=A[r * n:(r + 1) * n, s * n:(s + 1) * n])
         return A
 
     def input_response(self, G) -> np.ndarray:

@@ -300,3 +300,19 @@ def test_sensitivity_contracted_with_a_parameter_map():
     got = system.sensitivity(x, w, dirs, dofs, chunk=7, combine=J)
     ref = np.asarray((J.T @ full.T).T)
     assert np.abs(got - ref).max() <= 1e-12 * np.abs(ref).max()
+
+
+def test_transition_matrix_into_a_block_of_a_larger_array():
+    """``out`` (e.g. the top-left block of F) receives exactly the same A, without a copy."""
+    rng = np.random.default_rng(5)
+    model = small_model(rng, estimate=None)
+    M, K = reduced_matrices(model)
+    system = ModalSystem(M, K, 10.0, 1e-3, model.frame_interval)
+    n2 = 2 * system.n
+    F = np.eye(n2 + 3)
+    got = system.transition_matrix(out=F[:n2, :n2])
+    assert np.shares_memory(got, F)
+    np.testing.assert_array_equal(F[:n2, :n2], system.transition_matrix())
+    np.testing.assert_array_equal(F[n2:], np.eye(n2 + 3)[n2:])
+    with pytest.raises(ValueError, match="out: expected shape"):
+        system.transition_matrix(out=np.empty((n2, n2 + 1)))
