@@ -13,6 +13,11 @@ velocity       (F, P, 2)        optional: velocity, unit per second (phase-contr
 sigma          (P,) or (F, P)   optional: measurement standard deviation of each displacement, same
                                  unit as ``points``
 confidence     (P,) or (F, P)   optional: confidence in [0, 1] of each displacement datum
+velocity_sigma (F, P)           optional: standard deviation of each velocity component, unit per
+                                 second; NaN where there is no velocity
+velocity_confidence (F, P)      optional: confidence in [0, 1] of each velocity (local phase
+                                 coherence, LPC); NaN where there is no velocity
+point_kind     (P,) int         optional: 0 endocardial border, 1 epicardial border, 2 mid-wall
 frame_interval ()               optional: time between frames in seconds
 pixel_spacing  ()               optional: size of a pixel in metres
 pressure       (F,)             optional: cavity (blood) pressure at each frame in Pa
@@ -34,7 +39,8 @@ from importlib import resources
 
 import numpy as np
 
-FORMAT_KEYS = ("points", "displacement", "velocity", "sigma", "confidence", "frame_interval",
+FORMAT_KEYS = ("points", "displacement", "velocity", "sigma", "confidence", "velocity_sigma",
+               "velocity_confidence", "point_kind", "frame_interval",
                "pixel_spacing", "pressure", "reference_mask", "frame_masks", "units", "provenance")
 
 
@@ -47,6 +53,9 @@ class Sequence:
     velocity: np.ndarray | None = None
     sigma: np.ndarray | None = None
     confidence: np.ndarray | None = None
+    velocity_sigma: np.ndarray | None = None
+    velocity_confidence: np.ndarray | None = None
+    point_kind: np.ndarray | None = None
     frame_interval: float | None = None
     pixel_spacing: float | None = None
     pressure: np.ndarray | None = None
@@ -139,6 +148,26 @@ def make_sequence(points, displacement, **optional) -> Sequence:
             if key == "confidence" and np.any((arr < 0) | (arr > 1)):
                 raise ValueError("confidence: expected values in [0, 1]")
             kw[key] = arr
+    for key in ("velocity_sigma", "velocity_confidence"):
+        if optional.get(key) is not None:
+            if "velocity" not in kw:
+                raise ValueError(f"{key}: given without 'velocity'")
+            arr = _float_array(key, optional[key], (F, P), allow_nan=True)
+            has_v = ~np.isnan(kw["velocity"]).any(axis=2)
+            if np.any(np.isnan(arr[has_v])):
+                raise ValueError(f"{key}: expected a value wherever 'velocity' has one, got NaN")
+            ok = arr[~np.isnan(arr)]
+            if key == "velocity_sigma" and np.any(ok <= 0):
+                raise ValueError("velocity_sigma: expected standard deviations > 0")
+            if key == "velocity_confidence" and np.any((ok < 0) | (ok > 1)):
+                raise ValueError("velocity_confidence: expected values in [0, 1]")
+            kw[key] = arr
+    if optional.get("point_kind") is not None:
+        pk = np.asarray(optional["point_kind"])
+        if pk.shape != (P,) or pk.dtype.kind not in "iu" or not np.isin(pk, [0, 1, 2]).all():
+            raise ValueError(f"point_kind: expected {P} integers in {{0, 1, 2}}, got dtype {pk.dtype} "
+                             f"and shape {pk.shape}")
+        kw["point_kind"] = pk.astype(int)
     for key in ("frame_interval", "pixel_spacing"):
         if optional.get(key) is not None:
             kw[key] = _scalar(key, optional[key])
@@ -187,7 +216,9 @@ def load_sequence(path) -> Sequence:
 
 
 def save_sequence(seq: Sequence, path) -> None:
-    """Write a sequence in the documented format (compressed npz)."""
+    """Write a sequence in the documented format (compressed npz), creating its directory."""
+    folder = os.path.dirname(os.path.abspath(os.fspath(path)))
+    os.makedirs(folder, exist_ok=True)
     np.savez_compressed(path, **seq.to_dict())
 
 

@@ -91,6 +91,14 @@ class Setup:
     observe: str
     holdout_seed: int
     regions: np.ndarray = field(default=None)   # material region of each element
+    # image-derived data (sfem_filters.frontend): when set, they replace the sequence's own
+    # displacements at the observed points, and add velocity rows (Eq. 13)
+    obs_displacement: np.ndarray = field(default=None)   # (F, P, 2) data units, NaN if missing
+    obs_sigma: np.ndarray = field(default=None)          # (F, P) per-component sd, data units
+    obs_confidence: np.ndarray = field(default=None)     # (F, P) in [0, 1]
+    velocity_points: np.ndarray = field(default=None)    # points with velocity data
+    velocity: np.ndarray = field(default=None)           # (F, V, 2) data units per second
+    velocity_sigma: np.ndarray = field(default=None)     # (F, V) per-component sd, units per second
 
 
 def prepare(seq: Sequence, landmarks: int = 8, observe: str = "boundary", holdout_seed: int = 0,
@@ -165,18 +173,23 @@ def _filled(u):
 
 
 def build_model(setup: Setup, effects=(), drive: str = "penalty", estimate: str = "region",
-                process_scale: float = 1.0, landmark_step_px: float | None = None) -> tuple:
-    """The filter model of a set-up, and the observations it is fed (m).
+                process_scale: float = 1.0, landmark_step_px: float | None = None,
+                beta: float | None = None) -> tuple:
+    """The filter model of a set-up, and the observations it is fed (m, and m/s for velocities).
 
     ``landmark_step_px`` sets the per-frame uncertainty of the spring targets (data units);
-    by default it is the RMS frame-to-frame motion of the landmarks in the data.
+    by default it is the RMS frame-to-frame motion of the landmarks in the data. ``beta`` (s)
+    overrides the Rayleigh stiffness coefficient ``NOMINAL["beta"]``: velocity data inform the
+    displacement only when the model's transients last a good part of a frame.
 
-    Returns ``(model, observations)`` with observations of shape (frames, 2 * n_observed).
+    Returns ``(model, observations)`` with observations of shape (frames, 2 * n_observed
+    [+ 2 * n_velocity_points]): displacement rows, then velocity rows (Eq. 13).
     """
     if drive not in DRIVES:
         raise ValueError(f"drive: expected one of {DRIVES}, got {drive!r}")
     seq, mesh, s = setup.seq, setup.mesh, setup.spacing
     F = seq.n_frames
+    data = seq.displacement if setup.obs_displacement is None else setup.obs_displacement
     mat0 = Material.uniform(mesh.n_elements, NOMINAL["E"], NOMINAL["nu"])
     Kdiag = np.median(stiffness_matrix(mesh, mat0.E, mat0.nu).diagonal())
     loads = np.zeros((F, mesh.n_dofs))
@@ -186,10 +199,10 @@ def build_model(setup: Setup, effects=(), drive: str = "penalty", estimate: str 
     if drive == "penalty":
         lm_nodes = nodes[setup.landmarks]
         dofs = node_dofs(lm_nodes)
-        conf = np.repeat(_confidence(seq, setup.landmarks), 2, axis=-1)     # per dof (x, y)
+        conf = np.repeat(_confidence(seq, setup.landmarks, setup.obs_confidence), 2, axis=-1)  # per dof
         k = NOMINAL["penalty"] * Kdiag
         penalty = penalty_stiffness(mesh.n_dofs, dofs, k, conf.mean(axis=0) if conf.ndim == 2 else conf)
-        b = _filled(seq.displacement[:, setup.landmarks]) * s              # (F, L, 2) m
+        b = _filled(data[:, setup.landmarks]) * s                          # (F, L, 2) m
         # Causal zero-order hold of the data: over the interval into frame t the springs pull
         # toward the landmarks measured at frame t - 1, so frame t's data enter only through
         # the measurement update and the innovation stays a one-step-ahead prediction error.
@@ -200,7 +213,7 @@ def build_model(setup: Setup, effects=(), drive: str = "penalty", estimate: str 
         # targets are uncertain by the data's own frame-to-frame landmark motion; the random
         # spring loads reach the tissue through the dynamics (elastically correlated noise).
         if landmark_step_px is None:
-            landmark_step_px = np.sqrt(np.nanmean(np.diff(seq.displacement[:, setup.landmarks], axis=0) ** 2))
+            landmark_step_px = np.sqrt(np.nanmean(np.diff(data[:, setup.landmarks], axis=0) ** 2))
         step = landmark_step_px * s
         load_std = np.zeros(mesh.n_dofs)
         load_std[dofs] = k * step * (conf.mean(axis=0) if conf.ndim == 2 else conf)
@@ -215,8 +228,16 @@ def build_model(setup: Setup, effects=(), drive: str = "penalty", estimate: str 
     obs_nodes = nodes[setup.observed]
     D = sp.csr_matrix((np.ones(2 * len(obs_nodes)), (np.arange(2 * len(obs_nodes)), node_dofs(obs_nodes))),
                       shape=(2 * len(obs_nodes), mesh.n_dofs))
-    y = seq.displacement[:, setup.observed].reshape(F, -1) * s
+    y = data[:, setup.observed].reshape(F, -1) * s
     sigma = _sigma(seq, setup) * s                                       # per observed row, m
+    Dv = None
+    if setup.velocity_points is not None:
+        v_nodes = nodes[setup.velocity_points]
+        Dv = sp.csr_matrix((np.ones(2 * len(v_nodes)), (np.arange(2 * len(v_nodes)), node_dofs(v_nodes))),
+                           shape=(2 * len(v_nodes), mesh.n_dofs))
+        y = np.hstack([y, setup.velocity.reshape(F, -1) * s])
+        v_sd = np.repeat(np.sqrt(np.nanmean(setup.velocity_sigma ** 2, axis=0)), 2)
+        sigma = np.concatenate([sigma, v_sd * s])
     noise_c = setup.noise_px / np.sqrt(2.0) * s                          # per component, m
     param = None
     if estimate == "region":
@@ -232,7 +253,8 @@ def build_model(setup: Setup, effects=(), drive: str = "penalty", estimate: str 
     Kt = stiffness_matrix(mesh, mat0.E, mat0.nu) + (penalty if penalty is not None else 0)
     u0 = sp.linalg.spsolve(Kt.tocsc(), loads[0]) if drive != "none" else np.zeros(mesh.n_dofs)
     model = SFEMModel(mesh, mat0, loads, D, setup.frame_interval, (), density=NOMINAL["density"],
-                      alpha=NOMINAL["alpha"], beta=NOMINAL["beta"], measurement_std=sigma,
+                      alpha=NOMINAL["alpha"], beta=NOMINAL["beta"] if beta is None else beta,
+                      measurement_std=sigma, velocity_observation=Dv,
                       process_std=(0.1 * process_scale * noise_c, 0.1 * process_scale * noise_c / setup.frame_interval),
                       initial_std=(noise_c, noise_c / setup.frame_interval), estimate=param,
                       prior_std=(0.3, 1.0), penalty=penalty, effects=effs, initial_displacement=u0,
@@ -240,15 +262,20 @@ def build_model(setup: Setup, effects=(), drive: str = "penalty", estimate: str 
     return model, y
 
 
-def _confidence(seq: Sequence, points) -> np.ndarray:
-    if seq.confidence is None:
+def _confidence(seq: Sequence, points, override=None) -> np.ndarray:
+    c = seq.confidence if override is None else override
+    if c is None:
         return np.ones(len(points))
-    c = seq.confidence
     return c[:, points] if c.ndim == 2 else c[points]
 
 
 def _sigma(seq: Sequence, setup: Setup) -> np.ndarray:
-    """Per observed row (x, y per point) noise standard deviation in data units."""
+    """Per observed row (x, y per point) noise standard deviation in data units.
+
+    A per-frame sd enters as its RMS over frames (R is constant through a loop).
+    """
+    if setup.obs_sigma is not None:
+        return np.repeat(np.sqrt(np.nanmean(setup.obs_sigma[:, setup.observed] ** 2, axis=0)), 2)
     if seq.sigma is not None:
         sg = seq.sigma if seq.sigma.ndim == 1 else np.nanmean(seq.sigma, axis=0)
         return np.repeat(sg[setup.observed], 2)
@@ -310,9 +337,9 @@ def evaluate(setup: Setup, model: SFEMModel, result, seconds: float = 0.0) -> tu
 
 def run(setup: Setup, effects=(), drive: str = "penalty", estimate: str = "region", max_loops: int = 5,
         process_scale: float = 1.0, tol: float = 1e-3, progress: bool = False, name: str = "",
-        landmark_step_px: float | None = None) -> Run:
-    """Build the model, run the cyclic joint EKF and evaluate it."""
-    model, y = build_model(setup, effects, drive, estimate, process_scale, landmark_step_px)
+        landmark_step_px: float | None = None, beta: float | None = None) -> Run:
+    """Build the model, run the cyclic joint EKF and evaluate it (``beta``: see :func:`build_model`)."""
+    model, y = build_model(setup, effects, drive, estimate, process_scale, landmark_step_px, beta)
     t0 = time.perf_counter()
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message="cyclic_estimate: the material did not converge")

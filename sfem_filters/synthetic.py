@@ -152,7 +152,8 @@ def annulus_mask(r_inner: float = 8.0, r_outer: float = 12.0, size: int = 32) ->
 
 def annulus_sequence(effect: str | None = None, amplitude=(0.15, -0.3), seed: int = 0, n_frames: int = 24,
                      noise_px: float = 0.05, landmark_step_px: float = 0.15, landmarks: int = 8,
-                     frame_interval: float = 0.03, pixel_spacing: float = 1e-3):
+                     frame_interval: float = 0.03, pixel_spacing: float = 1e-3, return_truth: bool = False,
+                     beta: float | None = None):
     """A sequence drawn from the filter's own generative model on a synthetic annulus.
 
     Every pixel of :func:`annulus_mask` is a point. The motion follows exactly the model that
@@ -163,7 +164,11 @@ def annulus_sequence(effect: str | None = None, amplitude=(0.15, -0.3), seed: in
     as a systolic bell in time. With ``effect=None`` a correct baseline filter is consistent
     with the data by construction: what the diagnostics must not flag.
 
-    Returns a :class:`sfem_filters.datasets.Sequence` in pixels.
+    ``beta`` (s) overrides the model's Rayleigh stiffness coefficient (see
+    :func:`sfem_filters.dense.build_model`).
+
+    Returns a :class:`sfem_filters.datasets.Sequence` in pixels; with ``return_truth`` also a
+    dict of the noise-free ``displacement`` (F, P, 2) px and ``velocity`` (F, P, 2) px/s.
     """
     from . import dense
     from .datasets import make_sequence
@@ -177,7 +182,7 @@ def annulus_sequence(effect: str | None = None, amplitude=(0.15, -0.3), seed: in
                          pixel_spacing=pixel_spacing, reference_mask=mask)
     setup = dense.prepare(stub, landmarks)
     setup.noise_px = noise_px
-    model, _ = dense.build_model(setup, (), "penalty", "none", landmark_step_px=landmark_step_px)
+    model, _ = dense.build_model(setup, (), "penalty", "none", landmark_step_px=landmark_step_px, beta=beta)
     s = pixel_spacing
     system = model.system()
     nx = model.dim_x
@@ -195,6 +200,8 @@ def annulus_sequence(effect: str | None = None, amplitude=(0.15, -0.3), seed: in
     lm_dofs = node_dofs(setup.landmarks)
     x = model.x0[:nx].copy()
     disp = np.empty((n_frames, len(pts), 2))
+    true_u = np.empty_like(disp)
+    true_v = np.empty_like(disp)
     for t in range(n_frames):
         if t > 0:
             w = np.zeros(n_dofs)
@@ -202,7 +209,46 @@ def annulus_sequence(effect: str | None = None, amplitude=(0.15, -0.3), seed: in
             w = w + G @ a[t]
             x = system.step(x, model.dofmap.restrict(w)) + L @ rng.standard_normal(nx)
         U = model.displacements(x).reshape(-1, 2) / s
+        true_u[t] = U
+        true_v[t] = model.velocities(x).reshape(-1, 2) / s
         disp[t] = U + rng.standard_normal(U.shape) * noise_px / np.sqrt(2.0)
-    return make_sequence(pts, disp, frame_interval=frame_interval, pixel_spacing=pixel_spacing,
+    seq = make_sequence(pts, disp, frame_interval=frame_interval, pixel_spacing=pixel_spacing,
                          reference_mask=mask, provenance=f"sfem_filters.synthetic.annulus_sequence(effect={effect!r}, "
                                                          f"seed={seed})")
+    return (seq, {"displacement": true_u, "velocity": true_v}) if return_truth else seq
+
+
+def deformed_masks(seq, displacement=None) -> np.ndarray:
+    """Myocardium masks of every frame of a pixel-lattice sequence, from its deformed borders.
+
+    The boundary loops of the sequence's mesh (nodes at the tissue pixel centres) are moved by
+    ``displacement`` (F, P, 2) px (default the sequence's), pushed half a pixel outward (the
+    epicardium) or inward into the cavity (the endocardium) so that they enclose whole pixels,
+    and rasterised at the pixel centres of an image the size of ``seq.reference_mask``.
+    """
+    from matplotlib.path import Path
+
+    from . import dense
+
+    if seq.reference_mask is None:
+        raise ValueError("seq: expected a sequence with a reference_mask (it sets the image size)")
+    U = seq.displacement if displacement is None else np.asarray(displacement, float)
+    setup = dense.prepare(seq, 3)
+    geo = setup.geometry
+    s = setup.spacing
+    H, W = seq.reference_mask.shape
+    yy, xx = np.mgrid[0:H, 0:W]
+    grid = np.column_stack([xx.ravel(), yy.ravel()]).astype(float)
+    out = np.zeros((len(U), H, W), bool)
+    centre = geo.centre / s
+    for t in range(len(U)):
+        X = seq.points + np.nan_to_num(U[t])
+        loops = []
+        for loop, sign in ((geo.epi, 0.5), (geo.endo, -0.5)):
+            P = X[loop]
+            r = P - centre
+            loops.append(P + sign * r / np.linalg.norm(r, axis=1, keepdims=True))
+        inside = Path(loops[0]).contains_points(grid) & ~Path(loops[1]).contains_points(grid)
+        out[t] = inside.reshape(H, W)
+    return out
+
