@@ -224,3 +224,57 @@ def lpc_map(series: ImageSeries) -> np.ndarray:
     if series.velocity is None:
         raise ValueError("series: has no velocity images")
     return velocity_coherence(series.velocity, series.venc)
+
+
+def interpolate_motion(seq: Sequence, xy) -> np.ndarray:
+    """A sequence's displacement (F, n, 2) at positions ``xy`` (px, frame 0): linear inside the
+    points' convex hull, nearest point outside it (border points lie half a pixel outside the
+    tissue pixel centres)."""
+    from scipy.interpolate import LinearNDInterpolator, NearestNDInterpolator
+
+    out = np.empty((seq.n_frames, len(xy), 2))
+    for t in range(seq.n_frames):
+        vals = np.nan_to_num(seq.displacement[t])
+        lin = LinearNDInterpolator(seq.points, vals)(xy)
+        near = NearestNDInterpolator(seq.points, vals)(xy)
+        out[t] = np.where(np.isnan(lin), near, lin)
+    return out
+
+
+def tracking_error(seq: Sequence, tracks: BoundaryTracks) -> dict:
+    """Tracked border displacements against a reference motion of the same points (pixels).
+
+    ``seq`` should be referenced to frame 0 (:func:`rereference`). Returns per-frame RMS errors,
+    their split into the border-normal and tangential components, the RMS of the reference
+    motion itself (the error of reporting no motion), and Spearman rank correlations between
+    ``1 - c`` and the error of each tracking step, and between the accumulated sigma and the
+    accumulated error.
+    """
+    from scipy.stats import spearmanr
+
+    ref = interpolate_motion(seq, tracks.points)
+    err = tracks.displacement - ref
+    normals = []
+    for k, b in ((0, tracks.borders[0].endo), (1, tracks.borders[0].epi)):
+        tg = np.roll(b, -1, axis=0) - np.roll(b, 1, axis=0)
+        tg /= np.linalg.norm(tg, axis=1, keepdims=True)
+        normals.append(np.column_stack([tg[:, 1], -tg[:, 0]]))
+    n = np.concatenate(normals)
+    tang = np.column_stack([-n[:, 1], n[:, 0]])
+    e_n, e_t = np.sum(err * n, axis=2), np.sum(err * tang, axis=2)
+    r_n, r_t = np.sum(ref * n, axis=2), np.sum(ref * tang, axis=2)
+    norm = np.linalg.norm(err, axis=2)
+    step = np.linalg.norm(np.diff(err, axis=0), axis=2)
+    rho_step = spearmanr((1 - tracks.step_confidence[1:]).ravel(), step.ravel())
+    rho_acc = spearmanr(tracks.sigma[1:].ravel(), norm[1:].ravel())
+    rms = lambda a: float(np.sqrt(np.mean(a ** 2)))        # noqa: E731
+    return {
+        "n_points": int(len(tracks.points)), "n_frames": int(seq.n_frames),
+        "rmse_px": rms(norm[1:]), "rmse_per_frame_px": np.sqrt(np.mean(norm ** 2, axis=1)).tolist(),
+        "rmse_normal_px": rms(e_n[1:]), "rmse_tangential_px": rms(e_t[1:]),
+        "motion_rms_px": rms(np.linalg.norm(ref[1:], axis=2)),
+        "motion_rms_normal_px": rms(r_n[1:]), "motion_rms_tangential_px": rms(r_t[1:]),
+        "step_rmse_px": rms(step),
+        "spearman_1_minus_c_vs_step_error": {"rho": float(rho_step.statistic), "p": float(rho_step.pvalue)},
+        "spearman_sigma_vs_error": {"rho": float(rho_acc.statistic), "p": float(rho_acc.pvalue)},
+    }

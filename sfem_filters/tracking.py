@@ -49,10 +49,10 @@ class TrackingOptions:
 
     n_endo: int = 48
     n_epi: int = 64
-    window: int = 4
+    window: int = 2
     half_width: int = 3
     curvature_smoothing: float = 2.0
-    regularisation: float = 4.0
+    regularisation: float = 50.0
     k_g: float = 1.0
     k_u: float = 1.0
     sigma_floor: float = 0.3
