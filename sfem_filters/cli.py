@@ -48,8 +48,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="observation noise standard deviation in mm (default 0.1)")
     c.add_argument("--json", metavar="PATH", help="write the measured numbers as JSON")
     c.add_argument("--figures", metavar="DIR", help="write the figures (PNG) into DIR")
-    c.add_argument("--engine", choices=("structured", "filterpy"), default="structured",
-                   help="filter implementation (default structured; filterpy is the reference)")
+    c.add_argument("--engine", choices=("structured", "filterpy", "ud"), default="structured",
+                   help="filter implementation: structured (default), filterpy (the reference) or ud "
+                        "(Bierman-Thornton U-D factorised, for ill-conditioned covariances)")
     c.add_argument("--max-loops", type=_positive_int, default=50, help="cyclic loop limit (default 50)")
     c.add_argument("--tol", type=_positive_float, default=1e-3,
                    help="relative material change that ends the loops (default 1e-3)")

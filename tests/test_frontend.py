@@ -114,7 +114,7 @@ def test_tracking_recovers_rigid_motion_of_a_featured_ring(motion):
         masks = np.stack([ring(centre=(23.5 + shift[0] * t, 23.5 + shift[1] * t), bump=0.2) for t in range(F)])
     else:
         masks = np.stack([ring(bump=0.2, angle=0.04 * t) for t in range(F)])
-    tr = track_masks(masks, TrackingOptions(window=3))
+    tr = track_masks(masks, TrackingOptions(window=3, regularisation=4.0))
     P0 = tr.points
     if motion == "translate":
         truth = np.stack([np.tile(shift * t, (len(P0), 1)) for t in range(F)])
@@ -222,7 +222,7 @@ def test_velocity_fusion_beats_borders_alone_on_heldout_points():
     """Known answer: masks drawn from the true motion, tracked; velocities with border noise."""
     seq, truth, pc, venc, vmax, depth = _synthetic_pc(seed=2, n_frames=12)
     masks = synthetic.deformed_masks(seq, truth["displacement"])
-    tracks = track_masks(masks)
+    tracks = track_masks(masks, TrackingOptions(window=4, regularisation=4.0))
     vel = sample_velocity(pc, seq.points, venc, seq.pixel_spacing, floor=0.01 * vmax)
     reference = make_sequence(seq.points, truth["displacement"], frame_interval=seq.frame_interval,
                               pixel_spacing=seq.pixel_spacing, reference_mask=seq.reference_mask)
