@@ -228,6 +228,7 @@ def test_velocity_fusion_beats_borders_alone_on_heldout_points():
                               pixel_spacing=seq.pixel_spacing, reference_mask=seq.reference_mask)
     out = frontend.compare_fusion(reference, tracks, vel, max_loops=1, beta=0.03)
     a, b = out["borders"], out["borders+velocity"]
+    print({k: round(v["heldout_rmse_px"], 3) for k, v in out.items()})
     assert a["n_heldout"] == b["n_heldout"] and b["n_velocity_points"] > 0
     assert b["heldout_rmse_px"] < 0.85 * a["heldout_rmse_px"], out
 
