@@ -236,8 +236,8 @@ def build_model(setup: Setup, effects=(), drive: str = "penalty", estimate: str 
         Dv = sp.csr_matrix((np.ones(2 * len(v_nodes)), (np.arange(2 * len(v_nodes)), node_dofs(v_nodes))),
                            shape=(2 * len(v_nodes), mesh.n_dofs))
         y = np.hstack([y, setup.velocity.reshape(F, -1) * s])
-        v_sd = np.repeat(np.sqrt(np.nanmean(setup.velocity_sigma ** 2, axis=0)), 2)
-        sigma = np.concatenate([sigma, v_sd * s])
+        v_sd = np.repeat(_per_frame(setup.velocity_sigma), 2, axis=1)
+        sigma = np.hstack([sigma if sigma.ndim == 2 else np.broadcast_to(sigma, (F, sigma.size)), v_sd * s])
     noise_c = setup.noise_px / np.sqrt(2.0) * s                          # per component, m
     param = None
     if estimate == "region":
@@ -269,16 +269,25 @@ def _confidence(seq: Sequence, points, override=None) -> np.ndarray:
     return c[:, points] if c.ndim == 2 else c[points]
 
 
-def _sigma(seq: Sequence, setup: Setup) -> np.ndarray:
-    """Per observed row (x, y per point) noise standard deviation in data units.
+def _per_frame(sd) -> np.ndarray:
+    """(F, n) standard deviations with NaN (no datum that frame) replaced by the column's RMS."""
+    sd = np.asarray(sd, float)
+    rms = np.sqrt(np.nanmean(sd ** 2, axis=0))
+    return np.where(np.isnan(sd), rms[None], sd)
 
-    A per-frame sd enters as its RMS over frames (R is constant through a loop).
+
+def _sigma(seq: Sequence, setup: Setup) -> np.ndarray:
+    """Noise standard deviation per observed row (x, y per point) in data units.
+
+    ``(rows,)``, or ``(frames, rows)`` when the data give one per frame (image-derived
+    confidences): then each frame gets its own R.
     """
     if setup.obs_sigma is not None:
-        return np.repeat(np.sqrt(np.nanmean(setup.obs_sigma[:, setup.observed] ** 2, axis=0)), 2)
+        return np.repeat(_per_frame(setup.obs_sigma[:, setup.observed]), 2, axis=1)
     if seq.sigma is not None:
-        sg = seq.sigma if seq.sigma.ndim == 1 else np.nanmean(seq.sigma, axis=0)
-        return np.repeat(sg[setup.observed], 2)
+        if seq.sigma.ndim == 2:
+            return np.repeat(_per_frame(seq.sigma[:, setup.observed]), 2, axis=1)
+        return np.repeat(seq.sigma[setup.observed], 2)
     return np.full(2 * len(setup.observed), setup.noise_px / np.sqrt(2.0))
 
 

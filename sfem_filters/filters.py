@@ -215,12 +215,18 @@ class FilterpyEngine(_Engine):
     def update(self, y, t, mask):
         m = self.model
         H = m.H_jacobian(self.ekf.x, t)[mask]
-        R = m.R[np.ix_(mask, mask)]
+        R = measurement_cov(m, t)[np.ix_(mask, mask)]
         self.ekf.update(y[mask].reshape(-1, 1), lambda x, tt: H,
                         lambda x, tt: m.hx(x, tt)[mask], R=R, args=t, hx_args=t)
         e = self.ekf.y.ravel()
         self._observed(H, R, e)
         return e, self.ekf.S
+
+
+def measurement_cov(model, t: int) -> np.ndarray:
+    """R of frame ``t``: ``model.R_at(t)`` when the model has per-frame noise, else ``model.R``."""
+    R_at = getattr(model, "R_at", None)
+    return np.asarray(model.R if R_at is None else R_at(t), float)
 
 
 class StructuredEngine(_Engine):
@@ -265,7 +271,7 @@ class StructuredEngine(_Engine):
     def update(self, y, t, mask):
         m = self.model
         H = m.H_jacobian(self._x, t)[mask]
-        R = m.R[np.ix_(mask, mask)]
+        R = measurement_cov(m, t)[np.ix_(mask, mask)]
         PHt = self._P @ H.T
         S = H @ PHt + R
         cho = sla.cho_factor(S, lower=True)
@@ -461,7 +467,7 @@ class UDEngine(_Engine):
     def update(self, y, t, mask):
         m = self.model
         H = m.H_jacobian(self._x, t)[mask]
-        R = m.R[np.ix_(mask, mask)]
+        R = measurement_cov(m, t)[np.ix_(mask, mask)]
         HU = H @ self._U
         S = (HU * self._d) @ HU.T + R
         innov = y[mask] - m.hx(self._x, t)[mask]

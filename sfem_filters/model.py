@@ -59,8 +59,10 @@ class SFEMModel:
         Mass density in kg/m^3.
     alpha, beta : float
         Rayleigh damping ``C = alpha M + beta K`` (alpha in 1/s, beta in s).
-    measurement_std : float or (n_obs,) array
-        Standard deviation of the observation noise in m; ``R`` is diagonal.
+    measurement_std : float, (n_obs,) or (n_frames, n_obs) array
+        Standard deviation of the observation noise in m (m/s for velocity rows); ``R`` is
+        diagonal. A 2D array gives each frame its own R (data weighted by a per-frame
+        confidence, section 2.6): :meth:`R_at` returns it and ``R`` holds the frame average.
     process_std : (float, float)
         Per-frame process noise standard deviations of displacement (m) and velocity (m/s).
     initial_std : (float, float)
@@ -176,8 +178,17 @@ class SFEMModel:
         if Dv is not None:
             H[n_u:, n:2 * n] = Dv[:, self.dofmap.free].toarray()
         self._H = H
-        sd_m = _std_vector("measurement_std", measurement_std, self.dim_obs, "m")
-        self.R = np.diag(sd_m ** 2)
+        self._R_frames = None
+        if np.ndim(measurement_std) == 2:
+            sd2 = as_float_array("measurement_std", measurement_std, shape=(len(loads), self.dim_obs))
+            if np.any(sd2 <= 0):
+                raise ValueError(f"measurement_std: expected standard deviations > 0 m, got minimum "
+                                 f"{float(sd2.min())!r}")
+            self._R_frames = sd2 ** 2
+            self.R = np.diag(self._R_frames.mean(axis=0))
+        else:
+            sd_m = _std_vector("measurement_std", measurement_std, self.dim_obs, "m")
+            self.R = np.diag(sd_m ** 2)
         pu, pv = process_std
         q = [np.full(n, positive("process_std[0]", pu, "m")) ** 2,
              np.full(n, positive("process_std[1]", pv, "m/s")) ** 2]
@@ -265,13 +276,19 @@ class SFEMModel:
             self.theta0 if theta is None else theta)
         return self._entry(mat)[0]
 
+    def R_at(self, t: int) -> np.ndarray:
+        """Measurement noise covariance of frame ``t`` (m^2, m^2/s^2 for velocity rows)."""
+        return self.R if self._R_frames is None else np.diag(self._R_frames[t])
+
     def fingerprint(self) -> str:
         """Hash of everything that defines the model (for checkpoints)."""
         import hashlib
         h = hashlib.sha256()
         parts = [self.mesh.nodes, self.mesh.elements, self.loads, self.material.E, self.material.nu, self.M,
                  np.array([self.alpha, self.beta, self.frame_interval, self.density, self.thickness]),
-                 self.dofmap.fixed, self._G, self._H]
+                 self.dofmap.fixed, self._G, self._H, self.R]
+        if self._R_frames is not None:
+            parts.append(self._R_frames)
         if self.penalty is not None:
             parts.append(self.penalty)
         if self.estimate is not None:

@@ -236,3 +236,37 @@ def test_velocity_rows_observe_the_velocity_state():
     # barycentric interpolation: a point at a centroid reads the mean of its triangle's nodes
     e = 0
     np.testing.assert_allclose(y[0], U[2 * mesh.elements[e]].mean(), atol=1e-14)
+
+
+def test_per_frame_measurement_noise_is_used_frame_by_frame():
+    """A 2D measurement_std gives R_at(t) per frame; the filter engines use it (same x, P
+    as a model whose constant R equals that frame's, on a frame where they coincide)."""
+    from sfem_filters.filters import ENGINES, measurement_cov
+
+    def build(noise):
+        rng = np.random.default_rng(3)               # same mesh, loads and material each time
+        return small_model(rng, noise=noise)
+
+    base = build(1e-4)
+    F, m = base.loads.shape[0], base.dim_obs
+    sd = np.full((F, m), 1e-4)
+    sd[1] = 3e-4
+    model = build(sd)
+    assert np.allclose(model.R_at(1), np.diag(np.full(m, 9e-8)))
+    assert np.allclose(model.R_at(0), np.diag(np.full(m, 1e-8)))
+    assert np.allclose(measurement_cov(model, 1), model.R_at(1))
+    assert model.fingerprint() != build(np.full((F, m), 1e-4)).fingerprint()
+    with pytest.raises(ValueError, match=r"measurement_std: expected shape"):
+        build(np.ones((F + 1, m)))
+    with pytest.raises(ValueError, match="measurement_std: expected standard deviations > 0"):
+        build(np.zeros((F, m)))
+    y = np.random.default_rng(0).standard_normal((F, m)) * 1e-4
+    mask = np.ones(m, bool)
+    results = []
+    for mdl in (model, build(3e-4)):
+        eng = ENGINES["structured"](mdl)
+        eng.predict(0)
+        eng.update(y[1], 1, mask)
+        results.append((eng.x.copy(), eng.P.copy()))
+    assert np.allclose(results[0][0], results[1][0], rtol=1e-12, atol=1e-18)
+    assert np.allclose(results[0][1], results[1][1], rtol=1e-12, atol=1e-20)
