@@ -17,6 +17,11 @@ same machine state. Everything else (model, filter, data) is today's code.
    (``dense.run``: build the model, ``cyclic_estimate`` with its loop limit and tolerance),
    alternating baseline and this code ``--repeat`` times; the wall time is the ``seconds`` the
    CLI puts in its JSON.
+
+On a shared 2-core machine run it as ``OPENBLAS_NUM_THREADS=1 python benchmarks/...``: with
+another process busy, two OpenBLAS threads spin against it and a run takes 5-10 times longer
+(measured: 737 s instead of ~60 s for the baseline), while single-threaded BLAS is as fast as
+the quiet-machine two-thread figure for this problem size.
 """
 from __future__ import annotations
 
