@@ -406,7 +406,7 @@ class SFEMModel:
         system = self.system(theta if self.estimate is not None else None)
         F = np.eye(self.dim_state)
         nx, nr = self.dim_x, self.n_restart
-        F[:nx, :nx] = system.transition_matrix()
+        system.transition_matrix(out=F[:nx, :nx])
         if self.dim_eta:
             F[:nx, nx:nr] = system.input_response(self._G)
             F[nx:nr, nx:nr] = self._eta_transition

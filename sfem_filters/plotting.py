@@ -318,10 +318,10 @@ def velocity_vectors(obs: dict, path: str, frame: int | None = None):
     fig, ax = plt.subplots(figsize=(5.2, 4.6))
     ax.imshow(masks[t], cmap="gray_r", alpha=0.3, origin="upper")
     v = vel.velocity[t]
-    q = ax.quiver(vel.points[:, 0], vel.points[:, 1], v[:, 0], -v[:, 1], vel.lpc[t], cmap="plasma",
+    q = ax.quiver(vel.points[:, 0], vel.points[:, 1], v[:, 0], v[:, 1], vel.lpc[t], cmap="plasma",
                   clim=(0, 1), angles="xy")
     fig.colorbar(q, ax=ax, label="local phase coherence (Eqs. 38-39)")
-    ax.set_title(f"velocity at frame {t} (arrows in image axes)")
+    ax.set_title(f"velocity at frame {t} (y down, as the image)")
     ax.set_xticks([])
     ax.set_yticks([])
     fig.savefig(path, dpi=120)
