@@ -1,7 +1,7 @@
 """Exact discretisation and exact sensitivities of the state-space model (Eqs. 9-16, 33)."""
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
+from hypothesis import example, given, settings, strategies as st
 from scipy.integrate import solve_ivp
 
 from sfem_filters import fem
@@ -97,9 +97,13 @@ def test_modal_sensitivity_matches_expm_frechet(seed, alpha, beta):
 
 @settings(max_examples=8, deadline=None)
 @given(seed=st.integers(0, 10_000), alpha=st.floats(0.0, 50.0), beta=st.floats(0.0, 5e-3))
+@example(seed=567, alpha=1.0, beta=0.00390625)
 def test_modal_sensitivity_matches_complex_step(seed, alpha, beta):
-    """Against complex-step differentiation of the block exponential (exact to round-off, any
-    stiffness): 1e-10 relative on random meshes, materials and damping."""
+    """Against complex-step differentiation of the block exponential: 1e-9 relative on random
+    meshes, materials and damping (the issue asks for 1e-8 against expm_frechet). The
+    complex step is exact in the derivative, but its block expm carries round-off of order
+    ||A_c T|| eps: on the pinned stiff example (||A_c T|| ~ 1e4) both the current and the
+    previous modal code differ from it by 1.6e-10 while agreeing with each other to 1e-12."""
     rng = np.random.default_rng(seed)
     model = small_model(rng, estimate=None, alpha=alpha, beta=beta)
     M, K = reduced_matrices(model)
@@ -112,7 +116,7 @@ def test_modal_sensitivity_matches_complex_step(seed, alpha, beta):
     cs = _complex_step_sensitivity(M, K, alpha, beta, model.frame_interval, x, w,
                                    [d for i, d in enumerate(_dense_directions(model, dirs, dofs)) if i in set(pick)])
     fast = system.sensitivity(x, w, dirs[np.sort(pick)], dofs[np.sort(pick)])
-    assert np.abs(fast - cs).max() <= 1e-10 * np.abs(cs).max()
+    assert np.abs(fast - cs).max() <= 1e-9 * np.abs(cs).max()
 
 
 def test_sensitivity_with_exactly_repeated_eigenvalues():
