@@ -31,20 +31,14 @@ import warnings
 
 import numpy as np
 
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from _timing import best_of  # noqa: E402
+
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 
 from sfem_filters.filters import StructuredEngine  # noqa: E402
 from sfem_filters.statespace import reference_sensitivity  # noqa: E402
 from sfem_filters.synthetic import benchmark_model, pinned_benchmark  # noqa: E402
-
-
-def _best(fn, repeat):
-    best = np.inf
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        fn()
-        best = min(best, time.perf_counter() - t0)
-    return best
 
 
 def time_step(model, y, repeat=3):
@@ -62,8 +56,8 @@ def time_step(model, y, repeat=3):
         return zz
 
     zz = fresh()
-    t_disc = _best(lambda: model.system(model.theta_of(fresh())), repeat)
-    t_mt = _best(lambda: model.sensitivity(fresh(), 1), repeat)
+    t_disc = best_of(lambda: model.system(model.theta_of(fresh())), repeat)
+    t_mt = best_of(lambda: model.sensitivity(fresh(), 1), repeat)
     F = model.F_jacobian(zz, 1)
     P = eng.P.copy()
 
@@ -73,7 +67,7 @@ def time_step(model, y, repeat=3):
         APxt = A @ Pxt
         return A @ Pxx @ A.T + APxt @ Mt.T + (APxt @ Mt.T).T + Mt @ Ptt @ Mt.T
 
-    t_prop = _best(propagate, repeat)
+    t_prop = best_of(propagate, repeat)
     eng.predict(1)
     P_prior, x_prior = eng.P.copy(), eng.x.copy()
 
@@ -81,7 +75,7 @@ def time_step(model, y, repeat=3):
         eng.reset(x_prior, P_prior)
         eng.update(y[2], 2, np.ones(model.dim_obs, bool))
 
-    t_upd = _best(update, repeat)
+    t_upd = best_of(update, repeat)
     tracemalloc.start()
     eng.reset(x_prior, P_prior)
     eng.predict(1)
@@ -121,7 +115,7 @@ def time_naive(model, y, n_params=8):
 
 def time_floor(n, repeat=3):
     a = np.random.default_rng(0).standard_normal((n, n))
-    return _best(lambda: a @ a, repeat)
+    return best_of(lambda: a @ a, repeat)
 
 
 def main(argv=None):

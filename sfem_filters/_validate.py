@@ -96,3 +96,15 @@ def check_material(E, nu, n: int | None = None):
         bad = nu[(nu <= 0) | (nu >= 0.5)]
         raise ValueError(f"nu: expected Poisson's ratios in the open interval (0, 0.5), got {float(bad[0])!r}")
     return E, nu
+
+
+def as_mask(name: str, value, ndim: int) -> np.ndarray:
+    """Return ``value`` as a boolean mask of ``ndim`` dimensions (0/1 numbers accepted)."""
+    arr = np.asarray(value)
+    if arr.ndim != ndim:
+        raise ValueError(f"{name}: expected a {ndim}D mask, got shape {arr.shape}")
+    if arr.dtype != bool:
+        if arr.dtype.kind not in "iuf" or not np.isin(arr, [0, 1]).all():
+            raise ValueError(f"{name}: expected a boolean mask (or 0/1 values), got dtype {arr.dtype}")
+        arr = arr.astype(bool)
+    return arr

@@ -62,13 +62,16 @@ def segment_bending_energy(kappa_a, kappa_b, i, j, half_width: int) -> np.ndarra
     return bending_energy(ka[np.mod(i, len(ka))], kb[np.mod(j, len(kb))]).mean(axis=2)
 
 
-def goodness_uniqueness(energies) -> tuple:
+def goodness_uniqueness(energies, tie_order=None) -> tuple:
     """Goodness ``m_g`` and uniqueness ``m_u`` of the best match among candidates (Eq. 36).
 
     Parameters
     ----------
     energies : (p, w) array
         Bending energy of each of ``w`` candidates in the search window of each of ``p`` points.
+    tie_order : (w,) array, optional
+        Among candidates of equal least energy (to 1e-12 relative) the one with the smallest
+        ``tie_order`` wins (default: the first).
 
     Returns
     -------
@@ -83,7 +86,12 @@ def goodness_uniqueness(energies) -> tuple:
     e = as_float_array("energies", energies, shape=(None, None))
     if e.shape[1] < 2:
         raise ValueError(f"energies: expected at least 2 candidates per point, got {e.shape[1]}")
-    best = np.argmin(e, axis=1)
+    if tie_order is None:
+        best = np.argmin(e, axis=1)
+    else:
+        least = e.min(axis=1, keepdims=True)
+        tied = e <= least + 1e-12 * np.abs(least)
+        best = np.argmin(np.where(tied, np.asarray(tie_order, float)[None], np.inf), axis=1)
     m_g = e[np.arange(len(e)), best]
     mean = e.mean(axis=1)
     m_u = np.divide(m_g, mean, out=np.ones_like(m_g), where=mean > 0)

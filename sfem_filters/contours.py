@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ._validate import as_float_array, positive
+from ._validate import as_float_array, as_mask
 
 
 @dataclass(frozen=True, eq=False)
@@ -33,13 +33,7 @@ def check_myocardium_mask(mask, name: str = "mask") -> np.ndarray:
     """
     from skimage.measure import label
 
-    arr = np.asarray(mask)
-    if arr.ndim != 2:
-        raise ValueError(f"{name}: expected a 2D mask (rows, columns), got shape {arr.shape}")
-    if arr.dtype != bool:
-        if arr.dtype.kind not in "iuf" or not np.isin(arr, [0, 1]).all():
-            raise ValueError(f"{name}: expected a boolean mask (or 0/1 values), got dtype {arr.dtype}")
-        arr = arr.astype(bool)
+    arr = as_mask(name, mask, 2)
     if not arr.any():
         raise ValueError(f"{name}: expected some tissue, got an empty mask")
     n = int(label(arr, connectivity=2).max())
@@ -183,7 +177,3 @@ def closest_on_polyline(xy, points):
     rows = np.arange(len(pts))
     return proj[rows, seg], seg, f[rows, seg]
 
-
-def check_spacing(spacing) -> float:
-    """Pixel spacing in metres (> 0)."""
-    return positive("pixel_spacing", spacing, "m")

@@ -39,6 +39,8 @@ from importlib import resources
 
 import numpy as np
 
+from ._validate import as_mask
+
 FORMAT_KEYS = ("points", "displacement", "velocity", "sigma", "confidence", "velocity_sigma",
                "velocity_confidence", "point_kind", "frame_interval",
                "pixel_spacing", "pressure", "reference_mask", "frame_masks", "units", "provenance")
@@ -112,13 +114,9 @@ def _scalar(name, value, positive=True):
 
 
 def _mask(name, value, shape):
-    arr = np.asarray(value)
-    if arr.dtype != bool:
-        if arr.dtype.kind not in "iu" or not np.isin(arr, [0, 1]).all():
-            raise ValueError(f"{name}: expected a boolean mask, got dtype {arr.dtype}")
-        arr = arr.astype(bool)
-    if arr.ndim != len(shape) or any(s is not None and s != a for s, a in zip(shape, arr.shape)):
-        raise ValueError(f"{name}: expected {len(shape)} dimensions, got shape {arr.shape}")
+    arr = as_mask(name, value, len(shape))
+    if any(s is not None and s != a for s, a in zip(shape, arr.shape)):
+        raise ValueError(f"{name}: expected shape {shape}, got shape {arr.shape}")
     return arr
 
 

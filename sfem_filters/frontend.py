@@ -18,7 +18,6 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from .confidence import velocity_coherence
 from .datasets import Sequence, make_sequence
 from .phase_contrast import VelocityData, sample_velocity
 from .readers import ImageSeries
@@ -102,6 +101,8 @@ def observe(series: ImageSeries, tracking: TrackingOptions | None = None,
         points = np.vstack([points, mid])
         disp = np.concatenate([disp, np.full((F, V, 2), np.nan)], axis=1)
         conf = np.concatenate([conf, np.zeros((F, V))], axis=1)
+        # velocity-only points have no displacement (NaN); the format wants a positive sigma
+        # everywhere, and the largest tracking sigma is never used for a missing datum
         sigma = np.concatenate([sigma, np.full((F, V), tracks.sigma.max())], axis=1)
         kind = np.concatenate([kind, np.full(V, MIDWALL)])
         v_all = np.concatenate([np.full((F, P, 2), np.nan), vel.velocity], axis=1)
@@ -217,13 +218,6 @@ def compare_fusion(seq: Sequence, tracks: BoundaryTracks, velocity: VelocityData
                      "n_heldout": int(len(setup.heldout)), "seconds": r.metrics["seconds"],
                      "n_velocity_points": 0 if setup.velocity_points is None else int(len(setup.velocity_points))}
     return out
-
-
-def lpc_map(series: ImageSeries) -> np.ndarray:
-    """(F, H, W) local phase coherence of a series' velocity images (Eqs. 38-39)."""
-    if series.velocity is None:
-        raise ValueError("series: has no velocity images")
-    return velocity_coherence(series.velocity, series.venc)
 
 
 def interpolate_motion(seq: Sequence, xy) -> np.ndarray:

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ._validate import as_float_array, positive
+from ._validate import as_float_array, as_mask, positive
 
 
 @dataclass(frozen=True, eq=False)
@@ -59,13 +59,7 @@ def make_image_series(magnitude=None, velocity=None, masks=None, pixel_spacing=N
         magnitude = as_float_array("magnitude", magnitude, shape=(None, None, None))
         shape = magnitude.shape
     if masks is not None:
-        m = np.asarray(masks)
-        if m.ndim != 3:
-            raise ValueError(f"masks: expected an (F, H, W) mask sequence, got shape {m.shape}")
-        if m.dtype != bool:
-            if m.dtype.kind not in "iuf" or not np.isin(m, [0, 1]).all():
-                raise ValueError(f"masks: expected booleans (or 0/1), got dtype {m.dtype}")
-            m = m.astype(bool)
+        m = as_mask("masks", masks, 3)
         if shape is not None and m.shape != shape:
             raise ValueError(f"masks: expected the shape of magnitude {shape}, got {m.shape}")
         masks, shape = m, m.shape

@@ -35,8 +35,8 @@ def clean_ring(mask, min_hole: int = 4) -> np.ndarray:
     sizes = np.bincount(lab.ravel())
     sizes[0] = 0
     ring = lab == np.argmax(sizes)
-    bg = label(np.pad(~ring, 1, constant_values=True), connectivity=1)[1:-1, 1:-1]
-    outside = label(np.pad(~ring, 1, constant_values=True), connectivity=1)[0, 0]
+    padded = label(np.pad(~ring, 1, constant_values=True), connectivity=1)
+    bg, outside = padded[1:-1, 1:-1], padded[0, 0]
     hole_ids = [i for i in np.unique(bg[~ring]) if i != outside]
     if hole_ids:
         counts = {i: int(np.sum(bg == i)) for i in hole_ids}

@@ -151,13 +151,8 @@ def match_points(points, a, kappa_a, b, kappa_b, window: int, half_width: int) -
     cand = np.mod(j0[:, None] + offs[None], len(b))
     e = segment_bending_energy(kappa_a, kappa_b, i, cand, half_width)
     # ties (equal energies, e.g. along a circular arc) go to the candidate nearest the point
-    e_tie = e + 1e-9 * np.abs(offs)[None] * (np.median(e) + 1e-300)
-    best, _, _ = goodness_uniqueness(e_tie)
-    rows = np.arange(len(e))
-    m_g = e[rows, best]
-    mean = e.mean(axis=1)
-    m_u = np.divide(m_g, mean, out=np.ones_like(m_g), where=mean > 0)
-    j = cand[rows, best]
+    best, m_g, m_u = goodness_uniqueness(e, tie_order=np.abs(offs))
+    j = cand[np.arange(len(cand)), best]
     return Match(target=b[j], index=j, m_g=m_g, m_u=np.minimum(m_u, 1.0))
 
 
