@@ -73,8 +73,9 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--observe", choices=("boundary", "boundary+midwall"), default="boundary",
                    help="observe the landmarks only, or also a seeded half of the mid-wall points")
     d.add_argument("--holdout-seed", type=int, default=0, help="seed of the mid-wall split (default 0)")
-    d.add_argument("--material", choices=("region", "element", "none"), default="region",
-                   help="material parameterisation: 12 regions (default), per element, or fixed")
+    d.add_argument("--material", choices=("region", "basis", "element", "none"), default="region",
+                   help="material parameterisation: 12 regions (default), a smooth basis (6 relative "
+                        "log E modes, 3 nu modes), per element, or fixed")
     d.add_argument("--max-loops", type=_positive_int, default=3, help="cyclic loop limit (default 3)")
     d.add_argument("--json", metavar="PATH", help="write the report as JSON")
     d.add_argument("--figures", metavar="DIR", help="write the figures (PNG) into DIR")

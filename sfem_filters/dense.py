@@ -55,6 +55,12 @@ NOMINAL = {
 #: strain of ~0.4 builds up over ~10 frames.
 EFFECT_STEP = 0.04
 
+#: The smooth material basis (``estimate="basis"``): leading modes of a squared-exponential
+#: correlation over element centroids, its length a fraction of the mesh's diameter; relative
+#: stiffness (mean log E fixed, as with the regions), Poisson's ratio absolute.
+BASIS = {"modes_E": 6, "modes_nu": 3, "length_fraction": 0.25}
+
+ESTIMATES = ("region", "basis", "element", "none")
 DRIVES = ("penalty", "pressure", "none")
 OBSERVE = ("boundary", "boundary+midwall")
 
@@ -172,6 +178,20 @@ def _filled(u):
     return np.nan_to_num(u)
 
 
+def smooth_parameterisation(mesh, modes_E: int | None = None, modes_nu: int | None = None,
+                            length_fraction: float | None = None) -> Parameterisation:
+    """The smooth relative material basis of ``estimate="basis"`` (defaults: :data:`BASIS`).
+
+    ``length_fraction`` times the largest distance between element centroids is the
+    correlation length of :meth:`Parameterisation.smooth`.
+    """
+    c = mesh.centroids
+    diameter = float(np.sqrt(np.max(np.sum((c[:, None, :] - c[None, :, :]) ** 2, axis=2))))
+    frac = BASIS["length_fraction"] if length_fraction is None else length_fraction
+    return Parameterisation.smooth(c, frac * diameter, BASIS["modes_E"] if modes_E is None else modes_E,
+                                   BASIS["modes_nu"] if modes_nu is None else modes_nu, NOMINAL["E"])
+
+
 def build_model(setup: Setup, effects=(), drive: str = "penalty", estimate: str = "region",
                 process_scale: float = 1.0, landmark_step_px: float | None = None,
                 beta: float | None = None) -> tuple:
@@ -243,10 +263,12 @@ def build_model(setup: Setup, effects=(), drive: str = "penalty", estimate: str 
     if estimate == "region":
         # relative stiffness between regions (mean log E fixed) and nu per region
         param = Parameterisation.relative_regions(setup.regions, NOMINAL["E"])
+    elif estimate == "basis":
+        param = smooth_parameterisation(mesh)
     elif estimate == "element":
         param = Parameterisation.per_element(mesh.n_elements)
     elif estimate != "none":
-        raise ValueError(f"estimate: expected 'region', 'element' or 'none', got {estimate!r}")
+        raise ValueError(f"estimate: expected one of {ESTIMATES}, got {estimate!r}")
     effs = build_effects(effects, mesh, setup.geometry, scale=NOMINAL["E"], process_std=EFFECT_STEP * process_scale,
                          initial_std=EFFECT_STEP) if effects else []
     # initial state: at rest in equilibrium with the frame-0 drive

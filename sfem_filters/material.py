@@ -136,6 +136,60 @@ class Parameterisation:
             as_float_array("basis_nu", basis_nu, shape=(bE.shape[0], None)))
         return cls(bE, bnu)
 
+    @classmethod
+    def smooth(cls, centroids, length: float, modes_E: int, modes_nu: int,
+               E_reference: float | None = None) -> "Parameterisation":
+        """Leading eigenvectors of a spatial correlation kernel over element centroids.
+
+        The kernel is squared-exponential, ``exp(-d^2 / (2 length^2))``; its leading
+        eigenvectors are the smoothest fields the mesh carries (a truncated Karhunen-Loeve
+        expansion of a Gaussian field with that correlation). Each mode is scaled to unit RMS
+        over the elements, so a parameter of 0.3 moves log E by 0.3 RMS, as a per-element
+        prior of 0.3 would. With ``E_reference`` (Pa) the stiffness is relative, as in
+        :meth:`relative_regions`: the E modes are those of the kernel centred to zero mean
+        (orthogonal to a uniform change) and ``log E = log E_reference + basis_E theta_E``.
+
+        Parameters
+        ----------
+        centroids : (n_elements, 2) array
+            Element centroids in m.
+        length : float
+            Correlation length in m.
+        modes_E, modes_nu : int
+            Number of modes of log E and of logit(2 nu) (>= 1).
+        E_reference : float, optional
+            Reference Young's modulus in Pa: relative stiffness.
+        """
+        c = as_float_array("centroids", centroids, shape=(None, 2))
+        n = len(c)
+        positive("length", length, "m")
+        modes_E = integer("modes_E", modes_E, 1)
+        modes_nu = integer("modes_nu", modes_nu, 1)
+        limit = n - 1 if E_reference is not None else n
+        if modes_E > limit or modes_nu > n:
+            raise ValueError(f"modes_E, modes_nu: expected at most {limit} and {n} modes for {n} elements, "
+                             f"got {modes_E} and {modes_nu}")
+        d2 = np.sum((c[:, None, :] - c[None, :, :]) ** 2, axis=2)
+        kernel = np.exp(-d2 / (2.0 * float(length) ** 2))
+
+        def leading(Kmat, k):
+            lam, V = np.linalg.eigh(0.5 * (Kmat + Kmat.T))
+            V = V[:, ::-1][:, :k]
+            V = V * np.sign(V[np.argmax(np.abs(V), axis=0), np.arange(k)])   # deterministic sign
+            return V * np.sqrt(n)
+
+        offset = None
+        if E_reference is not None:
+            positive("E_reference", E_reference, "Pa")
+            C = np.eye(n) - 1.0 / n
+            bE = leading(C @ kernel @ C, modes_E)
+            offset = np.full(n, np.log(float(E_reference)))
+        else:
+            bE = leading(kernel, modes_E)
+        bnu = leading(kernel, modes_nu)
+        names = tuple(f"E mode {i}" for i in range(modes_E)) + tuple(f"nu mode {i}" for i in range(modes_nu))
+        return cls(sp.csr_matrix(bE), sp.csr_matrix(bnu), names, offset_E=offset)
+
     @property
     def n_elements(self) -> int:
         return self.basis_E.shape[0]

@@ -263,3 +263,23 @@ def test_pressure_and_no_drive():
     assert np.isfinite(r.metrics["heldout_rmse_px"]) and np.all(r.model.loads == 0)
     with pytest.raises(ValueError, match="drive: 'pressure' needs a sequence with a cavity 'pressure'"):
         dense.build_model(dense.prepare(seq0, 8), (), "pressure")
+
+
+def test_material_parameterisations_of_the_dense_model():
+    """--material region / basis / element give 23 / 9 / 2 x elements parameters; the smooth
+    basis keeps the mean log E at the nominal E (relative stiffness) for any parameters, and
+    a one-loop run with it stays finite; an unknown choice is named."""
+    su = dense.prepare(annulus_sequence(None, n_frames=5, seed=1), 8)
+    dims = {}
+    for est in ("region", "basis", "element"):
+        model, _ = dense.build_model(su, (), "penalty", est)
+        dims[est] = model.dim_theta
+    assert dims == {"region": 2 * 12 - 1, "basis": dense.BASIS["modes_E"] + dense.BASIS["modes_nu"],
+                    "element": 2 * su.mesh.n_elements}
+    param = dense.smooth_parameterisation(su.mesh)
+    theta = np.random.default_rng(0).standard_normal(param.n_params)
+    np.testing.assert_allclose(np.mean(np.log(param.material(theta).E)), np.log(dense.NOMINAL["E"]), rtol=1e-12)
+    r = dense.run(su, (), "penalty", "basis", max_loops=1)
+    assert np.isfinite(r.metrics["heldout_rmse_px"])
+    with pytest.raises(ValueError, match="estimate: expected one of"):
+        dense.build_model(su, (), "penalty", "elements")

@@ -204,3 +204,72 @@ def test_argument_errors(bench):
         cyclic_estimate(model, bench.observations, engine="fast")
     with pytest.raises(ValueError, match="max_loops: expected an integer >= 1"):
         cyclic_estimate(model, bench.observations, max_loops=0)
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 10_000), nx=st.integers(1, 12), p=st.integers(0, 6),
+       scale=st.floats(1e-8, 1e4))
+def test_factored_propagation_equals_the_plain_product(seed, nx, p, scale):
+    """G G^T with G = [A L_xx + Mt L_tx, Mt L_tt] is [A Mt] P [A Mt]^T (the structured time
+    update's kinematic block), for random PD P of any scale, with and without parameters;
+    without a factor (P not positive definite) the plain product is used."""
+    from sfem_filters.filters import _propagate_kinematic
+    rng = np.random.default_rng(seed)
+    n = nx + p
+    X = rng.standard_normal((n, n + 2))
+    P = scale * (X @ X.T)
+    F = rng.standard_normal((nx, n))
+    A, Mt = F[:, :nx], F[:, nx:]
+    ref = F @ P @ F.T
+    got = _propagate_kinematic(A, Mt, P, np.linalg.cholesky(P), nx)
+    tol = 1e-12 * np.abs(F).max() ** 2 * np.abs(P).max() * n
+    np.testing.assert_allclose(got, ref, rtol=0, atol=tol)
+    assert np.array_equal(got, got.T)
+    np.testing.assert_allclose(_propagate_kinematic(A, Mt, P, None, nx), ref, rtol=0, atol=tol)
+
+
+def test_structured_engine_reuses_the_checked_factor_and_falls_back_without_one(bench):
+    """The factor Safeguards computes is the one the next predict uses; a P that is not
+    positive definite (zero variance of one state) still predicts, by the plain product."""
+    from sfem_filters.filters import Safeguards, StructuredEngine
+    model = benchmark_model(bench, "joint_ekf")
+    eng = StructuredEngine(model)
+    eng.update(bench.observations[0], 0, np.ones(model.dim_obs, bool))
+    Safeguards().check_covariance(eng, 0, 0)
+    L = eng.cholesky()
+    np.testing.assert_allclose(L @ L.T, eng.P, rtol=0, atol=1e-13 * np.abs(eng.P).max())
+    assert eng.cholesky() is L                     # cached until P changes
+    eng.predict(0)
+    assert eng.cholesky() is not L
+    assert np.array_equal(eng.P, eng.P.T)          # kept exactly symmetric by every step
+    eng.update(bench.observations[1], 1, np.ones(model.dim_obs, bool))
+    assert np.array_equal(eng.P, eng.P.T)
+    P = eng.P.copy()
+    P[0, :] = P[:, 0] = 0.0
+    eng.reset(eng.x, P)
+    assert eng.cholesky() is None
+    F = model.F_jacobian(eng.x, 1)
+    eng.predict(1)
+    assert np.array_equal(eng.P, eng.P.T)
+    Q = model.Q
+    np.testing.assert_allclose(eng.P, F @ P @ F.T + Q, rtol=0, atol=1e-12 * np.abs(eng.P).max())
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 10_000), n=st.integers(1, 15), m=st.integers(1, 6), optimal=st.booleans())
+def test_joseph_update_equals_the_textbook_form(seed, n, m, optimal):
+    """P + X + X^T with X = K (K S / 2 - P H^T)^T is (I - KH) P (I - KH)^T + K R K^T for any
+    gain (optimal or not), and exactly symmetric."""
+    from sfem_filters.filters import joseph_update
+    rng = np.random.default_rng(seed)
+    X = rng.standard_normal((n, n + 1))
+    P = X @ X.T
+    H = rng.standard_normal((m, n)) * (rng.random((m, n)) < 0.5)
+    R = np.diag(rng.uniform(0.1, 2.0, m))
+    S = H @ P @ H.T + R
+    K = P @ H.T @ np.linalg.inv(S) if optimal else rng.standard_normal((n, m))
+    IKH = np.eye(n) - K @ H
+    ref = IKH @ P @ IKH.T + K @ R @ K.T
+    got = joseph_update(P, K, P @ H.T, S)
+    np.testing.assert_allclose(got, ref, rtol=0, atol=1e-10 * max(np.abs(ref).max(), np.abs(P).max()))
+    assert np.array_equal(got, got.T)

@@ -270,3 +270,41 @@ def test_per_frame_measurement_noise_is_used_frame_by_frame():
         results.append((eng.x.copy(), eng.P.copy()))
     assert np.allclose(results[0][0], results[1][0], rtol=1e-12, atol=1e-18)
     assert np.allclose(results[0][1], results[1][1], rtol=1e-12, atol=1e-20)
+
+
+@settings(max_examples=15, deadline=None)
+@given(seed=st.integers(0, 10_000), kE=st.integers(1, 4), knu=st.integers(1, 4),
+       length=st.floats(0.002, 0.05), relative=st.booleans())
+def test_smooth_basis_is_the_kernels_leading_modes(seed, kE, knu, length, relative):
+    """Parameterisation.smooth: the columns are eigenvectors of the (centred, if relative)
+    squared-exponential kernel with its largest eigenvalues, unit RMS and mutually
+    orthogonal; relative E modes keep the mean log E at the reference."""
+    rng = np.random.default_rng(seed)
+    mesh = random_block_mesh(rng, n_interior=int(rng.integers(3, 9)))
+    c, n = mesh.centroids, mesh.n_elements
+    p = Parameterisation.smooth(c, length, kE, knu, E_reference=7e4 if relative else None)
+    kernel = np.exp(-np.sum((c[:, None] - c[None]) ** 2, axis=2) / (2 * length ** 2))
+    C = np.eye(n) - 1.0 / n if relative else np.eye(n)
+    for B, Kmat, k in ((p.basis_E.toarray(), C @ kernel @ C, kE), (p.basis_nu.toarray(), kernel, knu)):
+        assert B.shape == (n, k)
+        np.testing.assert_allclose(B.T @ B / n, np.eye(k), atol=1e-10)
+        lam = np.linalg.eigvalsh(Kmat)[::-1]
+        rayleigh = np.diag(B.T @ Kmat @ B) / n
+        np.testing.assert_allclose(rayleigh, lam[:k], rtol=1e-8, atol=1e-10 * lam[0])
+    theta = rng.standard_normal(p.n_params)
+    mat = p.material(theta)
+    if relative:
+        np.testing.assert_allclose(np.mean(np.log(mat.E)), np.log(7e4), rtol=1e-12)
+
+
+def test_smooth_basis_errors_are_named():
+    mesh = random_block_mesh(np.random.default_rng(0))
+    c, n = mesh.centroids, mesh.n_elements
+    with pytest.raises(ValueError, match="length: expected"):
+        Parameterisation.smooth(c, 0.0, 2, 1)
+    with pytest.raises(ValueError, match="modes_E, modes_nu: expected at most"):
+        Parameterisation.smooth(c, 0.01, n, 1, E_reference=7e4)
+    with pytest.raises(ValueError, match="centroids: expected"):
+        Parameterisation.smooth(c[:, :1], 0.01, 2, 1)
+    with pytest.raises(ValueError, match="modes_nu"):
+        Parameterisation.smooth(c, 0.01, 2, 0)
