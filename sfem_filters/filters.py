@@ -32,6 +32,7 @@ import scipy.sparse as sp
 from filterpy.kalman import ExtendedKalmanFilter
 
 from ._validate import as_float_array, integer, non_negative, probability
+from .observations import LinearObservation
 
 CHECKPOINT_FORMAT = 2
 
@@ -187,6 +188,13 @@ class _Engine:
     def _observed(self, H, R, innovation):
         if self.ljung is not None:
             self.ljung.after_update(H, R, innovation)
+
+    def cholesky(self):
+        """Lower Cholesky factor of the current P, or None if P is not positive definite."""
+        try:
+            return np.linalg.cholesky(0.5 * (self.P + self.P.T))
+        except np.linalg.LinAlgError:
+            return None
 
 
 class FilterpyEngine(_Engine):
@@ -655,16 +663,9 @@ class Safeguards:
         integer("divergence_frames", self.divergence_frames, 1)
 
     def check_covariance(self, engine, loop, t):
+        if engine.cholesky() is not None:     # the structured engine keeps it for its next step
+            return
         P = engine.P
-        if hasattr(engine, "cholesky"):         # the engine keeps the factor for its next step
-            if engine.cholesky() is not None:
-                return
-        else:
-            try:
-                np.linalg.cholesky(0.5 * (P + P.T))
-                return
-            except np.linalg.LinAlgError:
-                pass
         if self.covariance_repair == "none":
             raise FloatingPointError(f"P lost positive definiteness at loop {loop}, frame {t}")
         fixed = nearest_psd(P)
@@ -898,7 +899,7 @@ def load_checkpoint(path, fingerprint=None) -> dict:
     return data
 
 
-class LinearGaussianModel:
+class LinearGaussianModel(LinearObservation):
     """A linear-Gaussian state-space model with unknown parameters appended to the state.
 
     ``x_{t+1} = A(theta) x_t + u_t + w_t``, ``y_t = H x_t + v_t``, ``w ~ N(0, Q)``,
@@ -999,13 +1000,3 @@ class LinearGaussianModel:
             F[: self.n_restart, self.n_restart:] = (np.asarray(dA) @ flat[: self.n_restart]).T
         return F
 
-    def hx(self, z, t=None):
-        z = np.asarray(z, float)
-        y = self._H @ z.ravel()
-        return y.reshape(-1, 1) if z.ndim == 2 else y
-
-    def H_jacobian(self, z=None, t=None) -> np.ndarray:
-        return self._H
-
-    def make_ekf(self):
-        return SFEMExtendedKalmanFilter(self)

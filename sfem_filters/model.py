@@ -26,6 +26,7 @@ from .fem import (DofMap, element_stiffness, mass_matrix, plane_strain_matrix,
                   plane_strain_matrix_dnu, stiffness_matrix)
 from .material import Material, Parameterisation
 from .mesh import TriMesh
+from .observations import LinearObservation
 from .statespace import ModalSystem, reference_sensitivity
 
 
@@ -37,7 +38,7 @@ def _std_vector(name: str, value, n: int, unit: str) -> np.ndarray:
     return np.array(v, float)
 
 
-class SFEMModel:
+class SFEMModel(LinearObservation):
     """Linear-elastic FEM dynamics with optional material estimation (Shi & Liu 2003).
 
     Parameters
@@ -413,28 +414,3 @@ class SFEMModel:
         if self.estimate is not None:
             F[:nx, nr:] = self.sensitivity(z, t)
         return F
-
-    def hx(self, z, t=None):
-        """Predicted observation D U (m) of state z (Eq. 21); same ndim as z."""
-        z = np.asarray(z, float)
-        y = self._H @ z.ravel()
-        return y.reshape(-1, 1) if z.ndim == 2 else y
-
-    def H_jacobian(self, z=None, t=None) -> np.ndarray:
-        """H = [D 0] (Eq. 22), dense (dim_obs, dim_state)."""
-        return self._H
-
-    # ------------------------------------------------------------------ filterpy
-    def make_ekf(self):
-        """A filterpy ``ExtendedKalmanFilter`` set up with this model's x0, P0, Q and R.
-
-        Drive it as::
-
-            ekf = model.make_ekf()
-            for t, y in enumerate(observations):
-                if t > 0:
-                    ekf.predict(u=t - 1)          # u is the frame the step starts from
-                ekf.update(y.reshape(-1, 1), model.H_jacobian, model.hx, args=t, hx_args=t)
-        """
-        from .filters import SFEMExtendedKalmanFilter
-        return SFEMExtendedKalmanFilter(self)

@@ -14,6 +14,39 @@ from .fem import node_dofs
 from .mesh import TriMesh
 
 
+class LinearObservation:
+    """The measurement side of a filter model with a linear, state-independent ``y = H z``.
+
+    Mixed into the model classes (they set ``self._H``, the dense (dim_obs, dim_state)
+    matrix [D 0] of Eq. 22) so that filterpy's EKF and the engines see one ``hx``,
+    ``H_jacobian`` and ``make_ekf``.
+    """
+
+    def hx(self, z, t=None):
+        """Predicted observation H z (Eq. 21) of state z (m, m/s); same ndim as z."""
+        z = np.asarray(z, float)
+        y = self._H @ z.ravel()
+        return y.reshape(-1, 1) if z.ndim == 2 else y
+
+    def H_jacobian(self, z=None, t=None) -> np.ndarray:
+        """H = [D 0] (Eq. 22), dense (dim_obs, dim_state)."""
+        return self._H
+
+    def make_ekf(self):
+        """A filterpy ``ExtendedKalmanFilter`` set up with this model's x0, P0, Q and R.
+
+        Drive it as::
+
+            ekf = model.make_ekf()
+            for t, y in enumerate(observations):
+                if t > 0:
+                    ekf.predict(u=t - 1)          # u is the frame the step starts from
+                ekf.update(y.reshape(-1, 1), model.H_jacobian, model.hx, args=t, hx_args=t)
+        """
+        from .filters import SFEMExtendedKalmanFilter
+        return SFEMExtendedKalmanFilter(self)
+
+
 def node_observation_matrix(mesh: TriMesh, nodes) -> sp.csr_matrix:
     """Rows observing the x and y displacement of the given nodes.
 
