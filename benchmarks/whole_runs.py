@@ -1,7 +1,7 @@
 """Wall time of whole cyclic runs, every loop, as the library's commands run them.
 
     OPENBLAS_NUM_THREADS=1 python benchmarks/whole_runs.py [--cases r3 element region basis]
-        [--dense-loops 3] [--basis-loops 50] [--landmarks 8]
+        [--dense-loops 3] [--basis-loops 50] [--landmarks 8] [--effects NAME,...]
 
 Cases (each one cyclic estimation, timed from the first loop to the stop, model set-up excluded):
 
@@ -14,8 +14,13 @@ Cases (each one cyclic estimation, timed from the first loop to the stop, model 
 * ``basis``: the DENSE slice with the smooth basis (``--material basis``: 6 relative log E
   modes, 3 nu modes), with the limit ``--basis-loops``.
 
+``--effects active_polar`` runs the DENSE cases on the extended model of the closing-the-loop
+workflow (``sfem-filters dense example`` adds that effect) instead of the baseline.
+
 Printed per case: state size, loops run against the limit, whether the material converged,
-the last relative change, seconds and seconds per loop. ``OPENBLAS_NUM_THREADS=1`` is how to
+the last relative change, seconds and seconds per loop; for DENSE, each loop's relative change and
+its material step against the carried posterior sd (max over parameters,
+:func:`sfem_filters.diagnostics.material_drift`). ``OPENBLAS_NUM_THREADS=1`` is how to
 time on this shared 2-core machine: there two BLAS threads are slower than one.
 """
 from __future__ import annotations
@@ -30,6 +35,7 @@ ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..")
 sys.path.insert(0, ROOT)
 
 from sfem_filters import dense  # noqa: E402
+from sfem_filters.diagnostics import material_drift  # noqa: E402
 from sfem_filters.comparison import run_strategy  # noqa: E402
 from sfem_filters.datasets import example_path, load_sequence  # noqa: E402
 from sfem_filters.filters import cyclic_estimate  # noqa: E402
@@ -45,9 +51,9 @@ def _row(name, model, result, seconds, limit):
             f"{seconds:>9.1f}{seconds / result.loops:>9.2f}")
 
 
-def dense_case(estimate, loops, landmarks):
+def dense_case(estimate, loops, landmarks, effects=()):
     setup = dense.prepare(load_sequence(example_path()), landmarks)
-    model, y = dense.build_model(setup, (), "penalty", estimate)
+    model, y = dense.build_model(setup, effects, "penalty", estimate)
     t0 = time.perf_counter()
     result = cyclic_estimate(model, y, max_loops=loops, tol=1e-3, description=estimate)
     return model, result, time.perf_counter() - t0
@@ -60,8 +66,13 @@ def main(argv=None):
                                                                "cases (sfem-filters dense's default: 3)")
     ap.add_argument("--basis-loops", type=int, default=50, help="loop limit of the basis case")
     ap.add_argument("--landmarks", type=int, default=8, help="landmarks per contour (the dense command's default)")
+    ap.add_argument("--effects", default="", help="comma-separated effects of the DENSE model (default: none, "
+                                                  "the baseline; active_polar: the extended model)")
     args = ap.parse_args(argv)
     warnings.simplefilter("ignore", RuntimeWarning)
+    effects = tuple(e for e in args.effects.split(",") if e)
+    if effects:
+        print(f"DENSE model with effects {', '.join(effects)} (+)", flush=True)
     print(f"{'case':<26}{'nodes':>6}{'params':>7}{'aug n':>7}{'loops':>6}{'limit':>6}{'conv':>6}"
           f"{'last rel':>11}{'wall s':>9}{'s/loop':>9}", flush=True)
     if "r3" in args.cases:
@@ -74,10 +85,12 @@ def main(argv=None):
         print(f"{'benchmark r=3, all three':<26}{'':>51}{total:>9.1f}", flush=True)
     for case, loops in (("element", args.dense_loops), ("region", args.dense_loops), ("basis", args.basis_loops)):
         if case in args.cases:
-            model, result, seconds = dense_case(case, loops, args.landmarks)
-            print(_row(f"DENSE subject_a {case}", model, result, seconds, loops), flush=True)
+            model, result, seconds = dense_case(case, loops, args.landmarks, effects)
+            print(_row(f"DENSE subject_a {case}{'+' if effects else ''}", model, result, seconds, loops), flush=True)
             if result.rel_changes:
                 print(f"  relative changes: {', '.join(f'{r:.2e}' for r in result.rel_changes)}", flush=True)
+                drift = material_drift(model, result.history)["max_sd"]
+                print(f"  step / sd:        {', '.join(f'{d:.2e}' for d in drift)}", flush=True)
 
 
 if __name__ == "__main__":

@@ -355,6 +355,9 @@ def evaluate(setup: Setup, model: SFEMModel, result, seconds: float = 0.0) -> tu
         "whiteness_Q": white["Q"], "whiteness_p": white["p_value"],
         "nis_z": cons["nis_z"], "lag1_z": cons["lag1_z"], "inconsistent": cons["inconsistent"],
         "loops": int(result.loops), "converged": bool(result.converged),
+        # how far the last loop moved the material against its carried sd (None: material fixed)
+        "material_drift_sd": (float(diagnostics.material_drift(model, result.history)["max_sd"][-1])
+                              if model.estimates_material else None),
         "E_relative_range": [float(mat.E.min() / NOMINAL["E"]), float(mat.E.max() / NOMINAL["E"])],
         "nu_range": [float(mat.nu.min()), float(mat.nu.max())],
         "seconds": float(seconds),
@@ -530,6 +533,10 @@ def format_report(report: dict) -> str:
                        ("innovation_lag1_autocorrelation", "innovation lag-1 autocorrelation"),
                        ("nis_z", "NIS z (|z| > 3: inconsistent)"), ("lag1_z", "whiteness z (|z| > 3: correlated)")):
         lines.append(f"{label:<34}{b[key]:>12.3f}{e[key]:>18.3f}")
+    lines.append(f"{'loops (* material not converged)':<34}"
+                 + "".join(f"{str(r['loops']) + ('' if r['converged'] else '*'):>{w}}" for r, w in ((b, 12), (e, 18))))
+    if b.get("material_drift_sd") is not None and e.get("material_drift_sd") is not None:
+        lines.append(f"{'last loop material step / sd':<34}{b['material_drift_sd']:>12.3f}{e['material_drift_sd']:>18.3f}")
     if "active_polar[0]" in e.get("effect_state_names", []):
         offset = e["effect_state_names"].index("active_polar[0]")
         st = np.array(e["effect_states"])[:, offset:offset + 2]

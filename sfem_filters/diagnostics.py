@@ -207,3 +207,44 @@ def consistency(history, loop: int | None = None, threshold: float = 3.0) -> dic
     z_white = lag1 * np.sqrt(ok.sum())
     return {"nis_z": z_nis, "lag1": lag1, "lag1_z": float(z_white),
             "inconsistent": bool(max(abs(z_nis), abs(z_white)) > threshold)}
+
+
+def material_drift(model, history) -> dict:
+    """How far the material moved in each cyclic loop, against its own posterior uncertainty.
+
+    For loop k, ``d_k = (theta_k - theta_{k-1}) / sd_k`` per parameter: theta_k and sd_k (the
+    square roots of the diagonal of the material covariance) at the last frame of loop k,
+    theta_{-1} the initial estimate ``model.x0``. Under the cyclic feeding of section 2.7 the
+    carried covariance counts the cycle once more in every loop, so sd_k is the filter's own
+    (shrinking) confidence: a loop that still moves a parameter by a sizeable fraction of it
+    (``max_sd`` of 0.1 or more) has not converged in a statistical sense, whatever the relative
+    change of (E, nu). Parameters are the model's (log E, logit 2 nu for the SFEM model).
+
+    Returns
+    -------
+    dict with per-loop arrays ``loops`` (loop numbers), ``max_sd`` (max_i |d_k,i|), ``rms_sd``
+    (root mean square of d_k) and ``max_abs`` (max_i |theta_k,i - theta_{k-1},i|, parameter units).
+    """
+    if not hasattr(history, "loop_rows"):
+        raise TypeError(f"history: expected a sfem_filters.filters.History, got {type(history).__name__}")
+    if len(history.loop) == 0:
+        raise ValueError("history: expected a run with at least one frame, got an empty history")
+    nr = int(model.n_restart)
+    if model.dim_state - nr == 0:
+        raise ValueError("model: expected a model that estimates parameters (dim_state > n_restart), "
+                         "got one with a fixed material")
+    loops = np.unique(np.asarray(history.loop))
+    x, var = np.asarray(history.x, float), np.asarray(history.P_diag, float)
+    before = np.asarray(model.x0, float)[nr:]
+    out = {"loops": loops, "max_sd": [], "rms_sd": [], "max_abs": []}
+    for k in loops:
+        last = history.loop_rows(int(k))[-1]
+        theta, sd = x[last, nr:], np.sqrt(var[last, nr:])
+        if np.any(sd <= 0):
+            raise ValueError(f"history: loop {k} ends with a zero material variance; the drift is undefined")
+        d = (theta - before) / sd
+        out["max_sd"].append(float(np.max(np.abs(d))))
+        out["rms_sd"].append(float(np.sqrt(np.mean(d ** 2))))
+        out["max_abs"].append(float(np.max(np.abs(theta - before))))
+        before = theta
+    return {k: np.asarray(v) for k, v in out.items()}

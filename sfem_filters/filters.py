@@ -774,7 +774,10 @@ def cyclic_estimate(model, observations, *, max_loops: int = 50, tol: float = 1e
     covariance block. The
     run stops when the relative change of (E, nu) over all elements (physical units) between
     loops is below ``tol`` or after ``max_loops`` loops. A model with a fixed material needs
-    one loop.
+    one loop. Each loop counts the cycle's information once more (exactly so for a linear
+    model: ``P_k^-1 = P3(0)^-1 + k J``), so the steps shrink about like 1/k;
+    :func:`sfem_filters.diagnostics.material_drift` compares each loop's step with the carried
+    posterior sd.
 
     Parameters
     ----------

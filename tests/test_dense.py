@@ -281,5 +281,8 @@ def test_material_parameterisations_of_the_dense_model():
     np.testing.assert_allclose(np.mean(np.log(param.material(theta).E)), np.log(dense.NOMINAL["E"]), rtol=1e-12)
     r = dense.run(su, (), "penalty", "basis", max_loops=1)
     assert np.isfinite(r.metrics["heldout_rmse_px"])
+    assert 0 < r.metrics["material_drift_sd"] < np.inf           # the first loop leaves the prior
+    fixed = dense.run(su, (), "penalty", "none", max_loops=1)
+    assert fixed.metrics["material_drift_sd"] is None and "material_drift_sd" in fixed.metrics
     with pytest.raises(ValueError, match="estimate: expected one of"):
         dense.build_model(su, (), "penalty", "elements")
