@@ -225,10 +225,7 @@ def material_drift(model, history) -> dict:
     dict with per-loop arrays ``loops`` (loop numbers), ``max_sd`` (max_i |d_k,i|), ``rms_sd``
     (root mean square of d_k) and ``max_abs`` (max_i |theta_k,i - theta_{k-1},i|, parameter units).
     """
-    if not hasattr(history, "loop_rows"):
-        raise TypeError(f"history: expected a sfem_filters.filters.History, got {type(history).__name__}")
-    if len(history.loop) == 0:
-        raise ValueError("history: expected a run with at least one frame, got an empty history")
+    _rows(history, None)                       # the same checks of the history as every diagnostic
     nr = int(model.n_restart)
     if model.dim_state - nr == 0:
         raise ValueError("model: expected a model that estimates parameters (dim_state > n_restart), "
