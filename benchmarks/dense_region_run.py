@@ -4,9 +4,11 @@
                                           [--landmarks 16] [--effects none] [--no-run]
 
 The baseline is ``sfem_filters/statespace.py`` as of git revision REV (default ``a8c3f3d``,
-before the speed work of issue 5's last target), loaded as a separate module and swapped into
-``sfem_filters.model`` for the baseline model, so both are measured in the same process on the
-same machine state. Everything else (model, filter, data) is today's code.
+before the speed work of issue 5's last target; the file lives at
+``sfem_filters/fem/statespace.py`` since the package was split into subpackages), loaded as a
+separate module and given to the baseline model as its ``system_class``
+(:class:`sfem_filters.model.SFEMModel`), so both are measured in the same process on the same
+machine state. Everything else (model, filter, data) is today's code.
 
 1. Check: the structured joint EKF is stepped ``--check-steps`` frames with both, and the
    transition A, the sensitivity M_t, the state x and the covariance P are compared (largest
@@ -28,33 +30,31 @@ from __future__ import annotations
 import argparse
 import os
 import subprocess
-import sys
-import time
 import types
 import warnings
 
 import numpy as np
+from _timing import best_of
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from _timing import best_of  # noqa: E402
+from sfem_filters.cardiac import measured as dense
+from sfem_filters.cardiac.sequence import example_path, load_sequence
+from sfem_filters.fem.statespace import ModalSystem
+from sfem_filters.filtering.structured import StructuredEngine
 
 ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..")
-sys.path.insert(0, ROOT)
-
-import sfem_filters  # noqa: E402,F401
-import sfem_filters.model as model_mod  # noqa: E402
-from sfem_filters import dense  # noqa: E402
-from sfem_filters.datasets import example_path, load_sequence  # noqa: E402
-from sfem_filters.filters import StructuredEngine  # noqa: E402
-from sfem_filters.statespace import ModalSystem  # noqa: E402
 
 
 def baseline_statespace(rev: str):
-    """``sfem_filters/statespace.py`` at git revision ``rev`` as a module of the package."""
-    src = subprocess.run(["git", "-C", ROOT, "show", f"{rev}:sfem_filters/statespace.py"],
+    """The state-space module at git revision ``rev`` as a module of the package."""
+    path = "sfem_filters/statespace.py"
+    listed = subprocess.run(["git", "-C", ROOT, "ls-tree", "--name-only", rev, path], check=True,
+                            capture_output=True, text=True).stdout.strip()
+    if not listed:
+        path = "sfem_filters/fem/statespace.py"
+    src = subprocess.run(["git", "-C", ROOT, "show", f"{rev}:{path}"],
                          check=True, capture_output=True, text=True).stdout
     mod = types.ModuleType("sfem_filters._statespace_baseline")
-    mod.__package__ = "sfem_filters"
+    mod.__package__ = "sfem_filters" if path == "sfem_filters/statespace.py" else "sfem_filters.fem"
     exec(compile(src, f"{rev}:sfem_filters/statespace.py", "exec"), mod.__dict__)
     old = mod.ModalSystem
     if "out" not in old.transition_matrix.__code__.co_varnames:
@@ -71,20 +71,6 @@ def baseline_statespace(rev: str):
     return mod
 
 
-class use_system:
-    """Context: models built and run inside use ``cls`` as their ModalSystem."""
-
-    def __init__(self, cls):
-        self.cls = cls
-
-    def __enter__(self):
-        self.saved = model_mod.ModalSystem
-        model_mod.ModalSystem = self.cls
-
-    def __exit__(self, *exc):
-        model_mod.ModalSystem = self.saved
-
-
 def _rel(a, b):
     return float(np.abs(a - b).max() / max(np.abs(b).max(), 1e-300))
 
@@ -94,17 +80,16 @@ def check(setup, effects, base_cls, steps):
     out = {}
     runs = {}
     for name, cls in (("baseline", base_cls), ("new", ModalSystem)):
-        with use_system(cls):
-            m, y = dense.build_model(setup, effects, "penalty", "region")
-            eng = StructuredEngine(m)
-            eng.reset(m.x0, m.P0)
-            mask = np.ones(m.dim_obs, bool)
-            eng.update(y[0], 0, mask)
-            F = m.F_jacobian(eng.x, 0)
-            for t in range(1, steps + 1):
-                eng.predict(t - 1)
-                eng.update(y[t], t, mask)
-            runs[name] = (m, F, eng.x.copy(), eng.P.copy())
+        m, y = dense.build_model(setup, effects, "penalty", "region", model_options={"system_class": cls})
+        eng = StructuredEngine(m)
+        eng.reset(m.x0, m.P0)
+        mask = np.ones(m.dim_obs, bool)
+        eng.update(y[0], 0, mask)
+        F = m.F_jacobian(eng.x, 0)
+        for t in range(1, steps + 1):
+            eng.predict(t - 1)
+            eng.update(y[t], t, mask)
+        runs[name] = (m, F, eng.x.copy(), eng.P.copy())
     m, Fb, xb, Pb = runs["baseline"]
     _, Fn, xn, Pn = runs["new"]
     nx, nr = m.dim_x, m.n_restart
@@ -119,39 +104,38 @@ def check(setup, effects, base_cls, steps):
 
 def split(setup, effects, cls, repeat=3):
     """Seconds of the phases of one step (best of ``repeat``), fresh material each time."""
-    with use_system(cls):
-        m, y = dense.build_model(setup, effects, "penalty", "region")
-        eng = StructuredEngine(m)
-        eng.reset(m.x0, m.P0)
-        eng.update(y[0], 0, np.ones(m.dim_obs, bool))
-        z = eng.x.copy()
-        P = eng.P.copy()
-        nr = m.n_restart
-        rng = np.random.default_rng(0)
+    m, y = dense.build_model(setup, effects, "penalty", "region", model_options={"system_class": cls})
+    eng = StructuredEngine(m)
+    eng.reset(m.x0, m.P0)
+    eng.update(y[0], 0, np.ones(m.dim_obs, bool))
+    z = eng.x.copy()
+    P = eng.P.copy()
+    nr = m.n_restart
+    rng = np.random.default_rng(0)
 
-        def fresh():
-            zz = z.copy()
-            zz[nr:] += 1e-6 * rng.standard_normal(m.dim_theta)
-            return zz
+    def fresh():
+        zz = z.copy()
+        zz[nr:] += 1e-6 * rng.standard_normal(m.dim_theta)
+        return zz
 
-        system = m.system(m.theta_of(z))
-        res = {
-            "discretisation": best_of(lambda: m.system(m.theta_of(fresh())), repeat),
-            "M_t": best_of(lambda: m.sensitivity(z, 1), repeat),
-            "transition": best_of(system.transition_matrix, repeat),
-        }
+    system = m.system(m.theta_of(z))
+    res = {
+        "discretisation": best_of(lambda: m.system(m.theta_of(fresh())), repeat),
+        "M_t": best_of(lambda: m.sensitivity(z, 1), repeat),
+        "transition": best_of(system.transition_matrix, repeat),
+    }
 
-        def predict():
-            eng.reset(fresh(), P)
-            eng.predict(1)
+    def predict():
+        eng.reset(fresh(), P)
+        eng.predict(1)
 
-        res["predict (all)"] = best_of(predict, repeat)
-        return res
+    res["predict (all)"] = best_of(predict, repeat)
+    return res
 
 
 def full_run(setup, effects, cls, loops, tol):
-    with use_system(cls):
-        run = dense.run(setup, effects, "penalty", "region", loops, tol=tol, name="bench")
+    run = dense.run(setup, effects, "penalty", "region", loops, tol=tol, name="bench",
+                    model_options={"system_class": cls})
     return run.metrics["seconds"], run.result
 
 

@@ -11,7 +11,7 @@ Cases (each one cyclic estimation, timed from the first loop to the stop, model 
 * ``element``, ``region``: the measured DENSE slice (``sfem-filters dense example``, baseline
   run) with per-element parameters or the 12-region relative map, with the command's loop
   limit ``--dense-loops`` (its default: 3) and tolerance 1e-3;
-* ``basis``: the DENSE slice with the smooth basis (``--material basis``: 6 relative log E
+* ``basis``: the DENSE slice with the smooth basis (``--parameterisation basis``: 6 relative log E
   modes, 3 nu modes), with the limit ``--basis-loops``.
 
 ``--effects active_polar`` runs the DENSE cases on the extended model of the closing-the-loop
@@ -20,26 +20,21 @@ workflow (``sfem-filters dense example`` adds that effect) instead of the baseli
 Printed per case: state size, loops run against the limit, whether the material converged,
 the last relative change, seconds and seconds per loop; for DENSE, each loop's relative change and
 its material step against the carried posterior sd (max over parameters,
-:func:`sfem_filters.diagnostics.material_drift`). ``OPENBLAS_NUM_THREADS=1`` is how to
+:func:`sfem_filters.filtering.diagnostics.material_drift`). ``OPENBLAS_NUM_THREADS=1`` is how to
 time on this shared 2-core machine: there two BLAS threads are slower than one.
 """
 from __future__ import annotations
 
 import argparse
-import os
-import sys
 import time
 import warnings
 
-ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..")
-sys.path.insert(0, ROOT)
-
-from sfem_filters import dense  # noqa: E402
-from sfem_filters.diagnostics import material_drift  # noqa: E402
-from sfem_filters.comparison import run_strategy  # noqa: E402
-from sfem_filters.datasets import example_path, load_sequence  # noqa: E402
-from sfem_filters.filters import cyclic_estimate  # noqa: E402
-from sfem_filters.synthetic import STRATEGIES, pinned_benchmark  # noqa: E402
+from sfem_filters.benchmark.comparison import run_strategy
+from sfem_filters.benchmark.pinned import STRATEGIES, pinned_benchmark
+from sfem_filters.cardiac import measured
+from sfem_filters.cardiac.sequence import example_path, load_sequence
+from sfem_filters.filtering.cyclic import cyclic_estimate
+from sfem_filters.filtering.diagnostics import material_drift
 
 CASES = ("r3", "element", "region", "basis")
 
@@ -51,11 +46,11 @@ def _row(name, model, result, seconds, limit):
             f"{seconds:>9.1f}{seconds / result.loops:>9.2f}")
 
 
-def dense_case(estimate, loops, landmarks, effects=()):
-    setup = dense.prepare(load_sequence(example_path()), landmarks)
-    model, y = dense.build_model(setup, effects, "penalty", estimate)
+def dense_case(parameterisation, loops, landmarks, effects=()):
+    setup = measured.prepare(load_sequence(example_path()), landmarks)
+    model, y = measured.build_model(setup, effects, "penalty", parameterisation)
     t0 = time.perf_counter()
-    result = cyclic_estimate(model, y, max_loops=loops, tol=1e-3, description=estimate)
+    result = cyclic_estimate(model, y, max_loops=loops, tol=1e-3, description=parameterisation)
     return model, result, time.perf_counter() - t0
 
 

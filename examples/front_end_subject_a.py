@@ -10,20 +10,16 @@ front-end section comes from this script.
    differences (``frontend.pseudo_phase_contrast``), their LPC from those images.
 
 Run:  python examples/front_end_subject_a.py [--json out/front_end.json] [--figures out/front_end]
-(about 3-5 minutes on 2 cores).
+(about 3-5 minutes on 2 cores; ``--max-loops 1`` for a quicker smoke test, not the README's numbers).
 """
 import argparse
 import json
 import os
 from dataclasses import replace
 
-import numpy as np
-
-from sfem_filters import frontend
-from sfem_filters.datasets import example_path, load_sequence
-from sfem_filters.dense import NOMINAL
-from sfem_filters.phase_contrast import sample_velocity
-from sfem_filters.tracking import track_masks
+from sfem_filters.cardiac import NOMINAL, example_path, frontend, load_sequence
+from sfem_filters.imaging import sample_velocity, track_masks
+from sfem_filters.imaging.contours import midwall_pixels
 
 
 def main(argv=None):
@@ -63,7 +59,7 @@ def main(argv=None):
             json.dump(report, f, indent=2)
     if args.figures:
         from sfem_filters.plotting import observe_figures
-        vel_mid = sample_velocity(img, frontend.midwall_pixels(seq.frame_masks[0]), venc, seq.pixel_spacing,
+        vel_mid = sample_velocity(img, midwall_pixels(seq.frame_masks[0]), venc, seq.pixel_spacing,
                                   floor=0.01 * venc)
         for p in observe_figures({"tracks": tracks, "masks": seq.frame_masks, "velocity": vel_mid}, args.figures):
             print("wrote", p)

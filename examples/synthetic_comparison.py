@@ -5,9 +5,13 @@ Run:  python examples/synthetic_comparison.py
 import numpy as np
 
 from sfem_filters import cyclic_estimate
-from sfem_filters.statistics import ks_test
-from sfem_filters.strain import nodal_strains
-from sfem_filters.synthetic import STRATEGIES, benchmark_model, pinned_benchmark
+from sfem_filters.benchmark import (
+    STRATEGIES,
+    benchmark_model,
+    ks_test,
+    pinned_benchmark,
+)
+from sfem_filters.fem import nodal_strains
 
 bench = pinned_benchmark(seed=0)                 # mesh, loads, noisy boundary data, ground truth
 truth_eyy = bench.strain[8, :, 1]                # e_yy at frame 9 (index 8)

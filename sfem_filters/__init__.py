@@ -2,12 +2,19 @@
 
 Shi & Liu (2003), "Stochastic finite element framework for simultaneous estimation of
 cardiac kinematic functions and material parameters", Medical Image Analysis 7:445-464.
+
+Subpackages: :mod:`~sfem_filters.fem` (finite elements, knows no filter),
+:mod:`~sfem_filters.filtering` (engines and drivers, knows the model only through its
+protocol), :mod:`~sfem_filters.imaging` (images to contours and velocities),
+:mod:`~sfem_filters.cardiac` (the measured-data workflow), :mod:`~sfem_filters.benchmark`
+(the paper's pinned experiment); :mod:`~sfem_filters.model` bridges fem and filtering.
 """
-from .filters import SFEMExtendedKalmanFilter, cyclic_estimate
-from .material import Material, Parameterisation
-from .mesh import TriMesh, delaunay_mesh, rectangle_mesh
+from .fem.material import Material, Parameterisation
+from .fem.mesh import TriMesh, delaunay_mesh, rectangle_mesh
+from .filtering.cyclic import CyclicEKF, cyclic_estimate
+from .filtering.ekf import SFEMExtendedKalmanFilter
 from .model import SFEMModel
 
-__all__ = ["SFEMModel", "SFEMExtendedKalmanFilter", "cyclic_estimate", "Material", "Parameterisation",
+__all__ = ["SFEMModel", "SFEMExtendedKalmanFilter", "CyclicEKF", "cyclic_estimate", "Material", "Parameterisation",
            "TriMesh", "rectangle_mesh", "delaunay_mesh"]
 __version__ = "0.1.0"

@@ -15,11 +15,26 @@ def _describe(value) -> str:
     return f"an array of shape {arr.shape} and dtype {arr.dtype}"
 
 
-def as_float_array(name: str, value, shape=None, finite: bool = True) -> np.ndarray:
-    """Return ``value`` as a float array, checking shape and finiteness.
+def as_float_array(name: str, value, shape=None, finite: bool = True, allow_nan: bool = False,
+                   numeric_only: bool = False) -> np.ndarray:
+    """Return ``value`` as a float array, checking its type, shape and finiteness.
 
-    ``shape`` is a tuple whose entries are ints or ``None`` (any size).
+    Parameters
+    ----------
+    shape : tuple, optional
+        Entries are ints or ``None`` (any size).
+    finite : bool
+        Reject NaN and inf.
+    allow_nan : bool
+        Accept NaN (a missing value) but still reject inf.
+    numeric_only : bool
+        Accept only integer or float arrays (not booleans, strings or objects), with a
+        ``ValueError``: for values read from files, whose dtype is the user's.
     """
+    if numeric_only:
+        kind = np.asarray(value).dtype.kind
+        if kind not in "fiu":
+            raise ValueError(f"{name}: expected numbers, got dtype {np.asarray(value).dtype}")
     try:
         arr = np.asarray(value, dtype=float)
     except (TypeError, ValueError):
@@ -28,7 +43,11 @@ def as_float_array(name: str, value, shape=None, finite: bool = True) -> np.ndar
         if arr.ndim != len(shape) or any(s is not None and s != a for s, a in zip(shape, arr.shape)):
             want = "(" + ", ".join("any" if s is None else str(s) for s in shape) + ")"
             raise ValueError(f"{name}: expected shape {want}, got shape {arr.shape}")
-    if finite and not np.all(np.isfinite(arr)):
+    if allow_nan:
+        if np.any(np.isinf(arr)):
+            raise ValueError(f"{name}: expected finite values or NaN for missing ones, got "
+                             f"{int(np.isinf(arr).sum())} infinite entries")
+    elif finite and not np.all(np.isfinite(arr)):
         bad = int(np.size(arr) - np.count_nonzero(np.isfinite(arr)))
         raise ValueError(f"{name}: expected finite values, got {bad} non-finite entries (NaN or inf)")
     return arr
@@ -78,14 +97,6 @@ def probability(name: str, value) -> float:
     return v
 
 
-def check_mesh(name: str, mesh):
-    """Check that ``mesh`` is a :class:`sfem_filters.mesh.TriMesh`."""
-    from .mesh import TriMesh
-    if not isinstance(mesh, TriMesh):
-        raise TypeError(f"{name}: expected a TriMesh, got {type(mesh).__name__}")
-    return mesh
-
-
 def check_material(E, nu, n: int | None = None):
     """Check Young's moduli (Pa, > 0) and Poisson's ratios (0 < nu < 0.5)."""
     E = as_float_array("E", E, shape=None if n is None else (n,))
@@ -98,13 +109,21 @@ def check_material(E, nu, n: int | None = None):
     return E, nu
 
 
-def as_mask(name: str, value, ndim: int) -> np.ndarray:
-    """Return ``value`` as a boolean mask of ``ndim`` dimensions (0/1 numbers accepted)."""
+def as_mask(name: str, value, ndim: int, shape=None, nonempty: bool = False) -> np.ndarray:
+    """Return ``value`` as a boolean mask of ``ndim`` dimensions (0/1 numbers accepted).
+
+    ``shape`` (ints or ``None`` for any size) checks the size; ``nonempty`` requires at least
+    one True pixel (some tissue). Images are indexed (row = y, column = x).
+    """
     arr = np.asarray(value)
     if arr.ndim != ndim:
-        raise ValueError(f"{name}: expected a {ndim}D mask, got shape {arr.shape}")
+        raise ValueError(f"{name}: expected a {ndim}D mask (boolean, rows = y, columns = x), got shape {arr.shape}")
     if arr.dtype != bool:
         if arr.dtype.kind not in "iuf" or not np.isin(arr, [0, 1]).all():
             raise ValueError(f"{name}: expected a boolean mask (or 0/1 values), got dtype {arr.dtype}")
         arr = arr.astype(bool)
+    if shape is not None and any(s is not None and s != a for s, a in zip(shape, arr.shape)):
+        raise ValueError(f"{name}: expected shape {tuple(shape)}, got shape {arr.shape}")
+    if nonempty and not arr.any():
+        raise ValueError(f"{name}: expected a mask holding some tissue, got no tissue pixel in {arr.shape}")
     return arr

@@ -1,10 +1,18 @@
-"""Command line: ``sfem-filters compare ...``."""
+"""Command line: ``sfem-filters compare | dense | observe``.
+
+The choices of every option come from the modules' own constants (engines, drives,
+parameterisations, effects), so the command line cannot drift from the library.
+"""
 from __future__ import annotations
 
 import argparse
 import json
 import os
 import sys
+
+from .cardiac.effects import CATALOGUE
+from .cardiac.measured import DRIVES, OBSERVE, PARAMETERISATIONS
+from .filtering.engines import ENGINES
 
 
 def _seeds(text: str) -> list:
@@ -48,7 +56,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="observation noise standard deviation in mm (default 0.1)")
     c.add_argument("--json", metavar="PATH", help="write the measured numbers as JSON")
     c.add_argument("--figures", metavar="DIR", help="write the figures (PNG) into DIR")
-    c.add_argument("--engine", choices=("structured", "filterpy", "ud"), default="structured",
+    c.add_argument("--engine", choices=tuple(ENGINES), default="structured",
                    help="filter implementation: structured (default), filterpy (the reference) or ud "
                         "(Bierman-Thornton U-D factorised, for ill-conditioned covariances)")
     c.add_argument("--max-loops", type=_positive_int, default=50, help="cyclic loop limit (default 50)")
@@ -65,17 +73,16 @@ def build_parser() -> argparse.ArgumentParser:
                                 "shipped DENSE slice")
     d.add_argument("--effects", default="auto",
                    help="none, auto (the best-scoring effect) or a comma list of: "
-                        "active_polar, active_circumferential, active_radial, active_transmural, dilatation, "
-                        "cavity_pressure (default auto)")
-    d.add_argument("--drive", choices=("penalty", "pressure", "none"), default="penalty",
+                        + ", ".join(sorted(CATALOGUE)) + " (default auto)")
+    d.add_argument("--drive", choices=DRIVES, default="penalty",
                    help="what drives the model besides its effects (default penalty)")
     d.add_argument("--landmarks", type=_positive_int, default=8, help="observed landmarks per contour (default 8)")
-    d.add_argument("--observe", choices=("boundary", "boundary+midwall"), default="boundary",
+    d.add_argument("--observe", choices=OBSERVE, default="boundary",
                    help="observe the landmarks only, or also a seeded half of the mid-wall points")
     d.add_argument("--holdout-seed", type=int, default=0, help="seed of the mid-wall split (default 0)")
-    d.add_argument("--material", choices=("region", "basis", "element", "none"), default="region",
+    d.add_argument("--parameterisation", choices=PARAMETERISATIONS, default="region",
                    help="material parameterisation: 12 regions (default), a smooth basis (6 relative "
-                        "log E modes, 3 nu modes), per element, or fixed")
+                        "log E modes, 3 nu modes), per element, or none (material fixed)")
     d.add_argument("--max-loops", type=_positive_int, default=3, help="cyclic loop limit (default 3)")
     d.add_argument("--json", metavar="PATH", help="write the report as JSON")
     d.add_argument("--figures", metavar="DIR", help="write the figures (PNG) into DIR")
@@ -97,14 +104,14 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def cmd_compare(args) -> int:
-    from .comparison import format_table, run_comparison
+    from .benchmark.comparison import format_table, run_comparison
     comps = []
     for seed in args.seed:
         comp = run_comparison(seed, args.refine, args.noise_mm, engine=args.engine, max_loops=args.max_loops,
                               tol=args.tol, progress=not args.no_progress, checkpoint_dir=args.checkpoint_dir)
         comps.append(comp)
         if args.figures:
-            from .plotting import comparison_figures
+            from .plotting.comparison import comparison_figures
             target = args.figures if len(args.seed) == 1 else os.path.join(args.figures, f"seed{seed}")
             for path in comparison_figures(comp, target):
                 print(f"wrote {path}", file=sys.stderr)
@@ -115,20 +122,20 @@ def cmd_compare(args) -> int:
 
 
 def cmd_dense(args) -> int:
-    from .dense import closing_the_loop, format_report
-    from .datasets import example_path, load_sequence
+    from .cardiac.closing import closing_the_loop, format_report
+    from .cardiac.sequence import example_path, load_sequence
     seq = load_sequence(example_path() if args.path == "example" else args.path)
-    effects = args.effects
-    out = closing_the_loop(seq, effects=effects, drive=args.drive, landmarks=args.landmarks, observe=args.observe,
-                           holdout_seed=args.holdout_seed, estimate=args.material, max_loops=args.max_loops,
+    out = closing_the_loop(seq, effects=args.effects, drive=args.drive, landmarks=args.landmarks,
+                           observe=args.observe, holdout_seed=args.holdout_seed,
+                           parameterisation=args.parameterisation, max_loops=args.max_loops,
                            progress=not args.no_progress)
-    print(format_report(out["report"]))
+    print(format_report(out))
     if args.figures:
-        from .plotting import dense_figures
+        from .plotting.measured import dense_figures
         for path in dense_figures(out, args.figures):
             print(f"wrote {path}", file=sys.stderr)
     if args.json:
-        _write_json(args.json, out["report"])
+        _write_json(args.json, out.as_json())
     return 0
 
 
@@ -137,10 +144,10 @@ def cmd_observe(args) -> int:
 
     import numpy as np
 
-    from .datasets import save_sequence
-    from .frontend import observe
-    from .readers import make_image_series, read_images
-    from .tracking import TrackingOptions
+    from .cardiac.frontend import observe
+    from .cardiac.sequence import save_sequence
+    from .imaging.readers import make_image_series, read_images
+    from .imaging.tracking import TrackingOptions
 
     path = args.path
     series = None
@@ -172,7 +179,7 @@ def cmd_observe(args) -> int:
               f"(5-95%: {np.percentile(vel.lpc, 5):.2f}-{np.percentile(vel.lpc, 95):.2f})")
     print(f"wrote {args.out}", file=sys.stderr)
     if args.figures:
-        from .plotting import observe_figures
+        from .plotting.frontend import observe_figures
         for p in observe_figures({"tracks": tracks, "masks": masks, "velocity": vel}, args.figures):
             print(f"wrote {p}", file=sys.stderr)
     return 0

@@ -5,9 +5,9 @@ transition ``fx`` (Eq. 19) and its Jacobian ``F_jacobian`` (Eq. 31 with M_t of E
 the measurement ``hx`` and its Jacobian ``H_jacobian`` (Eqs. 21-22), and ``Q``, ``R``,
 ``x0``, ``P0`` (Eq. 34). The paper's three strategies are configurations of this one class:
 
-* material fixed (``estimate=None``): a linear Kalman filter on ``x = [U; U']`` with the
+* material fixed (``parameterisation=None``): a linear Kalman filter on ``x = [U; U']`` with the
   given material, uniform (``"uniform_kf"``) or the true one (``"perfect_kf"``);
-* material estimated (``estimate=Parameterisation``): the joint EKF on ``z = [x; theta]``
+* material estimated (``parameterisation=Parameterisation``): the joint EKF on ``z = [x; theta]``
   (``"joint_ekf"``), theta being log E and logit(2 nu) through the parameterisation.
 
 Frame indices ``t`` are 0-based. ``fx(z, t)`` moves the state from frame t to frame t + 1
@@ -15,6 +15,7 @@ under the load ``loads[t + 1]``, held over that interval (zero-order hold).
 """
 from __future__ import annotations
 
+import hashlib
 from collections import OrderedDict
 
 import numpy as np
@@ -22,12 +23,15 @@ import scipy.linalg as sla
 import scipy.sparse as sp
 
 from ._validate import as_float_array, non_negative, positive
-from .fem import (DofMap, element_stiffness, mass_matrix, plane_strain_matrix,
-                  plane_strain_matrix_dnu, stiffness_matrix)
-from .material import Material, Parameterisation
-from .mesh import TriMesh
-from .observations import LinearObservation
-from .statespace import ModalSystem, reference_sensitivity
+from .fem.dofs import DofMap
+from .fem.elasticity import (element_stiffness, mass_matrix, plane_strain_matrix, plane_strain_matrix_dnu,
+                             stiffness_matrix)
+from .fem.material import Material, Parameterisation
+from .fem.mesh import TriMesh, check_mesh
+from .fem.statespace import ModalSystem, reference_sensitivity
+from .filtering.linear import LinearObservation
+
+__all__ = ["SFEMModel"]
 
 
 def _std_vector(name: str, value, n: int, unit: str) -> np.ndarray:
@@ -50,8 +54,9 @@ class SFEMModel(LinearObservation):
     loads : (n_frames, n_dofs) array
         Global nodal loads in N; ``loads[t]`` is held over the interval from frame t-1 to
         frame t (``loads[0]`` is unused).
-    observation : (n_obs, n_dofs) array or sparse matrix
-        D of Eq. (12): the observed combinations of global displacements (m).
+    observation_operator : (n_obs, n_dofs) array or sparse matrix
+        D of Eq. (12): the observed combinations of global displacements (m); the measured
+        numbers themselves are the observations.
     frame_interval : float
         Time between frames in s.
     fixed_dofs : array of int
@@ -68,7 +73,7 @@ class SFEMModel(LinearObservation):
         Per-frame process noise standard deviations of displacement (m) and velocity (m/s).
     initial_std : (float, float)
         Standard deviations of P1(0) for displacement (m) and velocity (m/s).
-    estimate : Parameterisation, optional
+    parameterisation : Parameterisation, optional
         Append these material parameters to the state (joint EKF). ``None``: material fixed.
     prior_std : (float, float)
         P3(0) standard deviations of theta_E (log E) and theta_nu (logit 2 nu) (diagonal P3).
@@ -88,9 +93,9 @@ class SFEMModel(LinearObservation):
     effects : sequence of :class:`sfem_filters.effects.Effect`
         Extra model terms, each a load ``G_e eta_e`` (N) linear in its states ``eta_e``
         (random walks), appended to the state after the kinematics: ``z = [x; eta; theta]``.
-    velocity_observation : (n_obs, n_dofs) array or sparse matrix, optional
-        Rows observing velocities (m/s), e.g. phase-contrast MR (Eq. 13): ``H = [D, D_v, 0]``;
-        with it, ``observation`` and ``velocity_observation`` are stacked, displacement rows
+    velocity_operator : (n_obs, n_dofs) array or sparse matrix, optional
+        D_v of Eq. (13): rows observing velocities (m/s), e.g. phase-contrast MR:
+        ``H = [D, D_v, 0]``; with it, displacement and velocity rows are stacked, displacement rows
         first, and ``measurement_std`` covers both (m and m/s).
     initial_displacement : (n_dofs,) array, optional
         Displacement (m) of the initial state (default zero: at rest in the mesh geometry).
@@ -99,21 +104,27 @@ class SFEMModel(LinearObservation):
         ``B Sigma_w B^T`` to the kinematic block of Q, a spatially smooth (elastically
         correlated) displacement and velocity noise, evaluated at the initial material.
 
+    system_class : type
+        The exact discretisation, constructed as ``system_class(M, K, alpha, beta, T)`` over the
+        free dofs (default :class:`sfem_filters.fem.statespace.ModalSystem`); any class with its
+        interface (``step``, ``transition_matrix``, ``input_response``, ``sensitivity``), for
+        example another revision's for a benchmark.
+
     Notes
     -----
     The state is ``z = [U; U'; eta; theta]``. Each cyclic loop restarts the first
     :attr:`n_restart` entries (kinematics and effect states) and carries theta.
     """
 
-    def __init__(self, mesh: TriMesh, material: Material, loads, observation, frame_interval: float,
+    def __init__(self, mesh: TriMesh, material: Material, loads, observation_operator, frame_interval: float,
                  fixed_dofs=(), *, density: float = 1050.0, alpha: float = 0.0, beta: float = 0.0,
                  measurement_std=1e-4, process_std=(5e-5, 5e-3), initial_std=(1e-4, 1e-3),
-                 estimate: Parameterisation | None = None, prior_std=(0.3, 1.0),
+                 parameterisation: Parameterisation | None = None, prior_std=(0.3, 1.0),
                  material_process_std=(0.0, 0.0), penalty=None, thickness: float = 1.0,
                  lumped_mass: bool = False, jacobian: str = "modal", effects=(),
-                 initial_displacement=None, process_load_std=None, prior_cov=None, velocity_observation=None):
-        if not isinstance(mesh, TriMesh):
-            raise TypeError(f"mesh: expected a TriMesh, got {type(mesh).__name__}")
+                 initial_displacement=None, process_load_std=None, prior_cov=None, velocity_operator=None,
+                 system_class=ModalSystem):
+        check_mesh("mesh", mesh)
         if not isinstance(material, Material):
             raise TypeError(f"material: expected a Material, got {type(material).__name__}")
         if material.n_elements != mesh.n_elements:
@@ -128,6 +139,9 @@ class SFEMModel(LinearObservation):
         self.alpha = non_negative("alpha", alpha, "1/s")
         self.beta = non_negative("beta", beta, "s")
         self.jacobian = jacobian
+        if not isinstance(system_class, type):
+            raise TypeError(f"system_class: expected a class like ModalSystem, got {type(system_class).__name__}")
+        self.system_class = system_class
         self.dofmap = DofMap(mesh.n_dofs, fixed_dofs)
         n = self.dofmap.n_free
         loads = as_float_array("loads", loads, shape=(None, mesh.n_dofs))
@@ -135,23 +149,26 @@ class SFEMModel(LinearObservation):
             raise ValueError(f"loads: expected at least 2 frames, got {len(loads)}")
         self.loads = loads
         self._w = self.dofmap.restrict(loads)
-        D = sp.csr_matrix(as_float_array("observation", observation, shape=(None, None))) \
-            if not sp.issparse(observation) else observation.tocsr()
+        D = sp.csr_matrix(as_float_array("observation_operator", observation_operator, shape=(None, None))) \
+            if not sp.issparse(observation_operator) else observation_operator.tocsr()
         if not np.all(np.isfinite(D.data)):
-            raise ValueError("observation: expected finite values, got NaN or inf entries")
+            raise ValueError("observation_operator: expected finite values, got NaN or inf entries")
         if D.shape[0] == 0:
-            raise ValueError("observation: expected at least one observed row, got none")
+            raise ValueError("observation_operator: expected at least one observed row, got none")
         if D.shape[1] != mesh.n_dofs:
-            raise ValueError(f"observation: expected {mesh.n_dofs} columns (n_dofs), got {D.shape[1]}")
-        self.observation = D
+            raise ValueError(f"observation_operator: expected {mesh.n_dofs} columns (n_dofs), got {D.shape[1]}")
+        self.observation_operator = D
         self.M = self.dofmap.restrict_matrix(mass_matrix(mesh, density, thickness, lumped_mass)).toarray()
         self.penalty = None if penalty is None else self.dofmap.restrict_matrix(sp.csr_matrix(penalty)).toarray()
         self._cache: OrderedDict = OrderedDict()
         self._directions_dofs = self.dofmap.free_index()[mesh.element_dofs]
-        self.estimate = estimate
-        if estimate is not None and estimate.n_elements != mesh.n_elements:
-            raise ValueError(f"estimate: expected a parameterisation of {mesh.n_elements} elements, "
-                             f"got {estimate.n_elements}")
+        self.parameterisation = parameterisation
+        if parameterisation is not None and not isinstance(parameterisation, Parameterisation):
+            raise TypeError(f"parameterisation: expected a Parameterisation or None, got "
+                            f"{type(parameterisation).__name__}")
+        if parameterisation is not None and parameterisation.n_elements != mesh.n_elements:
+            raise ValueError(f"parameterisation: expected a parameterisation of {mesh.n_elements} elements, "
+                             f"got {parameterisation.n_elements}")
         self.effects = tuple(effects)
         for e in self.effects:
             if e.loads.shape[0] != mesh.n_dofs:
@@ -163,14 +180,14 @@ class SFEMModel(LinearObservation):
         self.dim_x = 2 * n
         self.dim_eta = self._G.shape[1]
         self.n_restart = self.dim_x + self.dim_eta
-        self.dim_theta = 0 if estimate is None else estimate.n_params
+        self.dim_theta = 0 if parameterisation is None else parameterisation.n_params
         self.dim_state = self.n_restart + self.dim_theta
         Dv = None
-        if velocity_observation is not None:
-            Dv = sp.csr_matrix(velocity_observation)
+        if velocity_operator is not None:
+            Dv = sp.csr_matrix(velocity_operator)
             if Dv.shape[1] != mesh.n_dofs:
-                raise ValueError(f"velocity_observation: expected {mesh.n_dofs} columns (n_dofs), got {Dv.shape[1]}")
-        self.velocity_observation = Dv
+                raise ValueError(f"velocity_operator: expected {mesh.n_dofs} columns (n_dofs), got {Dv.shape[1]}")
+        self.velocity_operator = Dv
         n_u = D.shape[0]
         self.dim_obs = n_u + (0 if Dv is None else Dv.shape[0])
         # H = [D 0] over the free dofs (Eq. 22), with velocity rows [0 D_v 0] below (Eq. 13)
@@ -196,14 +213,14 @@ class SFEMModel(LinearObservation):
         iu, iv = initial_std
         p1 = [np.full(n, positive("initial_std[0]", iu, "m")) ** 2,
               np.full(n, positive("initial_std[1]", iv, "m/s")) ** 2]
-        if estimate is not None:
-            self.theta0 = estimate.theta_of(material)
+        if parameterisation is not None:
+            self.theta0 = parameterisation.theta_of(material)
             sE, snu = prior_std
-            p3 = np.concatenate([np.full(estimate.n_E, positive("prior_std[0]", sE)) ** 2,
-                                 np.full(estimate.n_params - estimate.n_E, positive("prior_std[1]", snu)) ** 2])
+            p3 = np.concatenate([np.full(parameterisation.n_E, positive("prior_std[0]", sE)) ** 2,
+                                 np.full(parameterisation.n_params - parameterisation.n_E, positive("prior_std[1]", snu)) ** 2])
             mE, mnu = (non_negative(f"material_process_std[{i}]", v) for i, v in enumerate(material_process_std))
-            q3 = np.concatenate([np.full(estimate.n_E, float(mE)) ** 2,
-                                 np.full(estimate.n_params - estimate.n_E, float(mnu)) ** 2])
+            q3 = np.concatenate([np.full(parameterisation.n_E, float(mE)) ** 2,
+                                 np.full(parameterisation.n_params - parameterisation.n_E, float(mnu)) ** 2])
         else:
             self.theta0 = np.zeros(0)
             p3 = q3 = np.zeros(0)
@@ -216,14 +233,14 @@ class SFEMModel(LinearObservation):
             sw = np.broadcast_to(as_float_array("process_load_std", process_load_std), (n,))
             if np.any(sw < 0):
                 raise ValueError("process_load_std: expected standard deviations >= 0 N")
-            BS = self.system(self.theta0 if estimate is not None else None).input_response(np.diag(sw))
+            BS = self.system(self.theta0 if parameterisation is not None else None).input_response(np.diag(sw))
             self.Q[: 2 * n, : 2 * n] += BS @ BS.T
         # Eq. (34): P0 = diag(P1, P3) with zero cross-covariance P2 (and effect states apart).
         self.P0 = np.diag(np.concatenate(p1 + p_eta + [p3]))
         if prior_cov is not None:
-            if estimate is None:
-                raise ValueError("prior_cov: given, but the material is not estimated (estimate=None)")
-            C = as_float_array("prior_cov", prior_cov, shape=(estimate.n_params, estimate.n_params))
+            if parameterisation is None:
+                raise ValueError("prior_cov: given, but the material is not estimated (parameterisation=None)")
+            C = as_float_array("prior_cov", prior_cov, shape=(parameterisation.n_params, parameterisation.n_params))
             if np.abs(C - C.T).max() > 1e-12 * np.abs(C).max() or np.linalg.eigvalsh(C).min() <= 0:
                 raise ValueError("prior_cov: expected a symmetric positive definite matrix")
             nr = 2 * n + sum(len(v) for v in p_eta)
@@ -240,7 +257,7 @@ class SFEMModel(LinearObservation):
 
     @property
     def estimates_material(self) -> bool:
-        return self.estimate is not None
+        return self.parameterisation is not None
 
     def theta_of(self, z) -> np.ndarray:
         """Material parameters of an augmented state (empty when the material is fixed)."""
@@ -252,9 +269,27 @@ class SFEMModel(LinearObservation):
 
     def material_of_theta(self, theta) -> Material:
         """Material of parameters theta (the fixed material when it is not estimated)."""
-        if self.estimate is None:
+        if self.parameterisation is None:
             return self.material
-        return self.estimate.material(theta)
+        return self.parameterisation.material(theta)
+
+    def physical_parameters(self, theta) -> np.ndarray:
+        """E (Pa) of every element followed by nu: the physical units of the stop rule
+        (:class:`sfem_filters.filtering.protocol.PhysicalParameters`)."""
+        mat = self.material_of_theta(theta)
+        return np.concatenate([mat.E, mat.nu])
+
+    def load_response(self, load_matrix, z) -> np.ndarray:
+        """Response ``H B(theta) G`` of the next predicted observation to unit loads (m per unit).
+
+        ``load_matrix`` G is (n_dofs, k), global nodal loads in N per unit of each column, held
+        over one frame; theta is that of state ``z``
+        (:class:`sfem_filters.filtering.protocol.LoadResponse`, used by the score test).
+        """
+        G = as_float_array("load_matrix", load_matrix, shape=(self.dofmap.n_dofs, None))
+        G = self.dofmap.restrict(G.T).T
+        system = self.system(self.theta_of(z) if self.estimates_material else None)
+        return self._H[:, : self.dim_x] @ system.input_response(G)
 
     def material_of(self, z=None) -> Material:
         """Material of state z: the estimate in the joint EKF, the fixed one otherwise."""
@@ -273,7 +308,7 @@ class SFEMModel(LinearObservation):
     # ------------------------------------------------------------------ mechanics
     def system(self, theta=None) -> ModalSystem:
         """The discretised dynamics for material parameters theta (cached)."""
-        mat = self.material if self.estimate is None else self.estimate.material(
+        mat = self.material if self.parameterisation is None else self.parameterisation.material(
             self.theta0 if theta is None else theta)
         return self._entry(mat)[0]
 
@@ -283,7 +318,6 @@ class SFEMModel(LinearObservation):
 
     def fingerprint(self) -> str:
         """Hash of everything that defines the model (for checkpoints)."""
-        import hashlib
         h = hashlib.sha256()
         parts = [self.mesh.nodes, self.mesh.elements, self.loads, self.material.E, self.material.nu, self.M,
                  np.array([self.alpha, self.beta, self.frame_interval, self.density, self.thickness]),
@@ -292,13 +326,14 @@ class SFEMModel(LinearObservation):
             parts.append(self._R_frames)
         if self.penalty is not None:
             parts.append(self.penalty)
-        if self.estimate is not None:
-            parts += [self.estimate.basis_E.toarray(), self.estimate.basis_nu.toarray()]
-            if self.estimate.offset_E is not None:
-                parts.append(self.estimate.offset_E)
+        if self.parameterisation is not None:
+            parts += [self.parameterisation.basis_E.toarray(), self.parameterisation.basis_nu.toarray()]
+            if self.parameterisation.offset_E is not None:
+                parts.append(self.parameterisation.offset_E)
         for a in parts:
             h.update(np.ascontiguousarray(a).tobytes())
-        h.update(f"{self.jacobian},{[e.name for e in self.effects]}".encode())
+        h.update(f"{self.jacobian},{[e.name for e in self.effects]},{self.system_class.__module__}."
+                 f"{self.system_class.__qualname__}".encode())
         return h.hexdigest()
 
     def _entry(self, mat: Material):
@@ -311,7 +346,7 @@ class SFEMModel(LinearObservation):
         K = self.dofmap.restrict_matrix(stiffness_matrix(self.mesh, mat.E, mat.nu, self.thickness)).toarray()
         if self.penalty is not None:
             K = K + self.penalty
-        system = ModalSystem(self.M, K, self.alpha, self.beta, self.frame_interval)
+        system = self.system_class(self.M, K, self.alpha, self.beta, self.frame_interval)
         entry = (system, K, mat)
         self._cache[key] = entry
         if len(self._cache) > 4:
@@ -346,13 +381,13 @@ class SFEMModel(LinearObservation):
         """State at frame t + 1 from state z at frame t, Eq. (19): [A x + B w_t; eta; theta]."""
         z, x, eta, theta = self._split(z)
         t = self._check_frame(t, self.n_frames - 2)
-        system = self.system(theta if self.estimate is not None else None)
+        system = self.system(theta if self.parameterisation is not None else None)
         out = np.concatenate([system.step(x, self.load(z, t)), self._eta_transition @ eta, theta])
         return out.reshape(z.shape)
 
     def sensitivity(self, z, t) -> np.ndarray:
         """M_t = d(A(theta) x + B(theta) w_t)/d theta (Eq. 33), shape (dim_x, dim_theta)."""
-        if self.estimate is None:
+        if self.parameterisation is None:
             return np.zeros((self.dim_x, 0))
         z, x, _, theta = self._split(z)
         t = self._check_frame(t, self.n_frames - 2)
@@ -360,11 +395,11 @@ class SFEMModel(LinearObservation):
 
     def _sensitivity_at(self, theta, x, w) -> np.ndarray:
         """d(A(theta) x + B(theta) w)/d theta for given x (m, m/s) and load w (N)."""
-        mat = self.estimate.material(theta)
+        mat = self.parameterisation.material(theta)
         system, K, _ = self._entry(mat)
         dirs = self._directions(mat)
         dofs = np.concatenate([self._directions_dofs, self._directions_dofs])
-        J = self.estimate.element_jacobian(mat)          # d(log E_e, nu_e)/d theta
+        J = self.parameterisation.element_jacobian(mat)          # d(log E_e, nu_e)/d theta
         if self.jacobian == "modal":
             return system.sensitivity(x, w, dirs, dofs, combine=J)
         per_element = reference_sensitivity(self.M, K, self.alpha, self.beta, self.frame_interval,
@@ -379,7 +414,7 @@ class SFEMModel(LinearObservation):
         so this costs n_restart times :meth:`sensitivity`. Used by Ljung's modification of the
         coupling term (Eq. 40), which needs it for few parameters only.
         """
-        if self.estimate is None:
+        if self.parameterisation is None:
             return np.zeros((0, self.n_restart, self.n_restart))
         _, _, _, theta = self._split(z)
         n = self.dim_x // 2
@@ -404,13 +439,13 @@ class SFEMModel(LinearObservation):
     def F_jacobian(self, z, t) -> np.ndarray:
         """F_t = [[A, B G, M_t], [0, I, 0], [0, 0, I]] (Eq. 31), the exact Jacobian of :meth:`fx`."""
         z, x, _, theta = self._split(z)
-        system = self.system(theta if self.estimate is not None else None)
+        system = self.system(theta if self.parameterisation is not None else None)
         F = np.eye(self.dim_state)
         nx, nr = self.dim_x, self.n_restart
         system.transition_matrix(out=F[:nx, :nx])
         if self.dim_eta:
             F[:nx, nx:nr] = system.input_response(self._G)
             F[nx:nr, nx:nr] = self._eta_transition
-        if self.estimate is not None:
+        if self.parameterisation is not None:
             F[:nx, nr:] = self.sensitivity(z, t)
         return F

@@ -5,7 +5,7 @@ import numpy as np
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from sfem_filters.mesh import delaunay_mesh
+from sfem_filters.fem.mesh import delaunay_mesh
 
 # ---------------------------------------------------------------------------
 # Hypothesis strategies for meshes and materials

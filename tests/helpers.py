@@ -4,10 +4,10 @@ from __future__ import annotations
 import numpy as np
 
 from sfem_filters import fem
-from sfem_filters.material import Material, Parameterisation
-from sfem_filters.mesh import TriMesh, delaunay_mesh, rectangle_mesh
+from sfem_filters.fem.material import Material, Parameterisation
+from sfem_filters.fem.mesh import TriMesh, delaunay_mesh, rectangle_mesh
+from sfem_filters.fem.observation import node_observation_matrix
 from sfem_filters.model import SFEMModel
-from sfem_filters.observations import node_observation_matrix
 
 
 def random_material(rng, n, E_range=(3e4, 2e5), nu_range=(0.2, 0.49)) -> Material:
@@ -28,7 +28,7 @@ def random_block_mesh(rng, n_interior=6, size=0.02) -> TriMesh:
             continue
 
 
-def small_model(rng, mesh=None, estimate="per_element", n_frames=5, alpha=10.0, beta=1e-3,
+def small_model(rng, mesh=None, parameterisation="per_element", n_frames=5, alpha=10.0, beta=1e-3,
                 noise=1e-5, jacobian="modal", material=None) -> SFEMModel:
     """Bottom edge fixed, random loads on every free dof, all non-fixed nodes observed."""
     mesh = mesh or random_block_mesh(rng)
@@ -38,14 +38,12 @@ def small_model(rng, mesh=None, estimate="per_element", n_frames=5, alpha=10.0, 
     observed = np.setdiff1d(np.arange(mesh.n_nodes), bottom)
     D = node_observation_matrix(mesh, observed)
     material = material or random_material(rng, mesh.n_elements)
-    est = None
-    if estimate == "per_element":
-        est = Parameterisation.per_element(mesh.n_elements)
-    elif estimate is not None:
-        est = estimate
+    param = parameterisation
+    if parameterisation == "per_element":
+        param = Parameterisation.per_element(mesh.n_elements)
     return SFEMModel(mesh, material, loads, D, 0.01, fixed, density=1050.0, alpha=alpha, beta=beta,
                      measurement_std=noise, process_std=(1e-6, 1e-4), initial_std=(1e-5, 1e-4),
-                     estimate=est, jacobian=jacobian)
+                     parameterisation=param, jacobian=jacobian)
 
 
 def reduced_matrices(model, material=None):
@@ -74,3 +72,13 @@ def simulate(model, rng, noise):
         ys.append(model.hx(np.concatenate([x, model.x0[model.dim_x:]]), t))
     ys = np.array(ys)
     return ys + rng.standard_normal(ys.shape) * noise
+
+
+def ring(shape=(48, 48), centre=(23.5, 23.5), r_in=8.0, r_out=13.0, bump=0.0, angle=0.0):
+    """A ring mask; ``bump`` adds a 3-lobed wobble to both radii (so the shape has features)."""
+    yy, xx = np.mgrid[0:shape[0], 0:shape[1]]
+    dx, dy = xx - centre[0], yy - centre[1]
+    th = np.arctan2(dy, dx) - angle
+    r = np.hypot(dx, dy)
+    w = 1.0 + bump * np.cos(3 * th)
+    return (r >= r_in * w) & (r <= r_out * w)

@@ -1,12 +1,12 @@
 """The model object: transition, analytic Jacobians, measurement, covariances (Eqs. 19-22, 31-34)."""
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
-
-from sfem_filters.material import Material, Parameterisation
-from sfem_filters.model import SFEMModel
-
 from helpers import random_block_mesh, random_material, small_model
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from sfem_filters.fem.material import Material, Parameterisation
+from sfem_filters.model import SFEMModel
 
 
 def _state(model, rng):
@@ -50,8 +50,9 @@ def test_F_jacobian_kinematic_block_is_A_and_theta_block_identity():
     F = model.F_jacobian(z, 0)
     nx = model.dim_x
     # independent reference: the block exponential of Eqs. (14)-(16) at z's material
-    from sfem_filters.statespace import continuous_matrices, discretize_zoh
     from helpers import reduced_matrices
+
+    from sfem_filters.fem.statespace import continuous_matrices, discretize_zoh
     M, K = reduced_matrices(model, model.material_of(z))
     A, _ = discretize_zoh(*continuous_matrices(M, K, model.alpha * M + model.beta * K), model.frame_interval)
     np.testing.assert_allclose(F[:nx, :nx], A, atol=1e-10 * np.abs(A).max())
@@ -83,7 +84,7 @@ def test_region_parameterisation_chain_rule():
     mat = Material(np.where(labels, 9e4, 6e4), np.where(labels, 0.45, 0.35))
     per_el = small_model(np.random.default_rng(2), mesh=mesh, material=mat)
     per_reg = small_model(np.random.default_rng(2), mesh=mesh, material=mat,
-                          estimate=Parameterisation.per_region(labels))
+                          parameterisation=Parameterisation.per_region(labels))
     assert per_reg.dim_theta == 4
     np.testing.assert_allclose(per_reg.material_of().E, mat.E)
     z_el = _state(per_el, rng)
@@ -103,7 +104,7 @@ def test_basis_parameterisation_against_finite_differences():
     mesh = random_block_mesh(rng)
     c = mesh.centroids / 0.02
     basis = np.column_stack([np.ones(mesh.n_elements), c[:, 0] - 0.5, c[:, 1] - 0.5])
-    model = small_model(rng, mesh=mesh, estimate=Parameterisation.from_basis(basis),
+    model = small_model(rng, mesh=mesh, parameterisation=Parameterisation.from_basis(basis),
                         material=Material.uniform(mesh.n_elements, 8e4, 0.4))
     z = _state(model, rng)
     z[model.dim_x:] += rng.standard_normal(model.dim_theta) * 0.1
@@ -151,7 +152,7 @@ def test_measurement_function_and_covariances():
 
 def test_fixed_material_model_is_linear_kf():
     rng = np.random.default_rng(6)
-    model = small_model(rng, estimate=None)
+    model = small_model(rng, parameterisation=None)
     assert model.dim_state == model.dim_x and model.dim_theta == 0
     z = _state(model, rng)
     F = model.F_jacobian(z, 0)
@@ -168,11 +169,11 @@ def test_bad_arguments_are_named():
         model.fx(model.x0, 4)
     mesh = model.mesh
     with pytest.raises(ValueError, match="loads: expected shape"):
-        SFEMModel(mesh, model.material, np.zeros((5, 3)), model.observation, 0.01, model.dofmap.fixed)
+        SFEMModel(mesh, model.material, np.zeros((5, 3)), model.observation_operator, 0.01, model.dofmap.fixed)
     with pytest.raises(ValueError, match="frame_interval: expected a positive"):
-        SFEMModel(mesh, model.material, model.loads, model.observation, -1.0, model.dofmap.fixed)
+        SFEMModel(mesh, model.material, model.loads, model.observation_operator, -1.0, model.dofmap.fixed)
     with pytest.raises(ValueError, match="measurement_std: expected standard deviations > 0"):
-        SFEMModel(mesh, model.material, model.loads, model.observation, 0.01, model.dofmap.fixed,
+        SFEMModel(mesh, model.material, model.loads, model.observation_operator, 0.01, model.dofmap.fixed,
                   measurement_std=0.0)
     with pytest.raises(ValueError, match="nu: expected Poisson's ratios"):
         Material(np.ones(2), np.array([0.3, 0.5]))
@@ -195,7 +196,7 @@ def test_relative_region_parameterisation_keeps_the_mean_log_E():
 
 
 def test_correlated_prior_is_spd_and_correlates_neighbours():
-    from sfem_filters.material import correlated_prior
+    from sfem_filters.fem.material import correlated_prior
     rng = np.random.default_rng(3)
     mesh = random_block_mesh(rng)
     p = Parameterisation.per_element(mesh.n_elements)
@@ -208,24 +209,24 @@ def test_correlated_prior_is_spd_and_correlates_neighbours():
     k = np.argmax(d[i])
     assert C[i, j] > C[i, k]                                      # nearer elements correlate more
     assert np.all(C[: mesh.n_elements, mesh.n_elements:] == 0)    # E and nu independent
-    model = small_model(rng, mesh=mesh, estimate=p)
-    m2 = SFEMModel(mesh, model.material, model.loads, model.observation, 0.01, model.dofmap.fixed,
-                   estimate=p, prior_cov=C)
+    model = small_model(rng, mesh=mesh, parameterisation=p)
+    m2 = SFEMModel(mesh, model.material, model.loads, model.observation_operator, 0.01, model.dofmap.fixed,
+                   parameterisation=p, prior_cov=C)
     np.testing.assert_allclose(m2.P0[m2.dim_x:, m2.dim_x:], C)
     with pytest.raises(ValueError, match="prior_cov: expected a symmetric positive definite"):
-        SFEMModel(mesh, model.material, model.loads, model.observation, 0.01, model.dofmap.fixed,
-                  estimate=p, prior_cov=-C)
+        SFEMModel(mesh, model.material, model.loads, model.observation_operator, 0.01, model.dofmap.fixed,
+                  parameterisation=p, prior_cov=-C)
 
 
 def test_velocity_rows_observe_the_velocity_state():
     """H = [D 0; 0 D_v] (Eq. 13): velocity rows read U', displacement rows read U, at any point."""
-    from sfem_filters.observations import point_observation_matrix
+    from sfem_filters.fem.observation import point_observation_matrix
     rng = np.random.default_rng(8)
-    base = small_model(rng, estimate=None)
+    base = small_model(rng, parameterisation=None)
     mesh = base.mesh
     pts = mesh.centroids[:3]                                   # points that are not nodes
     Dp = point_observation_matrix(mesh, pts)
-    m = SFEMModel(mesh, base.material, base.loads, Dp, 0.01, base.dofmap.fixed, velocity_observation=Dp,
+    m = SFEMModel(mesh, base.material, base.loads, Dp, 0.01, base.dofmap.fixed, velocity_operator=Dp,
                   measurement_std=np.r_[np.full(6, 1e-5), np.full(6, 1e-3)])
     assert m.dim_obs == 12
     z = rng.standard_normal(m.dim_state)
@@ -241,7 +242,7 @@ def test_velocity_rows_observe_the_velocity_state():
 def test_per_frame_measurement_noise_is_used_frame_by_frame():
     """A 2D measurement_std gives R_at(t) per frame; the filter engines use it (same x, P
     as a model whose constant R equals that frame's, on a frame where they coincide)."""
-    from sfem_filters.filters import ENGINES, measurement_cov
+    from sfem_filters.filtering import ENGINES, measurement_cov
 
     def build(noise):
         rng = np.random.default_rng(3)               # same mesh, loads and material each time

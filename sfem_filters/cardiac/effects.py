@@ -1,0 +1,210 @@
+"""Pluggable model terms ("effects") that a passive elastic model lacks.
+
+Each effect is a load ``G eta`` (N over the global dofs) linear in a few amplitude states
+``eta`` that the filter estimates as random walks; the model appends them to its state, and
+the Jacobian of the transition with respect to them is ``B G`` (exact, analytic). Effects are
+built from the mesh and the geometry; none depends on the material, so the material Jacobian
+M_t is unchanged except that it is evaluated at the total load.
+
+Stress-type effects use the equivalent nodal load of a prescribed (active) stress
+``sigma_a`` in each element, ``f_e = -t A_e B_e^T sigma_a`` (Voigt order xx, yy, xy): the
+elastic stress then balances ``sigma_a``, so a positive active tension along a direction
+shortens the tissue along it.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .._validate import as_float_array, positive
+from ..fem.loads import pressure_load, stress_loads
+from ..fem.mesh import TriMesh
+from .myocardium import LVGeometry, transmural_depth
+
+
+@dataclass(frozen=True, eq=False)
+class Effect:
+    """A load term ``loads @ eta`` with random-walk amplitude states.
+
+    Parameters
+    ----------
+    name : str
+        Identifier used in configuration (``--effects NAME``).
+    loads : (n_dofs, k) array
+        Global load (N) per unit of each state.
+    unit : str
+        Unit of the states (for reports).
+    process_std, initial_std : float or (k,) array
+        Per-frame random-walk and initial standard deviations of the amplitudes (their unit).
+    initial : float or (k,) array
+        Initial value of the amplitudes.
+    description : str
+    rate_std : float, optional
+        When given, each amplitude also gets a rate state (unit per frame) and moves as
+        ``a_{t+1} = a_t + r_t``, ``r_{t+1} = r_t`` (an integrated random walk whose rate has
+        this per-frame standard deviation): the model then extrapolates the trend of the
+        effect one frame ahead instead of holding it.
+    """
+
+    name: str
+    loads: np.ndarray
+    unit: str
+    process_std: object
+    initial_std: object
+    initial: object = 0.0
+    description: str = ""
+    rate_std: float | None = None
+
+    def __post_init__(self):
+        loads = as_float_array("loads", self.loads)
+        if loads.ndim != 2 or loads.shape[1] < 1:
+            raise ValueError(f"loads: expected an (n_dofs, k) array with k >= 1, got shape {loads.shape}")
+        object.__setattr__(self, "loads", loads)
+        k = loads.shape[1]
+        for name, value, strict in (("process_std", self.process_std, False),
+                                    ("initial_std", self.initial_std, True)):
+            v = as_float_array(name, value)
+            if v.ndim not in (0, 1) or (v.ndim == 1 and v.shape != (k,)):
+                raise ValueError(f"{name}: expected a number or {k} numbers, got shape {v.shape}")
+            if np.any(v < 0) or (strict and np.any(v == 0)):
+                raise ValueError(f"{name}: expected standard deviations {'>' if strict else '>='} 0 "
+                                 f"({self.unit}), got minimum {float(np.min(v))!r}")
+        as_float_array("initial", self.initial)
+        if self.rate_std is not None:
+            positive("rate_std", self.rate_std, f"{self.unit} per frame")
+
+    @property
+    def n_amplitudes(self) -> int:
+        return self.loads.shape[1]
+
+    @property
+    def n_states(self) -> int:
+        return self.n_amplitudes * (1 if self.rate_std is None else 2)
+
+    def transition(self) -> np.ndarray:
+        """State transition over one frame, (n_states, n_states)."""
+        k = self.n_amplitudes
+        if self.rate_std is None:
+            return np.eye(k)
+        return np.block([[np.eye(k), np.eye(k)], [np.zeros((k, k)), np.eye(k)]])
+
+    def state_loads(self) -> np.ndarray:
+        """Load per unit of every state (rates load nothing), (n_dofs, n_states)."""
+        if self.rate_std is None:
+            return self.loads
+        return np.hstack([self.loads, np.zeros_like(self.loads)])
+
+    def _expand(self, v, rate_value) -> np.ndarray:
+        v = np.broadcast_to(np.asarray(v, float), (self.n_amplitudes,))
+        if self.rate_std is None:
+            return np.array(v)
+        return np.concatenate([v, np.full(self.n_amplitudes, rate_value)])
+
+    def process_variances(self) -> np.ndarray:
+        return self._expand(self.process_std, self.rate_std or 0.0) ** 2
+
+    def initial_variances(self) -> np.ndarray:
+        return self._expand(self.initial_std, self.rate_std or 0.0) ** 2
+
+    def initial_states(self) -> np.ndarray:
+        return self._expand(self.initial, 0.0)
+
+
+def _element_direction(mesh: TriMesh, node_vectors) -> np.ndarray:
+    v = np.asarray(node_vectors)[mesh.elements].mean(axis=1)
+    return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+
+def _uniaxial(d) -> np.ndarray:
+    """Voigt stress of unit tension along unit vectors d: (dx^2, dy^2, dx dy)."""
+    return np.column_stack([d[:, 0] ** 2, d[:, 1] ** 2, d[:, 0] * d[:, 1]])
+
+
+def active_stress(mesh: TriMesh, geometry: LVGeometry, direction: str = "circumferential",
+                  name: str | None = None, scale: float = 1e3, thickness: float = 1.0, **noise) -> Effect:
+    """Active fibre tension along the circumferential (or radial) direction, one amplitude.
+
+    ``scale`` (Pa) is the stress of one unit of the state, so that states are O(1).
+    """
+    if direction not in ("circumferential", "radial"):
+        raise ValueError(f"direction: expected 'circumferential' or 'radial', got {direction!r}")
+    positive("scale", scale, "Pa")
+    vec = {"circumferential": geometry.circumferential, "radial": geometry.radial}[direction]
+    sigma = _uniaxial(_element_direction(mesh, vec)) * scale
+    G = stress_loads(mesh, sigma, thickness)[:, None]
+    return Effect(name or f"active_{direction}", G, f"{scale:g} Pa",
+                  description=f"uniform active {direction} tension (one amplitude per frame)",
+                  **_noise(noise))
+
+
+def polar_active_stress(mesh: TriMesh, geometry: LVGeometry, scale: float = 1e3, thickness: float = 1.0,
+                        **noise) -> Effect:
+    """Active stress along the circumferential and the radial direction (2 states).
+
+    Myocyte shortening (circumferential) and wall thickening (radial) that a 2D slice shows
+    when the ventricle also shortens through the plane; for a homogeneous material this spans
+    the same loads as a circumferential plus a radial eigenstrain.
+    """
+    G = np.column_stack([
+        stress_loads(mesh, _uniaxial(_element_direction(mesh, geometry.circumferential)) * scale, thickness),
+        stress_loads(mesh, _uniaxial(_element_direction(mesh, geometry.radial)) * scale, thickness)])
+    return Effect("active_polar", G, f"{scale:g} Pa",
+                  description="active circumferential and radial stress (shortening and thickening)",
+                  **_noise(noise))
+
+
+def transmural_active_stress(mesh: TriMesh, geometry: LVGeometry, scale: float = 1e3,
+                             thickness: float = 1.0, **noise) -> Effect:
+    """Circumferential active tension varying linearly from endocardium to epicardium (2 states)."""
+    depth = transmural_depth(mesh, geometry)
+    u = _uniaxial(_element_direction(mesh, geometry.circumferential)) * scale
+    G = np.column_stack([stress_loads(mesh, u * (1 - depth)[:, None], thickness),
+                         stress_loads(mesh, u * depth[:, None], thickness)])
+    return Effect("active_transmural", G, f"{scale:g} Pa",
+                  description="circumferential active tension, endocardial and epicardial amplitudes",
+                  **_noise(noise))
+
+
+def in_plane_dilatation(mesh: TriMesh, scale: float = 1e3, thickness: float = 1.0, **noise) -> Effect:
+    """Isotropic in-plane active stress: area change of the slice that plane strain forbids
+    (through-plane motion, longitudinal shortening). Positive states shrink the area."""
+    sigma = np.tile([scale, scale, 0.0], (mesh.n_elements, 1))
+    G = stress_loads(mesh, sigma, thickness)[:, None]
+    return Effect("dilatation", G, f"{scale:g} Pa",
+                  description="isotropic in-plane active stress (through-plane motion)", **_noise(noise))
+
+
+def cavity_pressure(mesh: TriMesh, geometry: LVGeometry, scale: float = 1e3, thickness: float = 1.0,
+                    **noise) -> Effect:
+    """Unknown blood pressure on the endocardium (pushing the wall outwards), one amplitude."""
+    G = pressure_load(mesh, geometry.endo_edges, scale, thickness)[:, None]
+    return Effect("cavity_pressure", G, f"{scale:g} Pa",
+                  description="cavity pressure on the endocardium (one amplitude per frame)", **_noise(noise))
+
+
+def _noise(noise: dict) -> dict:
+    out = {"process_std": 1.0, "initial_std": 1.0, "initial": 0.0}
+    out.update(noise)
+    return out
+
+
+#: Effect builders by configuration name: ``builder(mesh, geometry, **options) -> Effect``.
+CATALOGUE = {
+    "active_circumferential": lambda mesh, geo, **kw: active_stress(mesh, geo, "circumferential", **kw),
+    "active_radial": lambda mesh, geo, **kw: active_stress(mesh, geo, "radial", **kw),
+    "active_polar": lambda mesh, geo, **kw: polar_active_stress(mesh, geo, **kw),
+    "active_transmural": lambda mesh, geo, **kw: transmural_active_stress(mesh, geo, **kw),
+    "dilatation": lambda mesh, geo, **kw: in_plane_dilatation(mesh, **kw),
+    "cavity_pressure": lambda mesh, geo, **kw: cavity_pressure(mesh, geo, **kw),
+}
+
+
+def build_effects(names, mesh: TriMesh, geometry: LVGeometry, **options) -> list:
+    """Effects from configuration names (see :data:`CATALOGUE`)."""
+    out = []
+    for name in names:
+        if name not in CATALOGUE:
+            raise ValueError(f"effects: unknown effect {name!r}; expected one of {sorted(CATALOGUE)}")
+        out.append(CATALOGUE[name](mesh, geometry, **options))
+    return out

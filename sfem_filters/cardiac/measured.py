@@ -1,0 +1,454 @@
+"""The filter model of measured point-wise motion (DENSE, tagging, tracking), and its evaluation.
+
+Steps 1-4 of the paper's section 3.2 workflow on a :class:`sfem_filters.cardiac.sequence.Sequence`
+(:mod:`sfem_filters.cardiac.closing` adds the residual diagnosis and the missing effects):
+
+1. :func:`prepare`: mesh the myocardium on the measured points, find endo- and epicardium, the
+   cavity centre and the radial / circumferential directions; observe sparse landmarks on
+   each contour (as shape tracking gives) and, optionally, a seeded half of the mid-wall
+   points; hold every other point out for validation;
+2. :func:`build_model`: drive the elastic model with the landmarks through
+   confidence-weighted penalty springs (section 2.7), with a measured cavity pressure, or
+   with nothing but its effects; the material map is a parameterisation (regions, a smooth
+   basis, per element or fixed);
+3. :func:`run`: the joint EKF over cyclic loops;
+4. :func:`evaluate`: held-out error, innovations, NIS and whiteness.
+
+Units: the sequence is in pixels unless it says otherwise. Inside, everything is SI: a pixel
+is ``pixel_spacing`` metres and frames are ``frame_interval`` seconds apart, taken from the
+file or, when it does not record them, from :data:`NOMINAL` (reported as such). Errors are
+reported in pixels. Without a pressure measurement absolute stiffness is not identifiable, so
+the nominal Young's modulus only sets the scale of the estimated map.
+"""
+from __future__ import annotations
+
+import time
+import warnings
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse.linalg as spla
+
+from ..fem.dofs import node_dofs
+from ..fem.elasticity import stiffness_matrix
+from ..fem.loads import penalty_load, penalty_stiffness, pressure_load
+from ..fem.material import Material, Parameterisation
+from ..fem.observation import node_observation_matrix
+from ..fem.strain import nodal_strains
+from ..filtering import diagnostics
+from ..filtering.cyclic import cyclic_estimate
+from ..geometry import polygon_centroid, radius_by_angle, triangle_double_areas
+from ..model import SFEMModel
+from .effects import build_effects
+from .myocardium import (contour_landmarks, lv_geometry, mesh_from_points, polar_strains,
+                         transmural_depth)
+from .sequence import Sequence
+
+#: Values used when a sequence does not record them (documented in every report).
+NOMINAL = {
+    "pixel_spacing": 1.0e-3,    # m per pixel
+    "frame_interval": 0.03,     # s
+    "E": 10e3,                  # Pa, initial Young's modulus (scale only: not identifiable)
+    "nu": 0.45,                 # initial Poisson's ratio
+    "density": 1050.0,          # kg/m^3
+    "alpha": 10.0,              # 1/s, Rayleigh mass coefficient
+    "beta": 3e-3,               # s, Rayleigh stiffness coefficient: transients decay within a frame
+    "penalty": 0.03,            # penalty springs in units of the median diagonal of K: soft, so
+                                # that the tissue's own mechanics shape the landmark motion
+    "foundation": 1e-3,         # ground springs (drive pressure/none) in the same units
+}
+
+#: Per-frame random-walk step of effect amplitudes (units of NOMINAL["E"]): a myocardial active
+#: strain of ~0.4 builds up over ~10 frames.
+EFFECT_STEP = 0.04
+
+#: The smooth material basis (``parameterisation="basis"``): leading modes of a squared-exponential
+#: correlation over element centroids, its length a fraction of the mesh's diameter; relative
+#: stiffness (mean log E fixed, as with the regions), Poisson's ratio absolute.
+BASIS = {"modes_E": 6, "modes_nu": 3, "length_fraction": 0.25}
+
+#: Material parameterisations by name (``parameterisation=``, ``--parameterisation``).
+PARAMETERISATIONS = ("region", "basis", "element", "none")
+#: What drives the model besides its effects (``drive=``, ``--drive``).
+DRIVES = ("penalty", "pressure", "none")
+#: Which points are observed (``observe=``, ``--observe``).
+OBSERVE = ("boundary", "boundary+midwall")
+
+
+def noise_floor(displacement) -> float:
+    """Measurement noise estimated from the data (per-point vector RMS, data units).
+
+    The second difference of a smooth trajectory is small, that of white noise has variance
+    1.5 sigma^2 per component for ``u_t - (u_{t-1} + u_{t+1}) / 2``; the per-point figure is
+    ``sqrt(2) sigma``.
+    """
+    u = np.asarray(displacement, float)
+    d2 = u[1:-1] - 0.5 * (u[:-2] + u[2:])
+    sigma = np.sqrt(np.nanmean(d2 ** 2) / 1.5)
+    return float(np.sqrt(2.0) * sigma)
+
+
+@dataclass(eq=False)
+class Setup:
+    """Mesh, geometry, landmarks and the observed / held-out split of a sequence."""
+
+    seq: Sequence
+    spacing: float                  # m per data unit
+    frame_interval: float           # s
+    nominal: list                   # which of spacing / frame_interval are nominal
+    mesh: object
+    geometry: object
+    node_of_point: np.ndarray       # mesh node of each data point
+    landmarks: np.ndarray           # observed boundary landmark points (endo then epi)
+    observed: np.ndarray            # all observed points
+    heldout: np.ndarray             # points held out for validation
+    noise_px: float                 # per-point noise floor (data units)
+    n_landmarks: int
+    observe: str
+    holdout_seed: int
+    regions: np.ndarray = field(default=None)   # material region of each element
+    # image-derived data (sfem_filters.frontend): when set, they replace the sequence's own
+    # displacements at the observed points, and add velocity rows (Eq. 13)
+    obs_displacement: np.ndarray = field(default=None)   # (F, P, 2) data units, NaN if missing
+    obs_sigma: np.ndarray = field(default=None)          # (F, P) per-component sd, data units
+    obs_confidence: np.ndarray = field(default=None)     # (F, P) in [0, 1]
+    velocity_points: np.ndarray = field(default=None)    # points with velocity data
+    velocity: np.ndarray = field(default=None)           # (F, V, 2) data units per second
+    velocity_sigma: np.ndarray = field(default=None)     # (F, V) per-component sd, units per second
+
+
+def prepare(seq: Sequence, landmarks: int = 8, observe: str = "boundary", holdout_seed: int = 0,
+            n_sectors: int = 6) -> Setup:
+    """Mesh the points and split them into observed and held-out sets.
+
+    Parameters
+    ----------
+    landmarks : int
+        Landmarks per contour (endo- and epicardium), evenly spaced in angle.
+    observe : {"boundary", "boundary+midwall"}
+        Observe the landmarks only, or also a seeded random half of the mid-wall points.
+    holdout_seed : int
+        Seed of the mid-wall split.
+    n_sectors : int
+        Angular sectors of the regional material map (times two transmural layers).
+    """
+    if observe not in OBSERVE:
+        raise ValueError(f"observe: expected one of {OBSERVE}, got {observe!r}")
+    nominal = []
+    if seq.units == "m":
+        spacing = 1.0
+    elif seq.pixel_spacing is not None:
+        spacing = seq.pixel_spacing
+    else:
+        spacing = NOMINAL["pixel_spacing"]
+        nominal.append("pixel_spacing")
+    if seq.frame_interval is not None:
+        T = seq.frame_interval
+    else:
+        T = NOMINAL["frame_interval"]
+        nominal.append("frame_interval")
+    pts = seq.points * spacing
+    d = np.linalg.norm(pts[:, None] - pts[None], axis=2)
+    np.fill_diagonal(d, np.inf)
+    lattice = np.median(d.min(axis=1))
+    mesh = mesh_from_points(pts, 1.5 * lattice)
+    if mesh.n_nodes != len(pts):
+        raise ValueError(f"points: {len(pts) - mesh.n_nodes} points lie in no triangle of the tissue mesh "
+                         "(isolated pixels?); remove them")
+    node_of_point = np.arange(len(pts))
+    geometry = lv_geometry(mesh)
+    endo_l, epi_l = contour_landmarks(geometry, mesh, landmarks)
+    lm = np.concatenate([endo_l, epi_l])
+    observed = lm
+    if observe == "boundary+midwall":
+        rng = np.random.default_rng(holdout_seed)
+        mid = geometry.midwall
+        observed = np.union1d(lm, rng.choice(mid, size=len(mid) // 2, replace=False))
+    heldout = np.setdiff1d(np.arange(len(pts)), observed)
+    # regional map: angular sectors x (inner, outer) halves of the wall
+    c = mesh.centroids - geometry.centre
+    sector = np.floor(np.mod(np.arctan2(c[:, 1], c[:, 0]), 2 * np.pi) / (2 * np.pi / n_sectors)).astype(int)
+    layer = (transmural_depth(mesh, geometry) > 0.5).astype(int)
+    return Setup(seq=seq, spacing=spacing, frame_interval=T, nominal=nominal, mesh=mesh, geometry=geometry,
+                 node_of_point=node_of_point, landmarks=lm, observed=observed, heldout=heldout,
+                 noise_px=noise_floor(seq.displacement), n_landmarks=landmarks, observe=observe,
+                 holdout_seed=holdout_seed, regions=2 * sector + layer)
+
+
+def _filled(u):
+    """Carry the last valid value forward (then backward) along frames, for drive data."""
+    u = np.array(u, float)
+    for t in range(1, len(u)):
+        bad = np.isnan(u[t])
+        u[t][bad] = u[t - 1][bad]
+    for t in range(len(u) - 2, -1, -1):
+        bad = np.isnan(u[t])
+        u[t][bad] = u[t + 1][bad]
+    return np.nan_to_num(u)
+
+
+def smooth_parameterisation(mesh, modes_E: int | None = None, modes_nu: int | None = None,
+                            length_fraction: float | None = None) -> Parameterisation:
+    """The smooth relative material basis of ``parameterisation="basis"`` (defaults: :data:`BASIS`).
+
+    ``length_fraction`` times the largest distance between element centroids is the
+    correlation length of :meth:`Parameterisation.smooth`.
+    """
+    c = mesh.centroids
+    diameter = float(np.sqrt(np.max(np.sum((c[:, None, :] - c[None, :, :]) ** 2, axis=2))))
+    frac = BASIS["length_fraction"] if length_fraction is None else length_fraction
+    return Parameterisation.smooth(c, frac * diameter, BASIS["modes_E"] if modes_E is None else modes_E,
+                                   BASIS["modes_nu"] if modes_nu is None else modes_nu, NOMINAL["E"])
+
+
+def build_model(setup: Setup, effects=(), drive: str = "penalty", parameterisation: str = "region",
+                process_scale: float = 1.0, landmark_step_px: float | None = None,
+                beta: float | None = None, model_options: dict | None = None) -> tuple:
+    """The filter model of a set-up, and the observations it is fed (m, and m/s for velocities).
+
+    ``landmark_step_px`` sets the per-frame uncertainty of the spring targets (data units);
+    by default it is the RMS frame-to-frame motion of the landmarks in the data. ``beta`` (s)
+    overrides the Rayleigh stiffness coefficient ``NOMINAL["beta"]``: velocity data inform the
+    displacement only when the model's transients last a good part of a frame.
+    ``model_options`` are passed on to :class:`sfem_filters.model.SFEMModel` (for example
+    ``system_class``).
+
+    Returns ``(model, observations)`` with observations of shape (frames, 2 * n_observed
+    [+ 2 * n_velocity_points]): displacement rows, then velocity rows (Eq. 13).
+    """
+    if drive not in DRIVES:
+        raise ValueError(f"drive: expected one of {DRIVES}, got {drive!r}")
+    seq, mesh, s = setup.seq, setup.mesh, setup.spacing
+    F = seq.n_frames
+    data = seq.displacement if setup.obs_displacement is None else setup.obs_displacement
+    mat0 = Material.uniform(mesh.n_elements, NOMINAL["E"], NOMINAL["nu"])
+    Kdiag = np.median(stiffness_matrix(mesh, mat0.E, mat0.nu).diagonal())
+    loads = np.zeros((F, mesh.n_dofs))
+    penalty = None
+    nodes = setup.node_of_point
+    load_std = None
+    if drive == "penalty":
+        lm_nodes = nodes[setup.landmarks]
+        dofs = node_dofs(lm_nodes)
+        conf = np.repeat(_confidence(seq, setup.landmarks, setup.obs_confidence), 2, axis=-1)  # per dof
+        k = NOMINAL["penalty"] * Kdiag
+        penalty = penalty_stiffness(mesh.n_dofs, dofs, k, conf.mean(axis=0) if conf.ndim == 2 else conf)
+        b = _filled(data[:, setup.landmarks]) * s                          # (F, L, 2) m
+        # Causal zero-order hold of the data: over the interval into frame t the springs pull
+        # toward the landmarks measured at frame t - 1, so frame t's data enter only through
+        # the measurement update and the innovation stays a one-step-ahead prediction error.
+        for t in range(F):
+            c_t = conf[max(t - 1, 0)] if conf.ndim == 2 else conf
+            loads[t] = penalty_load(mesh.n_dofs, dofs, k, b[max(t - 1, 0)].reshape(-1), c_t)
+        # Process noise: the landmarks move by an unknown amount between frames, so the spring
+        # targets are uncertain by the data's own frame-to-frame landmark motion; the random
+        # spring loads reach the tissue through the dynamics (elastically correlated noise).
+        if landmark_step_px is None:
+            landmark_step_px = np.sqrt(np.nanmean(np.diff(data[:, setup.landmarks], axis=0) ** 2))
+        step = landmark_step_px * s
+        load_std = np.zeros(mesh.n_dofs)
+        load_std[dofs] = k * step * (conf.mean(axis=0) if conf.ndim == 2 else conf)
+    else:
+        ground = NOMINAL["foundation"] * Kdiag
+        penalty = penalty_stiffness(mesh.n_dofs, np.arange(mesh.n_dofs), ground)
+        if drive == "pressure":
+            if seq.pressure is None:
+                raise ValueError("drive: 'pressure' needs a sequence with a cavity 'pressure' per frame")
+            unit = pressure_load(mesh, setup.geometry.endo_edges, 1.0)
+            loads = seq.pressure[:, None] * unit[None]
+    D = node_observation_matrix(mesh, nodes[setup.observed], keep_order=True)
+    y = data[:, setup.observed].reshape(F, -1) * s
+    sigma = _sigma(seq, setup) * s                                       # per observed row, m
+    Dv = None
+    if setup.velocity_points is not None:
+        Dv = node_observation_matrix(mesh, nodes[setup.velocity_points], keep_order=True)
+        y = np.hstack([y, setup.velocity.reshape(F, -1) * s])
+        v_sd = np.repeat(_per_frame(setup.velocity_sigma), 2, axis=1)
+        sigma = np.hstack([sigma if sigma.ndim == 2 else np.broadcast_to(sigma, (F, sigma.size)), v_sd * s])
+    noise_c = setup.noise_px / np.sqrt(2.0) * s                          # per component, m
+    if parameterisation not in PARAMETERISATIONS:
+        raise ValueError(f"parameterisation: expected one of {PARAMETERISATIONS}, got {parameterisation!r}")
+    param = None
+    if parameterisation == "region":
+        # relative stiffness between regions (mean log E fixed) and nu per region
+        param = Parameterisation.relative_regions(setup.regions, NOMINAL["E"])
+    elif parameterisation == "basis":
+        param = smooth_parameterisation(mesh)
+    elif parameterisation == "element":
+        param = Parameterisation.per_element(mesh.n_elements)
+    effs = build_effects(effects, mesh, setup.geometry, scale=NOMINAL["E"], process_std=EFFECT_STEP * process_scale,
+                         initial_std=EFFECT_STEP) if effects else []
+    # initial state: at rest in equilibrium with the frame-0 drive
+    Kt = stiffness_matrix(mesh, mat0.E, mat0.nu) + (penalty if penalty is not None else 0)
+    u0 = spla.spsolve(Kt.tocsc(), loads[0]) if drive != "none" else np.zeros(mesh.n_dofs)
+    model = SFEMModel(mesh, mat0, loads, D, setup.frame_interval, (), density=NOMINAL["density"],
+                      alpha=NOMINAL["alpha"], beta=NOMINAL["beta"] if beta is None else beta,
+                      measurement_std=sigma, velocity_operator=Dv,
+                      process_std=(0.1 * process_scale * noise_c, 0.1 * process_scale * noise_c / setup.frame_interval),
+                      initial_std=(noise_c, noise_c / setup.frame_interval), parameterisation=param,
+                      prior_std=(0.3, 1.0), penalty=penalty, effects=effs, initial_displacement=u0,
+                      process_load_std=None if load_std is None else process_scale * load_std,
+                      **(model_options or {}))
+    return model, y
+
+
+def _confidence(seq: Sequence, points, override=None) -> np.ndarray:
+    c = seq.confidence if override is None else override
+    if c is None:
+        return np.ones(len(points))
+    return c[:, points] if c.ndim == 2 else c[points]
+
+
+def _per_frame(sd) -> np.ndarray:
+    """(F, n) standard deviations with NaN (no datum that frame) replaced by the column's RMS."""
+    sd = np.asarray(sd, float)
+    rms = np.sqrt(np.nanmean(sd ** 2, axis=0))
+    return np.where(np.isnan(sd), rms[None], sd)
+
+
+def _sigma(seq: Sequence, setup: Setup) -> np.ndarray:
+    """Noise standard deviation per observed row (x, y per point) in data units.
+
+    ``(rows,)``, or ``(frames, rows)`` when the data give one per frame (image-derived
+    confidences): then each frame gets its own R.
+    """
+    if setup.obs_sigma is not None:
+        return np.repeat(_per_frame(setup.obs_sigma[:, setup.observed]), 2, axis=1)
+    if seq.sigma is not None:
+        if seq.sigma.ndim == 2:
+            return np.repeat(_per_frame(seq.sigma[:, setup.observed]), 2, axis=1)
+        return np.repeat(seq.sigma[setup.observed], 2)
+    return np.full(2 * len(setup.observed), setup.noise_px / np.sqrt(2.0))
+
+
+@dataclass(eq=False)
+class Run:
+    """A filter run on a set-up and what was measured of it."""
+
+    name: str
+    model: SFEMModel
+    result: object
+    U: np.ndarray            # (frames, n_points, 2) filtered displacement, data units
+    metrics: dict
+
+
+def evaluate(setup: Setup, model: SFEMModel, result, seconds: float = 0.0) -> tuple:
+    """Held-out error, innovations and NIS of a run, in data units (pixels)."""
+    s = setup.spacing
+    U = model.displacements(result.states).reshape(setup.seq.n_frames, -1, 2)[:, setup.node_of_point] / s
+    meas = setup.seq.displacement
+    h = setup.heldout
+    r = meas[:, h] - U[:, h]                                              # (F, H, 2)
+    er = setup.geometry.radial[setup.node_of_point[h]]
+    ec = setup.geometry.circumferential[setup.node_of_point[h]]
+    rad = np.sum(r * er[None], axis=2)
+    circ = np.sum(r * ec[None], axis=2)
+    norm2 = np.sum(r ** 2, axis=2)
+    per_frame = np.sqrt(np.nanmean(norm2, axis=1))
+    rows = np.arange(2 * len(setup.observed)).reshape(-1, 2)
+    nis = diagnostics.nis_summary(result.history)
+    white = diagnostics.whiteness(result.history)
+    cons = diagnostics.consistency(result.history)
+    mat = model.material_of_theta(result.theta)
+    metrics = {
+        "heldout_rmse_px": float(np.sqrt(np.nanmean(norm2))),
+        "heldout_rmse_radial_px": float(np.sqrt(np.nanmean(rad ** 2))),
+        "heldout_rmse_circumferential_px": float(np.sqrt(np.nanmean(circ ** 2))),
+        "heldout_rmse_per_frame_px": per_frame.tolist(),
+        "heldout_rmse_worst_frame_px": float(np.nanmax(per_frame)),
+        "innovation_rms_px": diagnostics.innovation_rms(result.history, rows_of_points=rows) / s,
+        "nis_mean_over_dof": nis["nis_mean_over_dof"],
+        "nis_fraction_outside_95": nis["nis_fraction_outside_95"],
+        "innovation_lag1_autocorrelation": white["lag1"],
+        "whiteness_Q": white["Q"], "whiteness_p": white["p_value"],
+        "nis_z": cons["nis_z"], "lag1_z": cons["lag1_z"], "inconsistent": cons["inconsistent"],
+        "loops": int(result.loops), "converged": bool(result.converged),
+        # how far the last loop moved the material against its carried sd (None: material fixed)
+        "material_drift_sd": (float(diagnostics.material_drift(model, result.history)["max_sd"][-1])
+                              if model.estimates_material else None),
+        "E_relative_range": [float(mat.E.min() / NOMINAL["E"]), float(mat.E.max() / NOMINAL["E"])],
+        "nu_range": [float(mat.nu.min()), float(mat.nu.max())],
+        "seconds": float(seconds),
+    }
+    if model.dim_eta:
+        eta = np.array([model.eta_of(x) for x in result.states])
+        metrics["effect_states"] = eta.tolist()
+        metrics["effect_state_names"] = [f"{e.name}[{i}]" for e in model.effects for i in range(e.n_states)]
+    return U, metrics
+
+
+def run(setup: Setup, effects=(), drive: str = "penalty", parameterisation: str = "region", max_loops: int = 5,
+        process_scale: float = 1.0, tol: float = 1e-3, progress: bool = False, name: str = "",
+        landmark_step_px: float | None = None, beta: float | None = None, model_options: dict | None = None) -> Run:
+    """Build the model, run the cyclic joint EKF and evaluate it (``beta``, ``model_options``: see
+    :func:`build_model`)."""
+    model, y = build_model(setup, effects, drive, parameterisation, process_scale, landmark_step_px, beta,
+                           model_options)
+    t0 = time.perf_counter()
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="cyclic_estimate: the material did not converge")
+        result = cyclic_estimate(model, y, max_loops=max_loops, tol=tol, progress=progress,
+                                 description=name or "dense")
+    U, metrics = evaluate(setup, model, result, time.perf_counter() - t0)
+    return Run(name, model, result, U, metrics)
+
+
+def strain_maps(setup: Setup, U_px) -> np.ndarray:
+    """Radial, circumferential and shear strain at each node w.r.t. frame 0, (frames, nodes, 3).
+
+    ``U_px`` (frames, points, 2) displacement in data units; the shear is engineering (2 E_rc).
+    """
+    U = np.asarray(U_px, float) - np.asarray(U_px, float)[0]
+    eps = nodal_strains(setup.mesh, U.reshape(len(U), -1) * setup.spacing)   # e_xx, e_yy, gamma_xy
+    return polar_strains(setup.geometry, eps)
+
+
+def measured_wall_kinematics(setup: Setup) -> dict:
+    """What the data themselves say about the wall, per frame and at the systolic peak.
+
+    Wall area ratio (deformed over reference area of the tissue mesh), mean wall thickness
+    (mean over angle of epicardial minus endocardial radius about the cavity centre, both
+    contours interpolated in angle), mean radial and circumferential strain w.r.t. frame 0;
+    the displacement RMS of the first frame (is it at rest?) and between the last and first
+    frames (does the cycle close?). Data units (pixels).
+    """
+    mesh, g, seq = setup.mesh, setup.geometry, setup.seq
+    P = seq.points
+    U = _filled(seq.displacement)
+    def area(X):
+        return 0.5 * np.abs(triangle_double_areas(X, mesh.elements)).sum()
+
+    a0 = area(P)
+    area_ratio = np.array([area(P + U[t]) / a0 for t in range(len(U))])
+    grid = np.linspace(0, 2 * np.pi, 90, endpoint=False)
+
+    def thickness(X):
+        c = polygon_centroid(X[g.endo])
+        return float(np.mean(radius_by_angle(X[g.epi], c, grid) - radius_by_angle(X[g.endo], c, grid)))
+
+    thick = np.array([thickness(P + U[t]) for t in range(len(U))])
+    eps = strain_maps(setup, U)
+    peak = int(np.argmax(area_ratio))
+    return {"peak_frame": peak, "wall_area_ratio_peak": float(area_ratio[peak]),
+            "wall_thickness_px_frame0": float(thick[0]), "wall_thickness_px_peak": float(thick[peak]),
+            "mean_radial_strain_peak": float(eps[peak, :, 0].mean()),
+            "mean_circumferential_strain_peak": float(eps[peak, :, 1].mean()),
+            "frame0_displacement_rms_px": float(np.sqrt(np.mean(np.sum(U[0] ** 2, axis=1)))),
+            "last_to_first_rms_px": float(np.sqrt(np.mean(np.sum((U[-1] - U[0]) ** 2, axis=1)))),
+            "wall_area_ratio": area_ratio.tolist(), "wall_thickness_px": thick.tolist()}
+
+
+def equivalent_eigenstrain(effect_states, nu: float = None) -> np.ndarray:
+    """Stress-free strain (eps_cc, eps_rr) equivalent to ``active_polar`` amplitudes.
+
+    The active stress ``sigma_a = E0 (a_c e_c e_c + a_r e_r e_r)`` (E0 = NOMINAL["E"]) acts
+    like an eigenstrain ``eps* = -D^-1 sigma_a`` of a homogeneous plane-strain material with
+    Young's modulus E0 and Poisson's ratio nu.
+    """
+    nu = NOMINAL["nu"] if nu is None else nu
+    a = np.asarray(effect_states, float)
+    ac, ar = a[..., 0], a[..., 1]
+    f = 1.0 + nu
+    return np.stack([-f * ((1 - nu) * ac - nu * ar), -f * (-nu * ac + (1 - nu) * ar)], axis=-1)
+
+

@@ -1,0 +1,226 @@
+"""Myocardial geometry of a short-axis slice: mesh, contours, wall layers and directions.
+
+Coordinates are in metres (convert pixels with the pixel spacing first). The cavity centre is
+the centroid of the endocardial contour. The radial direction points away from it; the
+circumferential direction is the radial one turned by +90 degrees in the (x, y) plane
+(counter-clockwise when y points up; on an image with y down it appears clockwise).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from skimage.measure import label
+
+from .._validate import as_float_array, as_mask, integer, positive
+from ..fem.mesh import TriMesh, check_mesh, delaunay_mesh, mesh_quality
+from ..geometry import polygon_centroid, radius_by_angle, signed_area
+
+
+def mesh_from_points(points, max_edge: float, inside=None, min_angle_deg: float = 10.0) -> TriMesh:
+    """Delaunay mesh of tissue points, keeping triangles that lie in the tissue.
+
+    Parameters
+    ----------
+    points : (n, 2) array
+        Node positions in metres (for example the centres of the myocardial pixels).
+    max_edge : float
+        Longest admissible edge in metres: triangles bridging the cavity or a concavity have
+        longer edges and are removed (1.5 pixel spacings suits a pixel lattice).
+    inside : callable, optional
+        ``inside(xy) -> bool array``: an extra test of triangle centroids (for example a mask).
+    min_angle_deg : float
+        Quality bound passed to :func:`sfem_filters.mesh.delaunay_mesh`.
+
+    Returns
+    -------
+    TriMesh
+        Nodes are the given points in their order when every point is used; points that end up
+        in no triangle are dropped (check ``mesh.n_nodes``).
+    """
+    return delaunay_mesh(points, keep=inside, min_angle_deg=min_angle_deg, max_edge=max_edge)
+
+
+def mask_inside(mask, spacing: float, origin=(0.0, 0.0)):
+    """A test ``inside(xy)`` of whether points (m) fall on pixels of a boolean mask.
+
+    Pixel (row r, column c) covers ``x in origin_x + spacing (c +- 1/2)`` and
+    ``y in origin_y + spacing (r +- 1/2)``.
+    """
+    mask = as_mask("mask", mask, 2, nonempty=True)
+    spacing = positive("spacing", spacing, "m")
+    origin = as_float_array("origin", origin, shape=(2,))
+
+    def inside(xy):
+        xy = np.asarray(xy, float)
+        c = np.round((xy[:, 0] - origin[0]) / spacing).astype(int)
+        r = np.round((xy[:, 1] - origin[1]) / spacing).astype(int)
+        ok = (r >= 0) & (r < mask.shape[0]) & (c >= 0) & (c < mask.shape[1])
+        out = np.zeros(len(xy), bool)
+        out[ok] = mask[r[ok], c[ok]]
+        return out
+
+    return inside
+
+
+def mesh_from_mask(mask, spacing: float, step: int = 1) -> TriMesh:
+    """Mesh a myocardium mask: every ``step``-th tissue pixel centre becomes a node.
+
+    Parameters
+    ----------
+    mask : (H, W) bool array
+        Tissue pixels (row = y, column = x); must be one connected piece.
+    spacing : float
+        Pixel size in metres.
+    step : int
+        Subsampling of the pixel lattice (1 keeps every pixel).
+    """
+    mask = as_mask("mask", mask, 2, nonempty=True)
+    spacing = positive("spacing", spacing, "m")
+    step = integer("step", step, 1)
+    n_pieces = label(mask, connectivity=2).max()
+    if n_pieces != 1:
+        raise ValueError(f"mask: expected one connected piece of tissue, got {n_pieces}")
+    rows, cols = np.nonzero(mask)
+    sel = (rows % step == 0) & (cols % step == 0)
+    pts = np.column_stack([cols[sel], rows[sel]]).astype(float) * spacing
+    return mesh_from_points(pts, 1.5 * step * spacing)
+
+
+def boundary_loops(mesh: TriMesh) -> list:
+    """Closed boundary loops as ordered node arrays, tissue on the left of each step."""
+    check_mesh("mesh", mesh)
+    edges = mesh.boundary_edges()
+    nxt = {}
+    for a, b in edges.tolist():
+        if a in nxt:
+            raise ValueError("mesh: a boundary node is shared by two boundary loops (pinched boundary)")
+        nxt[a] = b
+    loops, seen = [], set()
+    for start in nxt:
+        if start in seen:
+            continue
+        loop = [start]
+        seen.add(start)
+        node = nxt[start]
+        while node != start:
+            loop.append(node)
+            seen.add(node)
+            node = nxt[node]
+        loops.append(np.array(loop))
+    return loops
+
+
+@dataclass(frozen=True, eq=False)
+class LVGeometry:
+    """Wall layers and local directions of a short-axis myocardial mesh."""
+
+    centre: np.ndarray            # (2,) m, centroid of the endocardial contour
+    endo: np.ndarray              # ordered endocardial boundary nodes
+    epi: np.ndarray               # ordered epicardial boundary nodes
+    midwall: np.ndarray           # nodes on neither contour
+    radial: np.ndarray            # (n_nodes, 2) unit vectors away from the centre
+    circumferential: np.ndarray   # (n_nodes, 2) radial turned by +90 degrees
+    endo_edges: np.ndarray        # boundary edges of the endocardium (tissue on the left)
+    epi_edges: np.ndarray
+
+    def angle(self, xy) -> np.ndarray:
+        """Angle (rad, in [0, 2 pi)) of points about the centre."""
+        d = np.asarray(xy, float) - self.centre
+        return np.mod(np.arctan2(d[:, 1], d[:, 0]), 2 * np.pi)
+
+
+def lv_geometry(mesh: TriMesh) -> LVGeometry:
+    """Classify the boundary of an annular mesh into endocardium (inner) and epicardium (outer).
+
+    The epicardium is the loop traversed counter-clockwise with the tissue on its left
+    (positive signed area); the endocardium is the hole (negative signed area). Exactly one of
+    each is required.
+    """
+    loops = boundary_loops(mesh)
+    areas = [signed_area(mesh.nodes[lp]) for lp in loops]
+    outer = [lp for lp, a in zip(loops, areas) if a > 0]
+    holes = [lp for lp, a in zip(loops, areas) if a < 0]
+    if len(outer) != 1 or len(holes) != 1:
+        raise ValueError(f"mesh: expected an annulus (one outer contour and one cavity), got "
+                         f"{len(outer)} outer and {len(holes)} inner boundary loops")
+    epi, endo = outer[0], holes[0]
+    centre = polygon_centroid(mesh.nodes[endo])
+    d = mesh.nodes - centre
+    radial = d / np.linalg.norm(d, axis=1, keepdims=True)
+    circ = np.column_stack([-radial[:, 1], radial[:, 0]])
+    on = np.zeros(mesh.n_nodes, bool)
+    on[endo] = on[epi] = True
+    edges = mesh.boundary_edges()
+    in_endo = np.isin(edges[:, 0], endo) & np.isin(edges[:, 1], endo)
+    return LVGeometry(centre=centre, endo=endo, epi=epi, midwall=np.flatnonzero(~on), radial=radial,
+                      circumferential=circ, endo_edges=edges[in_endo], epi_edges=edges[~in_endo])
+
+
+def transmural_depth(mesh: TriMesh, geometry: LVGeometry, xy=None) -> np.ndarray:
+    """Transmural depth: 0 at the endocardium, 1 at the epicardium (clipped to [0, 1]).
+
+    At each point (default: the element centroids, m) the radius about the cavity centre is
+    set between the endo- and epicardial radii in the same direction
+    (:func:`sfem_filters.geometry.radius_by_angle`).
+    """
+    c = (mesh.centroids if xy is None else np.asarray(xy, float)) - geometry.centre
+    ang = np.arctan2(c[:, 1], c[:, 0])
+    r = np.linalg.norm(c, axis=1)
+    r_in = radius_by_angle(mesh.nodes[geometry.endo], geometry.centre, ang)
+    r_out = radius_by_angle(mesh.nodes[geometry.epi], geometry.centre, ang)
+    return np.clip((r - r_in) / np.maximum(r_out - r_in, 1e-12), 0.0, 1.0)
+
+
+def polar_strains(geometry: LVGeometry, nodal_strain) -> np.ndarray:
+    """Radial, circumferential and shear strain (E_rr, E_cc, 2 E_rc) from nodal (e_xx, e_yy, gamma_xy).
+
+    ``nodal_strain`` is (..., n_nodes, 3) with engineering shear; the result has the same
+    shape, the shear again engineering (twice the tensor component), in the node's radial and
+    circumferential directions.
+    """
+    eps = np.asarray(nodal_strain, float)
+    exx, eyy, gxy = eps[..., 0], eps[..., 1], eps[..., 2]
+    er, ec = geometry.radial, geometry.circumferential
+
+    def proj(a, b):
+        return (exx * a[:, 0] * b[:, 0] + eyy * a[:, 1] * b[:, 1]
+                + 0.5 * gxy * (a[:, 0] * b[:, 1] + a[:, 1] * b[:, 0]))
+
+    return np.stack([proj(er, er), proj(ec, ec), 2 * proj(er, ec)], axis=-1)
+
+
+def contour_landmarks(geometry: LVGeometry, mesh: TriMesh, n_per_contour: int, offset_deg: float = 0.0):
+    """``n_per_contour`` evenly spaced landmark nodes on each contour (endo, epi).
+
+    Landmark k of a contour is the contour node whose angle about the cavity centre is
+    closest to ``offset + 360 k / n`` degrees, as shape tracking would give sparse points.
+
+    Returns
+    -------
+    (endo_nodes, epi_nodes) : two int arrays
+    """
+    if int(n_per_contour) != n_per_contour or n_per_contour < 3:
+        raise ValueError(f"n_per_contour: expected an integer >= 3, got {n_per_contour!r}")
+    targets = np.radians(offset_deg + 360.0 * np.arange(int(n_per_contour)) / n_per_contour)
+    out = []
+    for loop in (geometry.endo, geometry.epi):
+        if n_per_contour > len(loop):
+            raise ValueError(f"n_per_contour: a contour has only {len(loop)} nodes, asked for {n_per_contour}")
+        ang = geometry.angle(mesh.nodes[loop])
+        diff = np.abs(np.angle(np.exp(1j * (ang[None, :] - targets[:, None]))))
+        chosen = []
+        for row in diff:
+            order = np.argsort(row)
+            pick = next(i for i in order if loop[i] not in chosen)
+            chosen.append(loop[pick])
+        out.append(np.array(chosen))
+    return out[0], out[1]
+
+
+def describe(mesh: TriMesh, geometry: LVGeometry) -> dict:
+    """Counts and quality of a myocardial mesh (for reports)."""
+    q = mesh_quality(mesh)
+    return {"nodes": mesh.n_nodes, "elements": mesh.n_elements, "endo_nodes": len(geometry.endo),
+            "epi_nodes": len(geometry.epi), "midwall_nodes": len(geometry.midwall), **q}

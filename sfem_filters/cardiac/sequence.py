@@ -1,0 +1,194 @@
+"""Point-wise motion sequences (DENSE, tagging, tracking): format, loader, example data.
+
+A sequence file is an ``.npz`` with these keys (only the first two are required):
+
+============== ================ =====================================================================
+key            shape            meaning
+============== ================ =====================================================================
+points         (P, 2)           reference positions of the tracked material points (x, y), in pixels
+                                 (or metres when ``pixel_spacing`` is absent and ``units`` = "m")
+displacement   (F, P, 2)        Lagrangian displacement of each point at each frame, same unit as
+                                 ``points``; NaN where a value is missing
+velocity       (F, P, 2)        optional: velocity, unit per second (phase-contrast); NaN if missing
+sigma          (P,) or (F, P)   optional: measurement standard deviation of each displacement, same
+                                 unit as ``points``
+confidence     (P,) or (F, P)   optional: confidence in [0, 1] of each displacement datum
+velocity_sigma (F, P)           optional: standard deviation of each velocity component, unit per
+                                 second; NaN where there is no velocity
+velocity_confidence (F, P)      optional: confidence in [0, 1] of each velocity (local phase
+                                 coherence, LPC); NaN where there is no velocity
+point_kind     (P,) int         optional: 0 endocardial border, 1 epicardial border, 2 mid-wall
+frame_interval ()               optional: time between frames in seconds
+pixel_spacing  ()               optional: size of a pixel in metres
+pressure       (F,)             optional: cavity (blood) pressure at each frame in Pa
+reference_mask (H, W) bool      optional: myocardium pixels of the reference frame (row = y, col = x)
+frame_masks    (F, H, W) bool   optional: myocardium mask of each frame
+units          ()               optional: "px" (default) or "m"
+provenance     ()               optional: free text on where the data come from
+============== ================ =====================================================================
+
+Image convention: x grows to the right (columns), y grows downwards (rows); point ``i`` is at
+``points[i] + displacement[t, i]`` in frame ``t``.
+"""
+from __future__ import annotations
+
+import os
+import zipfile
+from dataclasses import dataclass, field, fields
+from importlib import resources
+
+import numpy as np
+
+from .._validate import as_float_array, as_mask, positive
+
+FORMAT_KEYS = ("points", "displacement", "velocity", "sigma", "confidence", "velocity_sigma",
+               "velocity_confidence", "point_kind", "frame_interval",
+               "pixel_spacing", "pressure", "reference_mask", "frame_masks", "units", "provenance")
+
+
+@dataclass(frozen=True, eq=False)
+class Sequence:
+    """A validated motion sequence; see the module docstring for every field."""
+
+    points: np.ndarray
+    displacement: np.ndarray
+    velocity: np.ndarray | None = None
+    sigma: np.ndarray | None = None
+    confidence: np.ndarray | None = None
+    velocity_sigma: np.ndarray | None = None
+    velocity_confidence: np.ndarray | None = None
+    point_kind: np.ndarray | None = None
+    frame_interval: float | None = None
+    pixel_spacing: float | None = None
+    pressure: np.ndarray | None = None
+    reference_mask: np.ndarray | None = None
+    frame_masks: np.ndarray | None = None
+    units: str = "px"
+    provenance: str = ""
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def n_frames(self) -> int:
+        return self.displacement.shape[0]
+
+    @property
+    def n_points(self) -> int:
+        return self.points.shape[0]
+
+    def to_dict(self) -> dict:
+        out = {}
+        for f in fields(self):
+            if f.name == "extra":
+                continue
+            v = getattr(self, f.name)
+            if v is not None:
+                out[f.name] = v
+        return out
+
+
+def make_sequence(points, displacement, **optional) -> Sequence:
+    """Validate arrays into a :class:`Sequence` (errors name the key and what was expected)."""
+    unknown = set(optional) - set(FORMAT_KEYS)
+    pts = as_float_array("points", points, (None, 2), numeric_only=True)
+    P = len(pts)
+    if P < 3:
+        raise ValueError(f"points: expected at least 3 points, got {P}")
+    disp = as_float_array("displacement", displacement, (None, P, 2), allow_nan=True, numeric_only=True)
+    F = disp.shape[0]
+    if F < 2:
+        raise ValueError(f"displacement: expected at least 2 frames, got {F}")
+    if np.all(np.isnan(disp)):
+        raise ValueError("displacement: every value is NaN; nothing was measured")
+    kw = {}
+    if optional.get("velocity") is not None:
+        kw["velocity"] = as_float_array("velocity", optional["velocity"], (F, P, 2), allow_nan=True,
+                                        numeric_only=True)
+    for key in ("sigma", "confidence"):
+        v = optional.get(key)
+        if v is not None:
+            arr = np.asarray(v)
+            arr = as_float_array(key, arr, (P,) if arr.ndim == 1 else (F, P), numeric_only=True)
+            if key == "sigma" and np.any(arr <= 0):
+                raise ValueError("sigma: expected standard deviations > 0")
+            if key == "confidence" and np.any((arr < 0) | (arr > 1)):
+                raise ValueError("confidence: expected values in [0, 1]")
+            kw[key] = arr
+    for key in ("velocity_sigma", "velocity_confidence"):
+        if optional.get(key) is not None:
+            if "velocity" not in kw:
+                raise ValueError(f"{key}: given without 'velocity'")
+            arr = as_float_array(key, optional[key], (F, P), allow_nan=True, numeric_only=True)
+            has_v = ~np.isnan(kw["velocity"]).any(axis=2)
+            if np.any(np.isnan(arr[has_v])):
+                raise ValueError(f"{key}: expected a value wherever 'velocity' has one, got NaN")
+            ok = arr[~np.isnan(arr)]
+            if key == "velocity_sigma" and np.any(ok <= 0):
+                raise ValueError("velocity_sigma: expected standard deviations > 0")
+            if key == "velocity_confidence" and np.any((ok < 0) | (ok > 1)):
+                raise ValueError("velocity_confidence: expected values in [0, 1]")
+            kw[key] = arr
+    if optional.get("point_kind") is not None:
+        pk = np.asarray(optional["point_kind"])
+        if pk.shape != (P,) or pk.dtype.kind not in "iu" or not np.isin(pk, [0, 1, 2]).all():
+            raise ValueError(f"point_kind: expected {P} integers in {{0, 1, 2}}, got dtype {pk.dtype} "
+                             f"and shape {pk.shape}")
+        kw["point_kind"] = pk.astype(int)
+    for key in ("frame_interval", "pixel_spacing"):
+        if optional.get(key) is not None:
+            kw[key] = positive(key, as_float_array(key, optional[key], (), numeric_only=True),
+                               {"frame_interval": "s", "pixel_spacing": "m"}[key])
+    if optional.get("pressure") is not None:
+        kw["pressure"] = as_float_array("pressure", optional["pressure"], (F,), numeric_only=True)
+    if optional.get("reference_mask") is not None:
+        kw["reference_mask"] = as_mask("reference_mask", optional["reference_mask"], 2, nonempty=True)
+    if optional.get("frame_masks") is not None:
+        kw["frame_masks"] = as_mask("frame_masks", optional["frame_masks"], 3, shape=(F, None, None))
+    units = str(np.asarray(optional.get("units", "px")))
+    if units not in ("px", "m"):
+        raise ValueError(f"units: expected 'px' or 'm', got {units!r}")
+    if units == "m" and kw.get("pixel_spacing") is not None:
+        raise ValueError("pixel_spacing: given, but units is 'm' (points already in metres)")
+    kw["units"] = units
+    kw["provenance"] = str(np.asarray(optional.get("provenance", "")))
+    return Sequence(points=pts, displacement=disp,
+                    extra={k: optional[k] for k in unknown}, **kw)
+
+
+def load_sequence(path) -> Sequence:
+    """Read and validate a sequence ``.npz`` file.
+
+    Raises ``ValueError`` naming the file and the offending key for a missing, truncated or
+    malformed file; no partial sequence is ever returned.
+    """
+    path = os.fspath(path)
+    if not os.path.exists(path):
+        raise ValueError(f"path: no such file {path!r}")
+    try:
+        with np.load(path, allow_pickle=False) as f:
+            data = {k: f[k] for k in f.files}
+    except (zipfile.BadZipFile, OSError, EOFError, ValueError) as exc:
+        raise ValueError(f"{path}: not a readable .npz sequence file ({exc})") from None
+    except Exception as exc:
+        raise ValueError(f"{path}: not a readable .npz sequence file ({type(exc).__name__}: {exc})") from None
+    missing = [k for k in ("points", "displacement") if k not in data]
+    if missing:
+        raise ValueError(f"{path}: missing required key(s) {missing}; found {sorted(data)}")
+    try:
+        return make_sequence(**data)
+    except ValueError as exc:
+        raise ValueError(f"{path}: {exc}") from None
+
+
+def save_sequence(seq: Sequence, path) -> None:
+    """Write a sequence in the documented format (compressed npz), creating its directory."""
+    folder = os.path.dirname(os.path.abspath(os.fspath(path)))
+    os.makedirs(folder, exist_ok=True)
+    np.savez_compressed(path, **seq.to_dict())
+
+
+def example_path(name: str = "subject_a") -> str:
+    """Path of an example sequence shipped with the package (``"subject_a"``: a DENSE LV slice)."""
+    ref = resources.files("sfem_filters") / "data" / f"{name}.npz"
+    if not ref.is_file():
+        raise ValueError(f"name: no example data set {name!r}")
+    return str(ref)

@@ -1,0 +1,53 @@
+"""Filtering with a model object: engines, the cyclic driver, safeguards, checkpoints, diagnostics.
+
+Knows the model only through its written contract, :mod:`sfem_filters.filtering.protocol`
+(required members ``fx``, ``F_jacobian``, ``hx``, ``H_jacobian``, ``Q``, ``R``, ``x0``, ``P0``,
+dimensions; optional capabilities such as per-frame noise). Any object with those members is a
+model; :class:`LinearGaussianModel` is a complete small one:
+
+>>> import numpy as np
+>>> from sfem_filters.filtering import CyclicEKF, LinearGaussianModel, diagnostics
+>>> def transition(theta):                        # x_{t+1} = a x_t, a = theta[0], dA/da = I
+...     return theta[0] * np.eye(1), np.ones((1, 1, 1))
+>>> model = LinearGaussianModel(transition, H=np.eye(1), Q=0.01 * np.eye(1), R=0.01 * np.eye(1),
+...                             x0=[1.0], P0=np.eye(1), n_frames=20, theta0=[0.5], prior_cov=np.eye(1))
+>>> y = 0.9 ** np.arange(20)[:, None]             # noise-free data of a = 0.9
+>>> result = CyclicEKF(max_loops=5, engine="structured").run(model, y)
+>>> bool(abs(result.theta[0] - 0.9) < 0.05)
+True
+>>> 0.0 < diagnostics.nis_summary(result.history)["nis_mean_over_dof"] < 1.0
+True
+
+Modules: :mod:`~sfem_filters.filtering.protocol` (the model contract),
+:mod:`~sfem_filters.filtering.base` (the engine interface), one engine per module
+(:mod:`~sfem_filters.filtering.ekf`: filterpy's EKF, the reference;
+:mod:`~sfem_filters.filtering.structured`: block structure, Cholesky, Joseph form;
+:mod:`~sfem_filters.filtering.ud`: U-D factorised), :mod:`~sfem_filters.filtering.ljung`
+(Ljung's coupling, Eq. 40), :mod:`~sfem_filters.filtering.safeguards`,
+:mod:`~sfem_filters.filtering.cyclic` (the paper's cyclic driver),
+:mod:`~sfem_filters.filtering.checkpoint`, :mod:`~sfem_filters.filtering.history`,
+:mod:`~sfem_filters.filtering.diagnostics` (NIS, whiteness, score test, material drift),
+:mod:`~sfem_filters.filtering.linear` (linear observations, the linear-Gaussian template model).
+"""
+from . import diagnostics
+from .base import Engine
+from .checkpoint import CHECKPOINT_FORMAT, load_checkpoint, run_fingerprint, save_checkpoint
+from .cyclic import CyclicEKF, CyclicResult, check_observations, cyclic_estimate, filter_loop
+from .ekf import FilterpyEngine, SFEMExtendedKalmanFilter
+from .engines import ENGINES, make_engine
+from .history import History
+from .linear import LinearGaussianModel, LinearObservation
+from .ljung import LJUNG_MAX_PARAMS, LjungCoupling
+from .protocol import (FilterModel, Fingerprinted, LoadResponse, PerFrameNoise, PhysicalParameters,
+                       TransitionDerivatives, check_model, measurement_cov)
+from .safeguards import FilterDivergence, Safeguards, nearest_psd
+from .structured import StructuredEngine, joseph_update
+from .ud import UDEngine, bierman_update, mwgs, psd_factor, ud_factor
+
+__all__ = ["diagnostics", "Engine", "CyclicEKF", "CyclicResult", "cyclic_estimate", "filter_loop", "check_observations",
+           "FilterpyEngine", "SFEMExtendedKalmanFilter", "StructuredEngine", "UDEngine", "ENGINES", "make_engine",
+           "History", "LinearGaussianModel", "LinearObservation", "LjungCoupling", "LJUNG_MAX_PARAMS",
+           "FilterModel", "PerFrameNoise", "Fingerprinted", "PhysicalParameters", "TransitionDerivatives",
+           "LoadResponse", "check_model", "measurement_cov", "Safeguards", "FilterDivergence", "nearest_psd",
+           "joseph_update", "ud_factor", "psd_factor", "mwgs", "bierman_update", "CHECKPOINT_FORMAT",
+           "save_checkpoint", "load_checkpoint", "run_fingerprint"]

@@ -1,0 +1,70 @@
+"""The engine interface shared by every filter implementation."""
+from __future__ import annotations
+
+import numpy as np
+
+from .ljung import LjungCoupling
+
+__all__ = ["Engine"]
+
+
+class Engine:
+    """The engine interface, declared once: every engine runs the same filter on a model.
+
+    An engine holds the current state estimate and its covariance and moves them one frame at
+    a time, as filterpy's filters do; :func:`sfem_filters.filtering.cyclic.filter_loop` drives
+    it over a sequence. Subclasses implement :meth:`reset`, :meth:`predict`, :meth:`update`
+    and the properties :attr:`x` and :attr:`P`; :meth:`cholesky` has a default.
+
+    Parameters
+    ----------
+    model : :class:`sfem_filters.filtering.protocol.FilterModel`
+    ljung : bool
+        Add Ljung's gain-derivative term to the parameter columns of F (Eq. 40,
+        :class:`sfem_filters.filtering.ljung.LjungCoupling`).
+    """
+
+    def __init__(self, model, ljung: bool = False):
+        self.model = model
+        self.ljung = LjungCoupling(model) if ljung else None
+
+    def _jacobian(self, z, t):
+        if self.ljung is not None:
+            return self.ljung.jacobian(z, t)
+        return self.model.F_jacobian(z, t)
+
+    def _observed(self, H, R, innovation):
+        if self.ljung is not None:
+            self.ljung.after_update(H, R, innovation)
+
+    def reset(self, x, P) -> None:
+        """Set the estimate to state ``x`` (n,) and covariance ``P`` (n, n)."""
+        raise NotImplementedError
+
+    @property
+    def x(self) -> np.ndarray:
+        """Current state estimate, (n,)."""
+        raise NotImplementedError
+
+    @property
+    def P(self) -> np.ndarray:
+        """Current covariance, (n, n), symmetric."""
+        raise NotImplementedError
+
+    def predict(self, t: int) -> None:
+        """Time update from frame ``t`` to ``t + 1``: ``x <- fx(x, t)``, ``P <- F P F^T + Q``."""
+        raise NotImplementedError
+
+    def update(self, y, t: int, mask) -> tuple:
+        """Measurement update of frame ``t`` with the rows ``mask`` (bool, m) of ``y`` (m,).
+
+        Returns the innovation ``y - h(x_prior)`` of those rows and its covariance ``S``.
+        """
+        raise NotImplementedError
+
+    def cholesky(self):
+        """Lower Cholesky factor of the current P, or None if P is not positive definite."""
+        try:
+            return np.linalg.cholesky(0.5 * (self.P + self.P.T))
+        except np.linalg.LinAlgError:
+            return None

@@ -1,0 +1,254 @@
+"""Residual diagnostics of a filter run: NIS, innovation whiteness, and scores of missing effects.
+
+Works on a :class:`sfem_filters.filtering.history.History` and a model object
+(:mod:`sfem_filters.filtering.protocol`); nothing here knows about meshes. Innovations ``e_t = y_t - H x_{t|t-1}`` with covariance ``S_t`` are what the
+model predicted one frame ahead and what it missed.
+"""
+from __future__ import annotations
+
+import numpy as np
+import scipy.linalg as sla
+from scipy import stats
+
+from scipy.special import gammaln
+
+from .._validate import integer, non_negative, positive, probability
+from .history import History
+from .protocol import LoadResponse, n_parameters
+
+__all__ = ["nis_summary", "innovation_rms", "whitened_innovations", "whiteness", "effect_score", "rank_effects",
+           "consistency", "material_drift", "chi2_logsf", "chi2_z"]
+
+
+def _rows(history, loop, min_frames: int = 1):
+    """Rows of one loop of a History, checked: the loop exists and has ``min_frames`` frames."""
+    if not isinstance(history, History):
+        raise TypeError(f"history: expected a sfem_filters.filtering.History, got {type(history).__name__}")
+    if len(history.loop) == 0:
+        raise ValueError("history: expected a run with at least one frame, got an empty history")
+    if loop is not None and loop not in set(np.asarray(history.loop).tolist()):
+        raise ValueError(f"loop: expected one of the loops in the history (0-{max(history.loop)}), got {loop!r}")
+    rows = history.loop_rows(loop)
+    if len(rows) < min_frames:
+        raise ValueError(f"history: expected at least {min_frames} frames in the loop, got {len(rows)}")
+    return rows
+
+
+def nis_summary(history, loop: int | None = None, level: float = 0.95) -> dict:
+    """Normalised innovation squared of one loop against its chi-square band.
+
+    For a consistent filter ``NIS_t ~ chi2(m_t)``, m_t the number of observations. Returns the
+    mean of ``NIS_t / m_t`` (1 when consistent) and the fraction of frames outside the central
+    ``level`` band of chi2(m_t).
+    """
+    level = probability("level", level)
+    rows = _rows(history, loop)
+    nis = np.asarray(history.nis, float)[rows]
+    m = np.asarray(history.n_obs)[rows]
+    ok = m > 0
+    nis, m = nis[ok], m[ok]
+    lo = stats.chi2.ppf((1 - level) / 2, m)
+    hi = stats.chi2.ppf(1 - (1 - level) / 2, m)
+    return {"nis_mean_over_dof": float(np.mean(nis / m)),
+            "nis_fraction_outside_95": float(np.mean((nis < lo) | (nis > hi))),
+            "nis": nis, "dof": m, "band_low": lo, "band_high": hi}
+
+
+def innovation_rms(history, loop: int | None = None, rows_of_points=None) -> float:
+    """RMS of the innovation (observation units) over one loop.
+
+    ``rows_of_points`` (k, 2) groups observation rows into points (x, y): the RMS is then of
+    the per-point vector norm, in the same sense as a displacement RMSE.
+    """
+    e = np.asarray(history.innovation, float)[_rows(history, loop)]
+    if rows_of_points is not None:
+        rp = np.asarray(rows_of_points)
+        e2 = np.nansum(e[:, rp] ** 2, axis=2)
+        valid = ~np.isnan(e[:, rp]).any(axis=2)
+        return float(np.sqrt(e2[valid].mean()))
+    return float(np.sqrt(np.nanmean(e ** 2)))
+
+
+def whitened_innovations(history, loop: int | None = None) -> np.ndarray:
+    """``L_t^-1 e_t`` with ``S_t = L_t L_t^T``, shape (frames, n_obs), NaN where unobserved."""
+    rows = _rows(history, loop)
+    out = np.full((len(rows), len(history.innovation[0])), np.nan)
+    for k, r in enumerate(rows):
+        e = np.asarray(history.innovation[r], float)
+        mask = ~np.isnan(e)
+        if mask.any():
+            S = np.asarray(history.S[r], float)[np.ix_(mask, mask)]
+            out[k, mask] = sla.solve_triangular(np.linalg.cholesky(S), e[mask], lower=True)
+    return out
+
+
+def whiteness(history, loop: int | None = None, max_lag: int = 5) -> dict:
+    """Pooled autocorrelation of the whitened innovations over time, with a portmanteau test.
+
+    ``rho_k = sum_t sum_i v_{t,i} v_{t+k,i} / sum_t sum_i v_{t,i}^2`` over the rows observed at
+    both times. For a consistent filter the sequence is white: ``N_k rho_k^2`` are
+    approximately chi2(1), so ``Q = sum_k N_k rho_k^2 ~ chi2(max_lag)``.
+    """
+    max_lag = integer("max_lag", max_lag, 1)
+    _rows(history, loop, min_frames=3)
+    v = whitened_innovations(history, loop)
+    T = len(v)
+    max_lag = int(min(max_lag, T - 2))
+    rho, n = [], []
+    for k in range(1, max_lag + 1):
+        a, b = v[:-k], v[k:]
+        ok = ~np.isnan(a) & ~np.isnan(b)
+        rho.append(float(np.sum(a[ok] * b[ok]) / np.sqrt(np.sum(a[ok] ** 2) * np.sum(b[ok] ** 2))))
+        n.append(int(ok.sum()))
+    rho, n = np.array(rho), np.array(n)
+    Q = float(np.sum(n * rho ** 2))
+    return {"lags": np.arange(1, max_lag + 1), "autocorrelation": rho, "Q": Q,
+            "p_value": float(stats.chi2.sf(Q, max_lag)), "lag1": float(rho[0]) if len(rho) else np.nan}
+
+
+def effect_score(model, history, load_matrix, loop: int | None = None) -> dict:
+    """Score (Lagrange-multiplier) test of a missing load term ``G a_t`` with free amplitudes.
+
+    Under the fitted model, an undeclared load ``G a_t`` held over the interval into frame t
+    adds ``J_t a_t`` to the innovation, ``J_t = H_t B G``. The LM statistic for ``a_t = 0``
+    is ``sum_t e_t^T S_t^-1 J_t (J_t^T S_t^-1 J_t)^-1 J_t^T S_t^-1 e_t ~ chi2(k T)`` (k
+    amplitudes, T frames); the score is ``-log10 p`` (so candidates with different numbers
+    of amplitudes compare by their evidence, more amplitudes costing more), and ``explained``
+    the share of the total NIS the term can absorb.
+
+    Parameters
+    ----------
+    model : a model with :class:`sfem_filters.filtering.protocol.LoadResponse`
+        ``J = model.load_response(load_matrix, z)`` at the run's last state.
+    load_matrix : array
+        The candidate's load per unit amplitude, in the model's load representation (for the
+        SFEM model: global nodal loads in N, (n_dofs, k)).
+    """
+    rows = _rows(history, loop, min_frames=2)
+    if not isinstance(model, LoadResponse):
+        raise TypeError(f"model: expected a model with load_response(load_matrix, z) (the score test needs the "
+                        f"observation's response to a load), got a {type(model).__name__} without it")
+    last = history.x[rows[-1]]
+    J_all = np.asarray(model.load_response(load_matrix, last), float)
+    lm, df, total = 0.0, 0, 0.0
+    for r in rows:
+        if history.frame[r] == 0:
+            continue  # the first frame follows no interval
+        e = np.asarray(history.innovation[r], float)
+        mask = ~np.isnan(e)
+        if not mask.any():
+            continue
+        S = np.asarray(history.S[r], float)[np.ix_(mask, mask)]
+        cho = sla.cho_factor(S)
+        Sie = sla.cho_solve(cho, e[mask])
+        J = J_all[mask]
+        g = J.T @ Sie
+        info = J.T @ sla.cho_solve(cho, J)
+        lm += float(g @ np.linalg.lstsq(info, g, rcond=None)[0])
+        df += np.linalg.matrix_rank(info)
+        total += float(e[mask] @ Sie)
+    logp = chi2_logsf(lm, df)
+    return {"lm": lm, "df": int(df), "score": float(-logp / np.log(10.0)), "p_value": float(np.exp(logp)),
+            "explained": lm / total if total else 0.0}
+
+
+def chi2_logsf(q: float, df: int) -> float:
+    """Natural log of the chi2(df) survival function, accurate far into the tail.
+
+    scipy's value is used while it is finite; beyond, the asymptotic expansion of the upper
+    incomplete gamma function, ``log Gamma(a, x) = (a-1) log x - x + log(1 + (a-1)/x +
+    (a-1)(a-2)/x^2 + ...) - log Gamma(a)`` with ``a = df/2``, ``x = q/2``."""
+    q = non_negative("q", q)
+    df = integer("df", df, 0)
+    if df <= 0:
+        return 0.0
+    v = float(stats.chi2.logsf(q, df))
+    if np.isfinite(v):
+        return v
+    a, x = df / 2.0, q / 2.0
+    term, series = 1.0, 1.0
+    for k in range(1, 8):
+        term *= (a - k) / x
+        series += term
+    return float((a - 1.0) * np.log(x) - x + np.log(series) - gammaln(a))
+
+
+def chi2_z(q: float, df: int) -> float:
+    """Standard-normal equivalent of a chi2(df) statistic (Wilson-Hilferty), finite for any q.
+
+    Larger means stronger evidence; it orders tests of different df like their p-values do,
+    without the underflow of p for large q."""
+    q = non_negative("q", q)
+    df = integer("df", df, 0)
+    if df <= 0:
+        return 0.0
+    a = 2.0 / (9.0 * df)
+    return float(((q / df) ** (1.0 / 3.0) - (1.0 - a)) / np.sqrt(a))
+
+
+def rank_effects(model, history, candidates, loop: int | None = None) -> list:
+    """Score each candidate ``(name, load_matrix)`` and sort, best explanation first."""
+    out = []
+    for name, G in candidates:
+        s = effect_score(model, history, G, loop)
+        out.append({"effect": name, **s})
+    return sorted(out, key=lambda d: -d["score"])
+
+
+def consistency(history, loop: int | None = None, threshold: float = 3.0) -> dict:
+    """Flag an inconsistent filter from its innovations alone.
+
+    Two standardised checks, each ~N(0, 1) for a consistent filter: the summed NIS against
+    chi2 of the summed dof (Wilson-Hilferty z), and the pooled lag-1 autocorrelation of the
+    whitened innovations times sqrt(N). ``inconsistent`` when either exceeds ``threshold`` in
+    magnitude.
+    """
+    threshold = positive("threshold", threshold)
+    _rows(history, loop, min_frames=2)
+    s = nis_summary(history, loop)
+    z_nis = chi2_z(float(np.sum(s["nis"])), int(np.sum(s["dof"])))
+    v = whitened_innovations(history, loop)
+    a, b = v[:-1], v[1:]
+    ok = ~np.isnan(a) & ~np.isnan(b)
+    lag1 = float(np.sum(a[ok] * b[ok]) / np.sqrt(np.sum(a[ok] ** 2) * np.sum(b[ok] ** 2)))
+    z_white = lag1 * np.sqrt(ok.sum())
+    return {"nis_z": z_nis, "lag1": lag1, "lag1_z": float(z_white),
+            "inconsistent": bool(max(abs(z_nis), abs(z_white)) > threshold)}
+
+
+def material_drift(model, history) -> dict:
+    """How far the material moved in each cyclic loop, against its own posterior uncertainty.
+
+    For loop k, ``d_k = (theta_k - theta_{k-1}) / sd_k`` per parameter: theta_k and sd_k (the
+    square roots of the diagonal of the material covariance) at the last frame of loop k,
+    theta_{-1} the initial estimate ``model.x0``. Under the cyclic feeding of section 2.7 the
+    carried covariance counts the cycle once more in every loop, so sd_k is the filter's own
+    (shrinking) confidence: a loop that still moves a parameter by a sizeable fraction of it
+    (``max_sd`` of 0.1 or more) has not converged in a statistical sense, whatever the relative
+    change of (E, nu). Parameters are the model's (log E, logit 2 nu for the SFEM model).
+
+    Returns
+    -------
+    dict with per-loop arrays ``loops`` (loop numbers), ``max_sd`` (max_i |d_k,i|), ``rms_sd``
+    (root mean square of d_k) and ``max_abs`` (max_i |theta_k,i - theta_{k-1},i|, parameter units).
+    """
+    _rows(history, None)                       # the same checks of the history as every diagnostic
+    nr = int(model.n_restart)
+    if n_parameters(model) == 0:
+        raise ValueError("model: expected a model that estimates parameters (dim_state > n_restart), "
+                         "got one with a fixed material")
+    loops = np.unique(np.asarray(history.loop))
+    x, var = np.asarray(history.x, float), np.asarray(history.P_diag, float)
+    before = np.asarray(model.x0, float)[nr:]
+    out = {"loops": loops, "max_sd": [], "rms_sd": [], "max_abs": []}
+    for k in loops:
+        last = history.loop_rows(int(k))[-1]
+        theta, sd = x[last, nr:], np.sqrt(var[last, nr:])
+        if np.any(sd <= 0):
+            raise ValueError(f"history: loop {k} ends with a zero material variance; the drift is undefined")
+        d = (theta - before) / sd
+        out["max_sd"].append(float(np.max(np.abs(d))))
+        out["rms_sd"].append(float(np.sqrt(np.mean(d ** 2))))
+        out["max_abs"].append(float(np.max(np.abs(theta - before))))
+        before = theta
+    return {k: np.asarray(v) for k, v in out.items()}

@@ -1,0 +1,49 @@
+"""The record of a filter run: one row per (loop, frame), like filterpy's ``Saver``."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+__all__ = ["History"]
+
+
+@dataclass
+class History:
+    """Every step of a run, like filterpy's ``Saver``: one row per (loop, frame)."""
+
+    loop: list = field(default_factory=list)
+    frame: list = field(default_factory=list)
+    x: list = field(default_factory=list)            # posterior state
+    P_diag: list = field(default_factory=list)       # posterior variances
+    innovation: list = field(default_factory=list)   # y - h(x_prior), NaN where unobserved
+    S: list = field(default_factory=list)            # innovation covariance, NaN rows/cols unobserved
+    nis: list = field(default_factory=list)          # normalised innovation squared
+    n_obs: list = field(default_factory=list)        # number of observations in the update
+
+    KEYS = ("loop", "frame", "x", "P_diag", "innovation", "S", "nis", "n_obs")
+
+    def append(self, loop, frame, x, P, innovation, S, nis, n_obs):
+        self.loop.append(loop)
+        self.frame.append(frame)
+        self.x.append(np.array(x, float))
+        self.P_diag.append(np.diag(P).copy())
+        self.innovation.append(innovation)
+        self.S.append(S)
+        self.nis.append(nis)
+        self.n_obs.append(n_obs)
+
+    def as_arrays(self) -> dict:
+        return {k: np.asarray(getattr(self, k)) for k in self.KEYS}
+
+    @classmethod
+    def from_arrays(cls, arrays) -> "History":
+        h = cls()
+        for k in cls.KEYS:
+            getattr(h, k).extend(list(np.asarray(arrays[k])))
+        return h
+
+    def loop_rows(self, loop: int | None = None) -> np.ndarray:
+        """Row indices of one loop (default: the last)."""
+        loops = np.asarray(self.loop)
+        return np.flatnonzero(loops == (loops.max() if loop is None else loop))

@@ -1,0 +1,169 @@
+"""The model contract: what a filter engine may ask of a model, written down.
+
+A *model* is any object with the members of :class:`FilterModel`; the engines, drivers and
+diagnostics of :mod:`sfem_filters.filtering` use nothing else of it. The state is
+``z = [r; theta]``: a *restart* part ``r`` of length ``n_restart`` (kinematics and any other
+states that a cyclic loop restarts) followed by ``theta``, the static parameters (material)
+appended to the state for joint estimation. Frames are 0-based: ``fx(z, t)`` moves the state
+from frame ``t`` to ``t + 1``. Observations are the measured numbers, an array
+``(n_frames, dim_obs)`` with NaN where a value is missing.
+
+Optional capabilities are separate protocols. An engine that can use one asks through the
+accessor functions below (``isinstance`` against the protocol, which is ``runtime_checkable``),
+never by probing attribute names; every optional member has a documented fallback.
+
+>>> import numpy as np
+>>> from sfem_filters.filtering.linear import LinearGaussianModel
+>>> m = LinearGaussianModel(np.eye(2), np.eye(2), 0.01 * np.eye(2), np.eye(2), np.zeros(2), np.eye(2), 4)
+>>> isinstance(m, FilterModel), isinstance(m, PerFrameNoise)
+(True, False)
+>>> measurement_cov(m, 0).shape
+(2, 2)
+"""
+from __future__ import annotations
+
+import hashlib
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+__all__ = ["FilterModel", "PerFrameNoise", "Fingerprinted", "PhysicalParameters", "TransitionDerivatives",
+           "LoadResponse", "check_model", "measurement_cov", "model_fingerprint",
+           "physical_parameters", "n_parameters"]
+
+
+@runtime_checkable
+class FilterModel(Protocol):
+    """Required members of a model (shapes with n = ``dim_state``, m = ``dim_obs``).
+
+    Attributes
+    ----------
+    dim_state : int
+        Length n of the augmented state ``z = [r; theta]``.
+    dim_obs : int
+        Number m of observed rows per frame.
+    n_restart : int
+        Length of the restart part ``r`` (``n - n_restart`` static parameters follow).
+    n_frames : int
+        Frames in the sequence (a periodic cycle for the cyclic and smoothing drivers).
+    estimates_material : bool
+        True when the state holds parameters (``n > n_restart``).
+    x0 : (n,) array
+        Initial state: ``r`` at the first frame and the prior mean of ``theta``.
+    P0 : (n, n) array
+        Initial covariance (Eq. 34: no cross-covariance between ``r`` and ``theta``).
+    Q : (n, n) array
+        Process noise per frame (zero on ``theta`` for a static parameter).
+    R : (m, m) array
+        Measurement noise (the frame average when it varies, see :class:`PerFrameNoise`).
+    """
+
+    dim_state: int
+    dim_obs: int
+    n_restart: int
+    n_frames: int
+    estimates_material: bool
+    x0: np.ndarray
+    P0: np.ndarray
+    Q: np.ndarray
+    R: np.ndarray
+
+    def fx(self, z, t):
+        """State at frame ``t + 1`` from state ``z`` at frame ``t`` (same shape as ``z``)."""
+
+    def F_jacobian(self, z, t) -> np.ndarray:
+        """(n, n) Jacobian of :meth:`fx` at ``z``: ``[[A, M_t], [0, I]]`` for static parameters."""
+
+    def hx(self, z, t=None):
+        """Predicted observation of state ``z`` (m values, same ndim as ``z``)."""
+
+    def H_jacobian(self, z=None, t=None) -> np.ndarray:
+        """(m, n) Jacobian of :meth:`hx`."""
+
+
+@runtime_checkable
+class PerFrameNoise(Protocol):
+    """Optional: a measurement noise covariance per frame. Fallback: ``model.R`` every frame."""
+
+    def R_at(self, t: int) -> np.ndarray:
+        """(m, m) measurement noise covariance of frame ``t``."""
+
+
+@runtime_checkable
+class Fingerprinted(Protocol):
+    """Optional: a hash of everything that defines the model, for checkpoints.
+
+    Fallback: a hash of ``x0``, ``P0``, ``Q``, ``R`` and ``H`` at ``x0`` (which misses what
+    only ``fx`` knows: a model that has one should supply it).
+    """
+
+    def fingerprint(self) -> str:
+        """Hex digest that changes whenever the model would behave differently."""
+
+
+@runtime_checkable
+class PhysicalParameters(Protocol):
+    """Optional: the parameters in physical units, for the relative-change stop rule.
+
+    Fallback: ``theta`` itself.
+    """
+
+    def physical_parameters(self, theta) -> np.ndarray:
+        """1D array of the physical quantities ``theta`` stands for (e.g. E in Pa and nu)."""
+
+
+@runtime_checkable
+class TransitionDerivatives(Protocol):
+    """Optional, needed by Ljung's coupling (Eq. 40): no fallback."""
+
+    def transition_derivatives(self, z, t) -> np.ndarray:
+        """(p, n_restart, n_restart): dA/dtheta_i of the restart block of the transition."""
+
+
+@runtime_checkable
+class LoadResponse(Protocol):
+    """Optional, needed by the score test of a missing load term: no fallback."""
+
+    def load_response(self, load_matrix, z) -> np.ndarray:
+        """(m, k): the change of the next frame's predicted observation per unit of each
+        column of ``load_matrix`` (the model's own load representation) held over one frame,
+        at the parameters of state ``z``."""
+
+
+def check_model(model, name: str = "model"):
+    """Raise ``TypeError`` naming ``name`` and the missing members unless ``model`` satisfies
+    :class:`FilterModel`."""
+    if isinstance(model, FilterModel):
+        return model
+    need = [k for k in ("dim_state", "dim_obs", "n_restart", "n_frames", "estimates_material", "x0", "P0",
+                        "Q", "R", "fx", "F_jacobian", "hx", "H_jacobian") if not hasattr(model, k)]
+    raise TypeError(f"{name}: expected a model with the members of sfem_filters.filtering.FilterModel, "
+                    f"got a {type(model).__name__} without {need}")
+
+
+def measurement_cov(model, t: int) -> np.ndarray:
+    """R of frame ``t``: ``model.R_at(t)`` for :class:`PerFrameNoise` models, else ``model.R``."""
+    return np.asarray(model.R_at(t) if isinstance(model, PerFrameNoise) else model.R, float)
+
+
+def model_fingerprint(model) -> str:
+    """The model's own :class:`Fingerprinted` hash, or the fallback over its matrices."""
+    if isinstance(model, Fingerprinted):
+        return model.fingerprint()
+    h = hashlib.sha256()
+    for a in (model.x0, model.P0, model.Q, model.R, model.H_jacobian(model.x0, 0)):
+        h.update(np.ascontiguousarray(np.asarray(a, float)).tobytes())
+    h.update(f"{type(model).__qualname__},{model.dim_state},{model.n_restart},{model.n_frames}".encode())
+    return h.hexdigest()
+
+
+def physical_parameters(model, theta) -> np.ndarray:
+    """:meth:`PhysicalParameters.physical_parameters` of ``theta``, or ``theta`` itself."""
+    if isinstance(model, PhysicalParameters):
+        return np.asarray(model.physical_parameters(theta), float)
+    return np.asarray(theta, float)
+
+
+def n_parameters(model) -> int:
+    """Number of static parameters in the state, ``dim_state - n_restart``."""
+    return int(model.dim_state) - int(model.n_restart)

@@ -1,0 +1,181 @@
+"""Myocardial borders of a mask: ordered, resampled closed contours and their curvature.
+
+Coordinates are image coordinates in pixels: x = column, y = row (y grows downwards), the
+pixel (row r, column c) being centred on (c, r). Multiply by the pixel spacing (m) to get
+metres. Every contour is returned with positive signed area in (x, y), i.e. counter-clockwise
+in the (x, y) plane (clockwise as drawn on an image with y down), without repeating its first
+point, and starting at the point closest in angle to the +x direction seen from the cavity
+centre, so that index k of two frames' contours points roughly the same way.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.ndimage import distance_transform_edt, gaussian_filter1d
+from skimage.measure import find_contours, label
+
+from .._validate import as_float_array, as_mask
+from ..geometry import polygon_centroid, signed_area
+
+
+@dataclass(frozen=True, eq=False)
+class Borders:
+    """Endo- and epicardial contours of one frame (pixels) and the cavity centre."""
+
+    endo: np.ndarray      # (n_endo, 2) x, y
+    epi: np.ndarray       # (n_epi, 2)
+    centre: np.ndarray    # (2,) centroid of the endocardial contour
+
+
+def check_myocardium_mask(mask, name: str = "mask") -> np.ndarray:
+    """Check a 2D myocardium mask: boolean, some tissue, one connected ring around one cavity.
+
+    Raises ``ValueError`` naming ``name`` for an empty mask, several pieces of tissue, or a
+    mask without exactly one enclosed cavity.
+    """
+    arr = as_mask(name, mask, 2)
+    if not arr.any():
+        raise ValueError(f"{name}: expected some tissue, got an empty mask")
+    n = int(label(arr, connectivity=2).max())
+    if n != 1:
+        raise ValueError(f"{name}: expected one connected piece of myocardium, got {n} pieces")
+    padded = np.pad(arr, 1)
+    holes = int(label(~padded, connectivity=1).max()) - 1
+    if holes != 1:
+        raise ValueError(f"{name}: expected a ring around exactly one cavity, got {holes} enclosed "
+                         f"background regions")
+    return arr
+
+
+def resample_closed(xy, n: int) -> np.ndarray:
+    """``n`` points equally spaced in arc length along a closed polyline, starting at ``xy[0]``."""
+    xy = as_float_array("xy", xy, shape=(None, 2))
+    if len(xy) < 3:
+        raise ValueError(f"xy: expected a closed polyline of at least 3 points, got {len(xy)}")
+    if int(n) != n or n < 3:
+        raise ValueError(f"n: expected an integer >= 3, got {n!r}")
+    closed = np.vstack([xy, xy[:1]])
+    seg = np.linalg.norm(np.diff(closed, axis=0), axis=1)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
+    if s[-1] <= 0:
+        raise ValueError("xy: the polyline has zero length")
+    t = np.arange(int(n)) * s[-1] / n
+    return np.column_stack([np.interp(t, s, closed[:, 0]), np.interp(t, s, closed[:, 1])])
+
+
+def smooth_closed(xy, sigma: float) -> np.ndarray:
+    """Gaussian smoothing (standard deviation ``sigma`` in points) of a closed contour.
+
+    Removes the pixel staircase of a mask border before curvature is taken; ``sigma = 0``
+    returns the contour unchanged.
+    """
+    if sigma < 0:
+        raise ValueError(f"sigma: expected a non-negative smoothing width in points, got {sigma!r}")
+    if sigma == 0:
+        return np.array(xy, float)
+    return gaussian_filter1d(np.asarray(xy, float), sigma, axis=0, mode="wrap")
+
+
+def curvature(xy) -> np.ndarray:
+    """Signed discrete curvature (1/px) of a closed, uniformly sampled contour.
+
+    ``kappa = (x' y'' - y' x'') / (x'^2 + y'^2)^(3/2)`` with periodic central differences; a
+    circle of radius r traversed counter-clockwise in (x, y) has ``kappa = +1/r`` everywhere.
+    """
+    xy = as_float_array("xy", xy, shape=(None, 2))
+    d1 = (np.roll(xy, -1, axis=0) - np.roll(xy, 1, axis=0)) / 2.0
+    d2 = np.roll(xy, -1, axis=0) - 2 * xy + np.roll(xy, 1, axis=0)
+    num = d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0]
+    den = np.sum(d1 ** 2, axis=1) ** 1.5
+    if np.any(den == 0):
+        raise ValueError("xy: repeated consecutive points; curvature is undefined there")
+    return num / den
+
+
+def _orient_and_start(xy, centre):
+    if signed_area(xy) < 0:
+        xy = xy[::-1]
+    d = xy - centre
+    k = int(np.argmin(np.abs(np.arctan2(d[:, 1], d[:, 0]))))
+    return np.roll(xy, -k, axis=0)
+
+
+def mask_borders(mask, n_endo: int = 64, n_epi: int = 96, smooth: float = 0.0) -> Borders:
+    """Endo- and epicardial contours of a myocardium mask (marching squares at level 1/2).
+
+    Parameters
+    ----------
+    mask : (H, W) bool array
+        Myocardium (one ring around one cavity).
+    n_endo, n_epi : int
+        Points of each contour after resampling at equal arc length.
+    smooth : float
+        Gaussian smoothing of the raw border, in raw border points (0: none).
+
+    Returns
+    -------
+    Borders
+        Contours in pixels (x = column, y = row), oriented and started as the module says.
+    """
+    arr = check_myocardium_mask(mask)
+    raw = find_contours(np.pad(arr, 1).astype(float), 0.5)
+    loops = [np.column_stack([c[:, 1], c[:, 0]]) - 1.0 for c in raw]      # (x, y), undo the padding
+    loops = [c[:-1] if np.allclose(c[0], c[-1]) else c for c in loops]
+    loops = [c for c in loops if len(c) >= 3]
+    areas = np.array([abs(signed_area(c)) for c in loops])
+    if len(loops) < 2:
+        raise ValueError("mask: expected an inner and an outer border, found fewer than two contours")
+    order = np.argsort(areas)[::-1]
+    epi = loops[order[0]]
+    # the endocardium is the largest remaining loop lying inside the epicardium
+    endo = loops[order[1]]
+    centre = polygon_centroid(endo)
+    endo = _orient_and_start(smooth_closed(endo, smooth), centre)
+    epi = _orient_and_start(smooth_closed(epi, smooth), centre)
+    endo = _orient_and_start(resample_closed(endo, n_endo), centre)
+    epi = _orient_and_start(resample_closed(epi, n_epi), centre)
+    return Borders(endo=endo, epi=epi, centre=polygon_centroid(endo))
+
+
+def closest_on_polyline(xy, points):
+    """Closest point of a closed polyline to each of ``points`` (px).
+
+    Returns
+    -------
+    closest : (p, 2) array
+    segment : (p,) int, index i of the segment from ``xy[i]`` to ``xy[i + 1]``
+    fraction : (p,) float in [0, 1], position along that segment
+    """
+    xy = as_float_array("xy", xy, shape=(None, 2))
+    pts = as_float_array("points", points, shape=(None, 2))
+    a = xy
+    b = np.roll(xy, -1, axis=0)
+    ab = b - a
+    L2 = np.maximum(np.sum(ab ** 2, axis=1), 1e-300)
+    f = np.clip(np.einsum("psk,sk->ps", pts[:, None] - a[None], ab) / L2[None], 0.0, 1.0)
+    proj = a[None] + f[..., None] * ab[None]
+    d2 = np.sum((proj - pts[:, None]) ** 2, axis=2)
+    seg = np.argmin(d2, axis=1)
+    rows = np.arange(len(pts))
+    return proj[rows, seg], seg, f[rows, seg]
+
+
+def pixel_depth(mask) -> np.ndarray:
+    """Transmural depth of every pixel of a ring mask: 0 at the cavity side, 1 at the outside."""
+    m = np.asarray(mask, bool)
+    background = np.pad(~m, 1, constant_values=True)
+    lab = label(background, connectivity=1)
+    outside = lab == lab[0, 0]
+    cavity = background & ~outside
+    d_in = distance_transform_edt(~cavity)[1:-1, 1:-1]
+    d_out = distance_transform_edt(~outside)[1:-1, 1:-1]
+    return np.clip((d_in - 0.5) / np.maximum(d_in + d_out - 1.0, 1e-12), 0.0, 1.0)
+
+
+def midwall_pixels(mask, depth_range=(0.25, 0.75)) -> np.ndarray:
+    """Pixel centres (x, y) of the tissue whose transmural depth lies in ``depth_range``."""
+    m = np.asarray(mask, bool)
+    d = pixel_depth(m)
+    rows, cols = np.nonzero(m & (d >= depth_range[0]) & (d <= depth_range[1]))
+    return np.column_stack([cols, rows]).astype(float)

@@ -1,0 +1,149 @@
+"""Figures of the synthetic comparison, after the paper's Figs. 1-5."""
+from __future__ import annotations
+
+import numpy as np
+
+from ..benchmark.comparison import LABELS, REPORT_FRAME, Comparison
+from ._common import _plt, _triangulation, _write_figures
+
+__all__ = ["comparison_figures", "displacement_maps", "strain_maps", "strain_cdfs", "material_maps", "convergence"]
+
+
+def _fields(comp: Comparison):
+    yield "truth", comp.bench.U, comp.bench.strain
+    for name, run in comp.runs.items():
+        yield LABELS[name], run.U, run.strain
+
+
+def displacement_maps(comp: Comparison, path: str, frames=(1, 5, 9, 13)):
+    """Displacement magnitude (mm) on the deformed mesh: truth and each strategy by frame."""
+    plt = _plt()
+    rows = list(_fields(comp))
+    vmax = max(np.linalg.norm(U[f - 1].reshape(-1, 2), axis=1).max() for _, U, _ in rows for f in frames) * 1e3
+    fig, axes = plt.subplots(len(rows), len(frames), figsize=(3.2 * len(frames), 2.4 * len(rows)),
+                             sharex=True, sharey=True, constrained_layout=True)
+    mesh = comp.bench.mesh
+    for i, (label, U, _) in enumerate(rows):
+        for j, f in enumerate(frames):
+            ax = axes[i, j]
+            mag = np.linalg.norm(U[f - 1].reshape(-1, 2), axis=1) * 1e3
+            tri = _triangulation(mesh, U[f - 1])
+            im = ax.tripcolor(tri, mag, shading="gouraud", vmin=0, vmax=vmax, cmap="viridis")
+            ax.triplot(tri, color="w", lw=0.3, alpha=0.6)
+            ax.set_aspect("equal")
+            if i == 0:
+                ax.set_title(f"frame {f}")
+            if j == 0:
+                ax.set_ylabel(f"{label}\ny [mm]")
+            if i == len(rows) - 1:
+                ax.set_xlabel("x [mm]")
+    fig.colorbar(im, ax=axes, label="|u| [mm]", shrink=0.6)
+    fig.suptitle(f"Displacement magnitude on the deformed mesh (seed {comp.bench.seed})")
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def strain_maps(comp: Comparison, path: str, frame: int = REPORT_FRAME):
+    """Vertical normal strain e_yy at one frame (w.r.t. frame 1): truth and strategies."""
+    plt = _plt()
+    rows = list(_fields(comp))
+    vals = [S[frame - 1, :, 1] for _, _, S in rows]
+    vmin, vmax = min(v.min() for v in vals), max(v.max() for v in vals)
+    fig, axes = plt.subplots(1, len(rows), figsize=(3.4 * len(rows), 2.9), constrained_layout=True)
+    for ax, (label, _, _), v in zip(axes, rows, vals):
+        im = ax.tripcolor(_triangulation(comp.bench.mesh), v, shading="gouraud", vmin=vmin, vmax=vmax,
+                          cmap="coolwarm_r")
+        ax.set_title(label)
+        ax.set_aspect("equal")
+        ax.set_xlabel("x [mm]")
+    axes[0].set_ylabel("y [mm]")
+    fig.colorbar(im, ax=axes, label=r"$\varepsilon_{yy}$", shrink=0.8)
+    fig.suptitle(f"e_yy at frame {frame} (seed {comp.bench.seed})")
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def strain_cdfs(comp: Comparison, path: str, frame: int = REPORT_FRAME):
+    """Empirical CDFs of nodal e_yy at one frame: truth and the three estimates (Fig. 4)."""
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(6, 4.2), constrained_layout=True)
+    styles = {"truth": dict(color="k", lw=2.2)}
+    for (label, _, S) in _fields(comp):
+        v = np.sort(S[frame - 1, :, 1])
+        y = np.arange(1, len(v) + 1) / len(v)
+        name = next((k for k, lab in LABELS.items() if lab == label), None)
+        text = label if name is None else f"{label} (D = {comp.runs[name].metrics['ks_D']:.3f}, " \
+                                          f"p = {comp.runs[name].metrics['ks_p_asymptotic']:.3f})"
+        ax.step(v, y, where="post", label=text, **styles.get(label, dict(lw=1.5)))
+    ax.set_xlabel(r"$\varepsilon_{yy}$ at frame %d" % frame)
+    ax.set_ylabel("cumulative fraction of nodes")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8, loc="lower right")
+    ax.set_title(f"Empirical CDFs and KS statistics (seed {comp.bench.seed})")
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def material_maps(comp: Comparison, path: str):
+    """True and estimated per-element E (kPa) and nu of the joint EKF."""
+    plt = _plt()
+    run = comp.runs["joint_ekf"]
+    est = run.model.material_of_theta(run.result.theta)
+    true = comp.bench.true_material
+    tri = _triangulation(comp.bench.mesh)
+    fig, axes = plt.subplots(2, 2, figsize=(8.5, 5.6), constrained_layout=True)
+    for col, (t, e, label, scale, cmap) in enumerate(
+            ((true.E, est.E, "E [kPa]", 1e-3, "magma"), (true.nu, est.nu, r"$\nu$", 1.0, "cividis"))):
+        vmin = min(t.min(), e.min()) * scale
+        vmax = max(t.max(), e.max()) * scale
+        for row, (v, what) in enumerate(((t, "true"), (e, "estimated"))):
+            ax = axes[row, col]
+            im = ax.tripcolor(tri, facecolors=v * scale, vmin=vmin, vmax=vmax, cmap=cmap, edgecolors="k",
+                              linewidth=0.2)
+            ax.set_aspect("equal")
+            ax.set_title(f"{what} {label}")
+        fig.colorbar(im, ax=axes[:, col], label=label, shrink=0.8)
+    m = run.metrics
+    fig.suptitle(f"joint EKF after {m['loops']} loops: mean |rel. error| of E {m['E_rel_error_middle']:.3f} "
+                 f"(middle) / {m['E_rel_error_outside']:.3f} (outside)")
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def convergence(comp: Comparison, path: str):
+    """Joint EKF over the cyclic loops: relative material change and mean E per part."""
+    plt = _plt()
+    run = comp.runs["joint_ekf"]
+    h = run.result.history.as_arrays()
+    model = run.model
+    loops = np.unique(h["loop"])
+    last_rows = [np.flatnonzero(h["loop"] == k)[-1] for k in loops]
+    E = np.array([model.material_of(h["x"][r]).E for r in last_rows]) * 1e-3
+    mid = comp.bench.middle
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(10, 3.6), constrained_layout=True)
+    a1.semilogy(loops + 1, run.result.rel_changes, "o-")
+    a1.axhline(1e-3, color="k", ls="--", lw=1, label="tolerance")
+    a1.set_xlabel("loop")
+    a1.set_ylabel("relative change of (E, nu)")
+    a1.legend()
+    a1.grid(alpha=0.3)
+    a2.plot(loops + 1, E[:, mid].mean(axis=1), "o-", label="estimated, middle part")
+    a2.plot(loops + 1, E[:, ~mid].mean(axis=1), "s-", label="estimated, outside")
+    for v, lab in ((comp.bench.true_material.E[mid][0] * 1e-3, "true middle"),
+                   (comp.bench.true_material.E[~mid][0] * 1e-3, "true outside")):
+        a2.axhline(v, color="gray", ls=":", lw=1)
+        a2.text(loops[-1] + 1, v, lab, va="bottom", ha="right", fontsize=8)
+    a2.set_xlabel("loop")
+    a2.set_ylabel("mean E [kPa]")
+    a2.legend(fontsize=8)
+    a2.grid(alpha=0.3)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def comparison_figures(comp: Comparison, directory: str) -> list:
+    """Write every figure of the comparison into ``directory``; returns the paths."""
+    return _write_figures(comp, directory, (
+        ("displacement_maps.png", displacement_maps), ("eyy_frame9.png", strain_maps),
+        ("eyy_cdfs_frame9.png", strain_cdfs), ("material_maps.png", material_maps),
+        ("convergence.png", convergence)))

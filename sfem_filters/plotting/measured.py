@@ -1,0 +1,121 @@
+"""Figures of the measured-data workflow (closing the loop on DENSE or any point-wise motion)."""
+from __future__ import annotations
+
+import numpy as np
+
+from ..cardiac.closing import LoopResult
+from ..cardiac.measured import NOMINAL, strain_maps
+from ..filtering.diagnostics import nis_summary
+from ._common import _plt, _triangulation, _write_figures
+
+__all__ = ["dense_figures", "dense_residual_maps", "dense_strain_maps", "dense_material_maps", "nis_trace"]
+
+
+def dense_residual_maps(loop: LoopResult, path: str):
+    """Held-out residual before/after the added effect: vectors at the worst frame and
+    |residual| over angle (sorted points) and time."""
+    plt = _plt()
+    setup = loop.setup
+    runs = [loop.baseline, loop.extended]
+    meas = setup.seq.displacement
+    h = setup.heldout
+    res = [meas[:, h] - r.U[:, h] for r in runs]
+    mag = [np.linalg.norm(r, axis=2) for r in res]
+    worst = int(np.nanargmax(np.sqrt(np.nanmean(mag[0] ** 2, axis=1))))
+    ang = setup.geometry.angle(setup.mesh.nodes[setup.node_of_point[h]])
+    order = np.argsort(ang)
+    vmax = np.nanpercentile(mag[0], 99)
+    fig, axes = plt.subplots(2, 2, figsize=(11, 8.5), constrained_layout=True)
+    pts = setup.seq.points
+    names = ["baseline", "extended: " + ", ".join(loop.effects or ["none"])]
+    for i, (r, m, name) in enumerate(zip(res, mag, names)):
+        ax = axes[0, i]
+        ax.scatter(pts[:, 0], pts[:, 1], s=6, c="lightgray")
+        ax.scatter(pts[setup.observed, 0], pts[setup.observed, 1], s=18, c="k", marker="s", label="observed")
+        q = ax.quiver(pts[h, 0], pts[h, 1], r[worst, :, 0], r[worst, :, 1], m[worst], angles="xy",
+                      scale_units="xy", scale=0.25, cmap="magma", clim=(0, vmax))
+        ax.set_aspect("equal")
+        ax.invert_yaxis()
+        ax.set_title(f"{name}\nheld-out residual at frame {worst} (arrows x4)")
+        ax.set_xlabel("x [px]")
+        ax.set_ylabel("y [px]")
+        ax.legend(loc="upper right", fontsize=8)
+        ax2 = axes[1, i]
+        im = ax2.imshow(m[:, order].T, aspect="auto", cmap="magma", vmin=0, vmax=vmax, origin="lower",
+                        extent=(-0.5, len(m) - 0.5, 0, 360))
+        ax2.set_xlabel("frame")
+        ax2.set_ylabel("angle about the cavity centre [deg]")
+        ax2.set_title(f"|held-out residual| (RMSE {np.sqrt(np.nanmean(m ** 2)):.3f} px)")
+    fig.colorbar(q, ax=axes[0, :], label="|residual| [px]", shrink=0.8)
+    fig.colorbar(im, ax=axes[1, :], label="|residual| [px]", shrink=0.8)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def dense_strain_maps(loop: LoopResult, path: str, frame: int | None = None):
+    """Radial, circumferential and shear strain w.r.t. frame 0 (the paper's Figs. 10 and 12):
+    measured (from the DENSE displacements on the mesh) and estimated by the extended model."""
+    plt = _plt()
+    setup = loop.setup
+    ext = loop.extended
+    meas = strain_maps(setup, setup.seq.displacement)
+    est = strain_maps(setup, ext.U)
+    if frame is None:
+        frame = int(np.argmax(np.abs(meas[..., 1]).mean(axis=1)))
+    tri = _triangulation(setup.mesh)
+    fig, axes = plt.subplots(2, 3, figsize=(12, 7.5), constrained_layout=True)
+    for j, (label, cmap) in enumerate((("radial E_rr", "RdBu_r"), ("circumferential E_cc", "RdBu_r"),
+                                       ("shear E_rc", "PuOr"))):
+        v = max(np.abs(meas[frame, :, j]).max(), np.abs(est[frame, :, j]).max())
+        for i, (data, what) in enumerate(((meas, "measured"), (est, "estimated"))):
+            ax = axes[i, j]
+            im = ax.tripcolor(tri, data[frame, :, j], shading="gouraud", cmap=cmap, vmin=-v, vmax=v)
+            ax.set_aspect("equal")
+            ax.invert_yaxis()
+            ax.set_title(f"{what} {label}, frame {frame}")
+        fig.colorbar(im, ax=axes[:, j], shrink=0.7)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def dense_material_maps(loop: LoopResult, path: str):
+    """Estimated relative Young's modulus and Poisson's ratio (extended model)."""
+    plt = _plt()
+    setup = loop.setup
+    ext = loop.extended
+    mat = ext.model.material_of_theta(ext.result.theta)
+    tri = _triangulation(setup.mesh)
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4.5), constrained_layout=True)
+    for ax, v, label, cmap in ((axes[0], mat.E / NOMINAL["E"], "E / E_start (relative)", "magma"),
+                               (axes[1], mat.nu, r"$\nu$", "cividis")):
+        im = ax.tripcolor(tri, facecolors=v, cmap=cmap)
+        ax.set_aspect("equal")
+        ax.invert_yaxis()
+        ax.set_title(f"estimated {label}")
+        fig.colorbar(im, ax=ax, shrink=0.8)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def nis_trace(loop: LoopResult, path: str):
+    """NIS per frame of the last loop, baseline and extended, against the 95% chi-square band."""
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(8, 4), constrained_layout=True)
+    for run, style in ((loop.baseline, "o-"), (loop.extended, "s-")):
+        s = nis_summary(run.result.history)
+        frames = np.arange(len(s["nis"]))
+        ax.semilogy(frames, s["nis"], style, ms=3, label=f"{run.name} (mean NIS/dof {s['nis_mean_over_dof']:.2f})")
+    ax.fill_between(frames, s["band_low"], s["band_high"], color="gray", alpha=0.3, label="95% chi-square band")
+    ax.set_xlabel("frame")
+    ax.set_ylabel("NIS")
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def dense_figures(loop: LoopResult, directory: str) -> list:
+    """Every figure of the closing-the-loop run into ``directory``."""
+    return _write_figures(loop, directory, (
+        ("residual_maps.png", dense_residual_maps), ("strain_maps.png", dense_strain_maps),
+        ("material_maps.png", dense_material_maps), ("nis_trace.png", nis_trace)))
