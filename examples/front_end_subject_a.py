@@ -10,7 +10,7 @@ front-end section comes from this script.
    differences (``frontend.pseudo_phase_contrast``), their LPC from those images.
 
 Run:  python examples/front_end_subject_a.py [--json out/front_end.json] [--figures out/front_end]
-(about 3-5 minutes on 2 cores; ``--max-loops 1`` for a quicker smoke test, not the README's numbers).
+(about 3-5 minutes on 2 cores; ``--max-iterations 1`` for a quicker smoke test, not the README's numbers).
 """
 import argparse
 import json
@@ -26,7 +26,7 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--json", help="write the numbers as JSON")
     ap.add_argument("--figures", help="directory for the figures")
-    ap.add_argument("--max-loops", type=int, default=3)
+    ap.add_argument("--max-iterations", type=int, default=20, help="Gauss-Newton iterations of the smoother")
     args = ap.parse_args(argv)
 
     seq = load_sequence(example_path())
@@ -46,9 +46,9 @@ def main(argv=None):
 
     img, venc = frontend.pseudo_phase_contrast(seq)
     vel = sample_velocity(img, seq.points, venc, seq.pixel_spacing, floor=0.01 * venc)
-    fusion = frontend.compare_fusion(seq, tracks, vel, max_loops=args.max_loops, progress=True)
+    fusion = frontend.compare_fusion(seq, tracks, vel, max_iterations=args.max_iterations, progress=True)
     a, b = fusion["borders"], fusion["borders+velocity"]
-    print(f"3. Joint EKF, held-out DENSE points ({a['n_heldout']}), {args.max_loops} loops, beta = 0.03 s:")
+    print(f"3. Joint smoother, held-out DENSE points ({a['n_heldout']}), beta = 0.03 s:")
     print(f"   tracked borders alone      : RMSE {a['heldout_rmse_px']:.3f} px, NIS/dof {a['nis_mean_over_dof']:.2f}")
     print(f"   + velocity at {b['n_velocity_points']} mid-wall points: RMSE {b['heldout_rmse_px']:.3f} px, "
           f"NIS/dof {b['nis_mean_over_dof']:.2f}")

@@ -13,8 +13,10 @@ from .fem.material import Material, Parameterisation
 from .fem.mesh import TriMesh, delaunay_mesh, rectangle_mesh
 from .filtering.cyclic import CyclicEKF, cyclic_estimate
 from .filtering.ekf import SFEMExtendedKalmanFilter
+from .filtering.iterated import IteratedSmoother, iterated_smoother
 from .model import SFEMModel
 
-__all__ = ["SFEMModel", "SFEMExtendedKalmanFilter", "CyclicEKF", "cyclic_estimate", "Material", "Parameterisation",
+__all__ = ["SFEMModel", "SFEMExtendedKalmanFilter", "CyclicEKF", "cyclic_estimate", "IteratedSmoother",
+           "iterated_smoother", "Material", "Parameterisation",
            "TriMesh", "rectangle_mesh", "delaunay_mesh"]
 __version__ = "0.1.0"

@@ -6,12 +6,12 @@ parameterisations, effects), so the command line cannot drift from the library.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 
+from ._io import write_json
 from .cardiac.effects import CATALOGUE
-from .cardiac.measured import DRIVES, OBSERVE, PARAMETERISATIONS
+from .cardiac.measured import DRIVES, ESTIMATORS, OBSERVE, PARAMETERISATIONS
 from .filtering.engines import ENGINES
 
 
@@ -47,15 +47,18 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="sfem-filters", description=(
         "Stochastic finite-element filters for cardiac kinematics and material (Shi & Liu 2003)."))
     sub = p.add_subparsers(dest="command", required=True)
-    c = sub.add_parser("compare", help="the paper's three-way synthetic comparison (Table 1, Figs. 1-5)",
+    c = sub.add_parser("compare", help="the paper's three-way synthetic comparison (Table 1, Figs. 1-5), with the "
+                                       "joint smoother as a fourth row",
                        description="Run the uniform-material KF, the perfect-material KF and the joint EKF "
-                                   "on the pinned synthetic benchmark and print a Table-1 style table.")
+                                   "on the pinned synthetic benchmark, and the joint iterated smoother on the joint "
+                                   "EKF's model, and print a Table-1 style table.")
     c.add_argument("--seed", type=_seeds, default=[0], help="noise seed(s): 0, 0,1,2 or 0-4 (default 0)")
     c.add_argument("--refine", type=_positive_int, default=1, help="mesh refinement factor r (default 1)")
     c.add_argument("--noise-mm", type=_positive_float, default=0.1,
                    help="observation noise standard deviation in mm (default 0.1)")
     c.add_argument("--json", metavar="PATH", help="write the measured numbers as JSON")
     c.add_argument("--figures", metavar="DIR", help="write the figures (PNG) into DIR")
+    c.add_argument("--export", metavar="DIR", help="write ParaView time series (.pvd + .vtu) into DIR")
     c.add_argument("--engine", choices=tuple(ENGINES), default="structured",
                    help="filter implementation: structured (default), filterpy (the reference) or ud "
                         "(Bierman-Thornton U-D factorised, for ill-conditioned covariances)")
@@ -67,12 +70,13 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--no-progress", action="store_true", help="no progress bar")
 
     d = sub.add_parser("dense", help="close the loop on measured point-wise motion (DENSE, tagging, tracking)",
-                       description="Baseline joint EKF on a sequence file, residual diagnostics, ranking of "
-                                   "candidate missing effects, extended run, held-out errors before and after.")
+                       description="Baseline run on a sequence file, then rounds: rank the candidate missing "
+                                   "effects on the current innovations, add the best while it is significant and "
+                                   "log p(y) rises; held-out errors of every round beside a thin-plate spline's.")
     d.add_argument("path", help="sequence .npz file (see the README for the format); 'example' for the "
                                 "shipped DENSE slice")
     d.add_argument("--effects", default="auto",
-                   help="none, auto (the best-scoring effect) or a comma list of: "
+                   help="none, auto (rounds of ranking and adding effects) or a comma list of: "
                         + ", ".join(sorted(CATALOGUE)) + " (default auto)")
     d.add_argument("--drive", choices=DRIVES, default="penalty",
                    help="what drives the model besides its effects (default penalty)")
@@ -83,9 +87,20 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--parameterisation", choices=PARAMETERISATIONS, default="region",
                    help="material parameterisation: 12 regions (default), a smooth basis (6 relative "
                         "log E modes, 3 nu modes), per element, or none (material fixed)")
-    d.add_argument("--max-loops", type=_positive_int, default=3, help="cyclic loop limit (default 3)")
+    d.add_argument("--estimator", choices=ESTIMATORS, default="smoother",
+                   help="smoother (default): the iterated smoother, the MAP of one cycle with its data counted once "
+                        "and a Laplace posterior; cyclic: the paper's cyclic joint EKF, reported with the covariance "
+                        "of one cycle")
+    d.add_argument("--max-iterations", type=_positive_int, default=20,
+                   help="Gauss-Newton iteration limit of the smoother (default 20)")
+    d.add_argument("--max-loops", type=_positive_int, default=3, help="loop limit of the cyclic estimator (default 3)")
+    d.add_argument("--max-rounds", type=_positive_int, default=5,
+                   help="most rounds (effects or corrections added) of --effects auto (default 5)")
+    d.add_argument("--alpha", type=_positive_float, default=0.01,
+                   help="family-wise level of the candidates' score tests, Bonferroni-corrected (default 0.01)")
     d.add_argument("--json", metavar="PATH", help="write the report as JSON")
     d.add_argument("--figures", metavar="DIR", help="write the figures (PNG) into DIR")
+    d.add_argument("--export", metavar="DIR", help="write ParaView time series (.pvd + .vtu) into DIR")
     d.add_argument("--no-progress", action="store_true", help="no progress bar")
 
     o = sub.add_parser("observe", help="images or masks -> confidence-weighted observation sequence",
@@ -115,6 +130,11 @@ def cmd_compare(args) -> int:
             target = args.figures if len(args.seed) == 1 else os.path.join(args.figures, f"seed{seed}")
             for path in comparison_figures(comp, target):
                 print(f"wrote {path}", file=sys.stderr)
+        if args.export:
+            from .export import export_comparison
+            target = args.export if len(args.seed) == 1 else os.path.join(args.export, f"seed{seed}")
+            for path in export_comparison(comp, target):
+                print(f"wrote {path}", file=sys.stderr)
     print(format_table(comps))
     if args.json:
         _write_json(args.json, comps[0].as_json() if len(comps) == 1 else [c.as_json() for c in comps])
@@ -128,11 +148,16 @@ def cmd_dense(args) -> int:
     out = closing_the_loop(seq, effects=args.effects, drive=args.drive, landmarks=args.landmarks,
                            observe=args.observe, holdout_seed=args.holdout_seed,
                            parameterisation=args.parameterisation, max_loops=args.max_loops,
-                           progress=not args.no_progress)
+                           progress=not args.no_progress, estimator=args.estimator,
+                           max_iterations=args.max_iterations, max_rounds=args.max_rounds, alpha=args.alpha)
     print(format_report(out))
     if args.figures:
         from .plotting.measured import dense_figures
         for path in dense_figures(out, args.figures):
+            print(f"wrote {path}", file=sys.stderr)
+    if args.export:
+        from .export import export_dense
+        for path in export_dense(out, args.export):
             print(f"wrote {path}", file=sys.stderr)
     if args.json:
         _write_json(args.json, out.as_json())
@@ -186,10 +211,7 @@ def cmd_observe(args) -> int:
 
 
 def _write_json(path, payload):
-    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-    with open(path, "w") as f:
-        json.dump(payload, f, indent=2)
-    print(f"wrote {path}", file=sys.stderr)
+    print(f"wrote {write_json(path, payload)}", file=sys.stderr)
 
 
 def main(argv=None) -> int:

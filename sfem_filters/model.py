@@ -29,7 +29,10 @@ from .fem.elasticity import (element_stiffness, mass_matrix, plane_strain_matrix
 from .fem.material import Material, Parameterisation
 from .fem.mesh import TriMesh, check_mesh
 from .fem.statespace import ModalSystem, reference_sensitivity
+from .fem.strain import nodal_strain_operator
 from .filtering.linear import LinearObservation
+from .filtering.linearised import LinearisedModel, linearise_dense
+from .filtering.protocol import measurement_cov
 
 __all__ = ["SFEMModel"]
 
@@ -99,11 +102,17 @@ class SFEMModel(LinearObservation):
         first, and ``measurement_std`` covers both (m and m/s).
     initial_displacement : (n_dofs,) array, optional
         Displacement (m) of the initial state (default zero: at rest in the mesh geometry).
-    process_load_std : float or (n_free,) array, optional
+    process_load_std : float, (n_free,) or (n_free, k) array, optional
         Process noise as random nodal loads (N per frame, zero allowed) on the free dofs: adds
         ``B Sigma_w B^T`` to the kinematic block of Q, a spatially smooth (elastically
         correlated) displacement and velocity noise, evaluated at the initial material.
+        Standard deviations per dof (independent loads), or a matrix W whose columns are
+        independent unit-variance load patterns (``Sigma_w = W W^T``, loads correlated in space).
 
+    outputs : dict, optional
+        Extra output operators ``{name: (k, n_dofs) matrix}`` on the global displacements (m), for
+        example polar strains, whose smoothed uncertainty a smoother reports
+        (:meth:`output_operators`).
     system_class : type
         The exact discretisation, constructed as ``system_class(M, K, alpha, beta, T)`` over the
         free dofs (default :class:`sfem_filters.fem.statespace.ModalSystem`); any class with its
@@ -123,7 +132,7 @@ class SFEMModel(LinearObservation):
                  material_process_std=(0.0, 0.0), penalty=None, thickness: float = 1.0,
                  lumped_mass: bool = False, jacobian: str = "modal", effects=(),
                  initial_displacement=None, process_load_std=None, prior_cov=None, velocity_operator=None,
-                 system_class=ModalSystem):
+                 system_class=ModalSystem, outputs=None):
         check_mesh("mesh", mesh)
         if not isinstance(material, Material):
             raise TypeError(f"material: expected a Material, got {type(material).__name__}")
@@ -142,6 +151,13 @@ class SFEMModel(LinearObservation):
         if not isinstance(system_class, type):
             raise TypeError(f"system_class: expected a class like ModalSystem, got {type(system_class).__name__}")
         self.system_class = system_class
+        self._outputs = {}
+        for name, op in (outputs or {}).items():
+            op = sp.csr_matrix(op)
+            if op.shape[1] != mesh.n_dofs:
+                raise ValueError(f"outputs: expected output {name!r} to have {mesh.n_dofs} columns (n_dofs), "
+                                 f"got {op.shape[1]}")
+            self._outputs[str(name)] = op
         self.dofmap = DofMap(mesh.n_dofs, fixed_dofs)
         n = self.dofmap.n_free
         loads = as_float_array("loads", loads, shape=(None, mesh.n_dofs))
@@ -161,6 +177,7 @@ class SFEMModel(LinearObservation):
         self.M = self.dofmap.restrict_matrix(mass_matrix(mesh, density, thickness, lumped_mass)).toarray()
         self.penalty = None if penalty is None else self.dofmap.restrict_matrix(sp.csr_matrix(penalty)).toarray()
         self._cache: OrderedDict = OrderedDict()
+        self._modal_cache: OrderedDict = OrderedDict()
         self._directions_dofs = self.dofmap.free_index()[mesh.element_dofs]
         self.parameterisation = parameterisation
         if parameterisation is not None and not isinstance(parameterisation, Parameterisation):
@@ -230,10 +247,18 @@ class SFEMModel(LinearObservation):
         if process_load_std is not None:
             # random loads (N per dof per frame) through the dynamics: smooth, elastically
             # correlated displacement noise B Sigma_w B^T (evaluated at the initial material)
-            sw = np.broadcast_to(as_float_array("process_load_std", process_load_std), (n,))
-            if np.any(sw < 0):
-                raise ValueError("process_load_std: expected standard deviations >= 0 N")
-            BS = self.system(self.theta0 if parameterisation is not None else None).input_response(np.diag(sw))
+            sw = as_float_array("process_load_std", process_load_std)
+            if sw.ndim == 2:                   # correlated loads W xi, xi ~ N(0, I): Sigma_w = W W^T
+                if sw.shape[0] != n:
+                    raise ValueError(f"process_load_std: expected a (n_free, k) = ({n}, k) load matrix, "
+                                     f"got shape {sw.shape}")
+                W = sw
+            else:
+                sw = np.broadcast_to(sw, (n,))
+                if np.any(sw < 0):
+                    raise ValueError("process_load_std: expected standard deviations >= 0 N")
+                W = np.diag(sw)
+            BS = self.system(self.theta0 if parameterisation is not None else None).input_response(W)
             self.Q[: 2 * n, : 2 * n] += BS @ BS.T
         # Eq. (34): P0 = diag(P1, P3) with zero cross-covariance P2 (and effect states apart).
         self.P0 = np.diag(np.concatenate(p1 + p_eta + [p3]))
@@ -291,6 +316,24 @@ class SFEMModel(LinearObservation):
         system = self.system(self.theta_of(z) if self.estimates_material else None)
         return self._H[:, : self.dim_x] @ system.input_response(G)
 
+    def material_sd(self, theta, P_theta) -> tuple:
+        """Posterior standard deviations of each element's log E and of its nu.
+
+        ``var(log E_e) = b_e^T P_E b_e`` through the parameterisation's basis rows ``b_e``, and
+        ``sd(nu_e) = nu_e (1 - 2 nu_e) sd(logit 2 nu_e)`` (the delta method at ``theta``).
+        Returns ``(sd_log_E, sd_nu)``, each (n_elements,): a relative sd of E and an sd of nu.
+        """
+        if self.parameterisation is None:
+            raise ValueError("P_theta: the material is fixed (parameterisation=None): it has no posterior sd")
+        par = self.parameterisation
+        P = as_float_array("P_theta", P_theta, shape=(par.n_params, par.n_params))
+        k = par.n_E
+        BE, Bn = par.basis_E, par.basis_nu
+        sd_E = np.sqrt(np.maximum(np.einsum("ij,ij->i", np.asarray(BE @ P[:k, :k]), BE.toarray()), 0.0))
+        sd_s = np.sqrt(np.maximum(np.einsum("ij,ij->i", np.asarray(Bn @ P[k:, k:]), Bn.toarray()), 0.0))
+        nu = self.material_of_theta(theta).nu
+        return sd_E, nu * (1.0 - 2.0 * nu) * sd_s
+
     def material_of(self, z=None) -> Material:
         """Material of state z: the estimate in the joint EKF, the fixed one otherwise."""
         return self.material_of_theta(self.theta0 if z is None else self.theta_of(z))
@@ -321,7 +364,8 @@ class SFEMModel(LinearObservation):
         h = hashlib.sha256()
         parts = [self.mesh.nodes, self.mesh.elements, self.loads, self.material.E, self.material.nu, self.M,
                  np.array([self.alpha, self.beta, self.frame_interval, self.density, self.thickness]),
-                 self.dofmap.fixed, self._G, self._H, self.R]
+                 self.dofmap.fixed, self._G, self._H, self.R, self.Q, self.P0, np.asarray(self.x0, float),
+                 self._eta_transition]
         if self._R_frames is not None:
             parts.append(self._R_frames)
         if self.penalty is not None:
@@ -434,6 +478,111 @@ class SFEMModel(LinearObservation):
         out = np.zeros((n, n))
         ok = dofs >= 0
         out[np.ix_(dofs[ok], dofs[ok])] = Ke[np.ix_(ok, ok)]
+        return out
+
+    def linearise(self, states, sensitivity: bool = True) -> LinearisedModel:
+        """The model about a trajectory, in modal coordinates (for the iterated smoother).
+
+        With theta fixed at the trajectory's, the restart state ``r = [U; U'; eta]`` is written as
+        ``r = V xi``, ``xi = [q; p; eta]`` with ``q = Phi^T M U`` and ``p = Phi^T M U'``
+        (:class:`sfem_filters.fem.statespace.ModalSystem`): the transition is then sparse (the
+        2 x 2 modal blocks, Eq. 15, plus the effects' held loads), so a smoother's time update
+        costs O(n^2 p), and ``M_t`` (Eq. 33) comes straight out of the modal sensitivity without
+        its modal-to-nodal product. ``states`` is (n_frames, dim_state) with one theta; ``M_t`` is
+        taken at each frame's kinematic state and load (``sensitivity=False``: theta held fixed,
+        no ``M_t``, the exact linear model of that material). The theta-dependent parts are
+        cached for the last two materials. Falls back to
+        :func:`sfem_filters.filtering.linearised.linearise_dense` for ``jacobian="expm_frechet"``
+        or a ``system_class`` that is not a :class:`ModalSystem`.
+        """
+        z = as_float_array("states", states, shape=(self.n_frames, self.dim_state))
+        nr, nx, p = self.n_restart, self.dim_x, self.dim_theta
+        theta = z[0, nr:]
+        if p and np.any(z[:, nr:] != theta):
+            raise ValueError("states: expected one value of theta along the trajectory (static parameters)")
+        system = self.system(theta if self.parameterisation is not None else None)
+        if self.jacobian != "modal" or not isinstance(system, ModalSystem):
+            return linearise_dense(self, z, sensitivity)
+        base = self._modal_coordinates(theta, system)
+        T = self.n_frames
+        p_out = p if sensitivity else 0
+        M = np.zeros((T - 1, nr, p_out))
+        if p_out:
+            mat = self.parameterisation.material(theta)
+            dirs = self._directions(mat)
+            dofs = np.concatenate([self._directions_dofs, self._directions_dofs])
+            J = self.parameterisation.element_jacobian(mat)
+            for t in range(T - 1):
+                M[t, :nx] = system.sensitivity(z[t, :nx], self.load(z[t], t), dirs, dofs, combine=J, modal=True)
+        P0 = np.asarray(self.P0)
+        return LinearisedModel(A=base["A"], M=M, c=base["c"], H=base["H"], R=base["R"], Q=base["Q"],
+                               xi0=base["xi0"], P0=base["P0"], theta_bar=theta[:p_out].copy(),
+                               theta0=self.x0[nr:nr + p_out].copy(), P_theta0=P0[nr:nr + p_out, nr:nr + p_out].copy(),
+                               V=base["V"])
+
+    def _modal_coordinates(self, theta, system) -> dict:
+        """The theta-dependent, trajectory-independent parts of :meth:`linearise` (cached)."""
+        key = np.asarray(theta, float).tobytes()
+        hit = self._modal_cache.get(key)
+        if hit is not None:
+            self._modal_cache.move_to_end(key)
+            return hit
+        nr, nx, ne = self.n_restart, self.dim_x, self.dim_eta
+        n = nx // 2
+        V = np.zeros((nr, nr))
+        blocks = [slice(0, n), slice(n, nx), slice(nx, nr)]
+        Wb = [system.PhiTM, system.PhiTM, np.eye(ne)]
+        for k, sl in enumerate(blocks):
+            V[sl, sl] = system.Phi if k < 2 else np.eye(ne)
+
+        def congruence(C):
+            """W C W^T for W = diag(Phi^T M, Phi^T M, I), block by block, zero blocks skipped."""
+            out = np.zeros((nr, nr))
+            for i, si in enumerate(blocks):
+                for j, sj in enumerate(blocks):
+                    Cij = C[si, sj]
+                    if j < i or not Cij.size or not np.any(Cij):
+                        continue
+                    out[si, sj] = Wb[i] @ Cij @ Wb[j].T
+                    out[sj, si] = out[si, sj].T
+            return out
+
+        A = system.modal_transition()
+        if ne:
+            A = sp.bmat([[A, sp.csr_matrix(system.modal_input(self._G))],
+                         [None, sp.csr_matrix(self._eta_transition)]], format="csr")
+        c = np.zeros((self.n_frames - 1, nr))
+        for t in range(self.n_frames - 1):
+            c[t, :nx] = system.modal_input(self._w[t + 1])
+        Q, P0 = np.asarray(self.Q), np.asarray(self.P0)
+        x0 = np.asarray(self.x0, float)
+        out = {"V": V, "A": A, "c": c, "H": self._H[:, :nr] @ V, "Q": congruence(Q[:nr, :nr]),
+               "P0": congruence(P0[:nr, :nr]),
+               "xi0": np.concatenate([Wb[k] @ x0[sl] for k, sl in enumerate(blocks)]),
+               "R": np.array([measurement_cov(self, t) for t in range(self.n_frames)])}
+        self._modal_cache[key] = out
+        if len(self._modal_cache) > 2:
+            self._modal_cache.popitem(last=False)
+        return out
+
+    def output_operators(self) -> dict:
+        """Linear functions of the restart state whose uncertainty a smoother reports, (k, n_restart):
+
+        ``displacement`` and ``velocity`` (the free dofs, m and m/s), ``strain``, the nodal strains
+        (e_xx, e_yy, gamma_xy) of every node, row ``3 i + c`` (:func:`nodal_strain_operator`), and
+        the constructor's ``outputs``.
+        """
+        n, nr = self.dim_x // 2, self.n_restart
+        eye = sp.identity(n, format="csr")
+
+        def on_displacement(op):
+            op = op[:, self.dofmap.free]
+            return sp.hstack([op, sp.csr_matrix((op.shape[0], nr - n))], format="csr")
+
+        out = {"displacement": sp.hstack([eye, sp.csr_matrix((n, nr - n))], format="csr"),
+               "velocity": sp.hstack([sp.csr_matrix((n, n)), eye, sp.csr_matrix((n, nr - 2 * n))], format="csr"),
+               "strain": on_displacement(nodal_strain_operator(self.mesh))}
+        out.update({k: on_displacement(v) for k, v in self._outputs.items()})
         return out
 
     def F_jacobian(self, z, t) -> np.ndarray:

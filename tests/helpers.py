@@ -7,6 +7,7 @@ from sfem_filters import fem
 from sfem_filters.fem.material import Material, Parameterisation
 from sfem_filters.fem.mesh import TriMesh, delaunay_mesh, rectangle_mesh
 from sfem_filters.fem.observation import node_observation_matrix
+from sfem_filters.filtering import LinearGaussianModel
 from sfem_filters.model import SFEMModel
 
 
@@ -82,3 +83,44 @@ def ring(shape=(48, 48), centre=(23.5, 23.5), r_in=8.0, r_out=13.0, bump=0.0, an
     r = np.hypot(dx, dy)
     w = 1.0 + bump * np.cos(3 * th)
     return (r >= r_in * w) & (r <= r_out * w)
+
+
+class BiasModel(LinearGaussianModel):
+    """x_{t+1} = A x_t + G theta + w_t: linear in (x, theta), so the joint 'EKF' is exact."""
+
+    def __init__(self, A, G, H, Q, R, P0, P3, n_frames, theta0):
+        p = G.shape[1]
+        zero = np.zeros((p,) + A.shape)
+        super().__init__(lambda th: (A, zero), H, Q, R, np.zeros(len(A)), P0, n_frames, theta0, P3)
+        self._A, self._G = A, G
+
+    def fx(self, z, t):
+        x, th = z[: self.n_restart], z[self.n_restart:]
+        return np.concatenate([self._A @ x + self._G @ th, th])
+
+    def F_jacobian(self, z, t):
+        F = np.eye(self.dim_state)
+        F[: self.n_restart, : self.n_restart] = self._A
+        F[: self.n_restart, self.n_restart:] = self._G
+        return F
+
+
+def bias_model(rng, n, p, m, frames):
+    """A random stable BiasModel and its data (theta_true drawn from N(0, I))."""
+    A = rng.standard_normal((n, n))
+    A *= 0.9 / max(abs(np.linalg.eigvals(A)))
+    G = 0.3 * rng.standard_normal((n, p))
+    H = rng.standard_normal((m, n))
+    Q = np.diag(rng.uniform(0.01, 0.1, n))
+    R = np.diag(rng.uniform(0.05, 0.2, m))
+    B = rng.standard_normal((p, p))
+    P3 = B @ B.T / p + 0.5 * np.eye(p)
+    model = BiasModel(A, G, H, Q, R, 0.1 * np.eye(n), P3, frames, rng.standard_normal(p))
+    theta_true = rng.standard_normal(p)
+    x = np.zeros(n)
+    y = np.empty((frames, m))
+    for t in range(frames):
+        if t:
+            x = A @ x + G @ theta_true + rng.multivariate_normal(np.zeros(n), Q)
+        y[t] = H @ x + rng.multivariate_normal(np.zeros(m), R)
+    return model, y

@@ -46,7 +46,7 @@ def test_synthetic_comparison_prints_the_readme_table_of_seed_0():
 def test_front_end_tracking_numbers_are_the_readmes():
     """Parts 1-2 (tracking error and confidence) do not depend on the loop count: the quick run
     prints the README's figures; part 3 (fusion) is checked in the slow test."""
-    out = run_example("front_end_subject_a.py", "--max-loops", "1")
+    out = run_example("front_end_subject_a.py", "--max-iterations", "1")
     rmse, normal, tangential = numbers(r"RMSE ([0-9.]+) px \(normal ([0-9.]+), tangential ([0-9.]+)\)", out)
     assert f"| tracking error | {rmse} (normal to the border {normal}, along it {tangential}) |" in README
     motion = numbers(r"DENSE motion of those points: RMS ([0-9.]+) px \(normal ([0-9.]+), tangential ([0-9.]+)\)", out)

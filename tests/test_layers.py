@@ -1,6 +1,6 @@
 """The package's layers, as the README draws them: which subpackage may import which.
 
-    _validate, geometry            (plain checks and plane geometry; import nothing of ours)
+    _validate, _io, geometry       (plain checks, JSON files, plane geometry; import nothing of ours)
     fem        filtering   imaging (independent of each other)
     model                          (SFEMModel: bridges fem and filtering)
     cardiac                        (composes fem, filtering, imaging through the model)
@@ -16,7 +16,7 @@ import pathlib
 
 ROOT = pathlib.Path(__file__).resolve().parents[1] / "sfem_filters"
 
-LAYER = {"_validate": "base", "geometry": "base", "fem": "fem", "filtering": "filtering", "imaging": "imaging",
+LAYER = {"_validate": "base", "_io": "base", "geometry": "base", "fem": "fem", "filtering": "filtering", "imaging": "imaging",
          "model": "model", "cardiac": "cardiac", "benchmark": "benchmark", "batch": "batch", "export": "export",
          "plotting": "plotting", "cli": "cli", "__init__": "root"}
 ALLOWED = {

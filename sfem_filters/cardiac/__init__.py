@@ -10,30 +10,68 @@ on the points, observes sparse landmarks, holds the rest out and closes the loop
 >>> setup = prepare(seq, landmarks=8)
 >>> setup.mesh.n_nodes, len(setup.observed), len(setup.heldout)
 (240, 16, 224)
->>> result = closing_the_loop(seq, effects="auto", max_loops=1)
+>>> result = closing_the_loop(seq, effects="auto", max_iterations=3, max_rounds=1)
 >>> result.effects                                                       # the undeclared effect is found
 ['active_polar']
+>>> result.extended.metrics["heldout_rmse_px"] < result.reference["heldout_rmse_px"]   # beats the spline
+True
 
 Modules: :mod:`~sfem_filters.cardiac.sequence` (the file format, loader, example data),
 :mod:`~sfem_filters.cardiac.myocardium` (mesh from points or masks, endo/epicardium,
 directions, landmarks), :mod:`~sfem_filters.cardiac.effects` (the catalogue of missing
 effects), :mod:`~sfem_filters.cardiac.measured` (set-up, model, runs, evaluation),
-:mod:`~sfem_filters.cardiac.closing` (residual diagnosis and effects),
+:mod:`~sfem_filters.cardiac.closing` (residual diagnosis, effects and corrections added in rounds),
+:mod:`~sfem_filters.cardiac.reference` (the thin-plate-spline yardstick),
 :mod:`~sfem_filters.cardiac.frontend` (images to a sequence, fusion),
 :mod:`~sfem_filters.cardiac.annulus` (synthetic sequences with a known answer).
 """
 from .annulus import annulus_mask, annulus_sequence, deformed_masks
-from .closing import LoopResult, candidate_loads, closing_the_loop, format_report
+from .closing import (
+                       LoopResult,
+                       Round,
+                       Variant,
+                       candidate_loads,
+                       closing_the_loop,
+                       format_report,
+                       log_evidence,
+)
 from .effects import CATALOGUE, Effect, build_effects
 from .frontend import compare_fusion, fusion_setup, observe
-from .measured import (DRIVES, NOMINAL, OBSERVE, PARAMETERISATIONS, Run, Setup, build_model, evaluate,
-                       measured_wall_kinematics, noise_floor, prepare, run, strain_maps)
-from .myocardium import LVGeometry, contour_landmarks, lv_geometry, mesh_from_mask, mesh_from_points
-from .sequence import Sequence, example_path, load_sequence, make_sequence, save_sequence
+from .measured import (
+                       DRIVES,
+                       NOMINAL,
+                       OBSERVE,
+                       PARAMETERISATIONS,
+                       Run,
+                       Setup,
+                       build_model,
+                       evaluate,
+                       measured_wall_kinematics,
+                       noise_floor,
+                       prepare,
+                       run,
+                       strain_maps,
+)
+from .myocardium import (
+                       LVGeometry,
+                       contour_landmarks,
+                       lv_geometry,
+                       mesh_from_mask,
+                       mesh_from_points,
+)
+from .reference import contour_interpolant, spline_reference
+from .sequence import (
+                       Sequence,
+                       example_path,
+                       load_sequence,
+                       make_sequence,
+                       save_sequence,
+)
 
 __all__ = ["Sequence", "make_sequence", "load_sequence", "save_sequence", "example_path", "LVGeometry",
            "lv_geometry", "mesh_from_points", "mesh_from_mask", "contour_landmarks", "Effect", "CATALOGUE",
            "build_effects", "NOMINAL", "PARAMETERISATIONS", "DRIVES", "OBSERVE", "Setup", "Run", "prepare",
            "build_model", "run", "evaluate", "noise_floor", "strain_maps", "measured_wall_kinematics",
-           "LoopResult", "closing_the_loop", "candidate_loads", "format_report", "observe", "fusion_setup",
+           "LoopResult", "Round", "Variant", "closing_the_loop", "candidate_loads", "format_report", "log_evidence",
+           "spline_reference", "contour_interpolant", "observe", "fusion_setup",
            "compare_fusion", "annulus_mask", "annulus_sequence", "deformed_masks"]

@@ -28,49 +28,73 @@ def annulus_mask(r_inner: float = 8.0, r_outer: float = 12.0, size: int = 32) ->
     return (r >= r_inner) & (r <= r_outer)
 
 
-def annulus_sequence(effect: str | None = None, amplitude=(0.15, -0.3), seed: int = 0, n_frames: int = 24,
+def annulus_sequence(effect=None, amplitude=(0.15, -0.3), seed: int = 0, n_frames: int = 24,
                      noise_px: float = 0.05, landmark_step_px: float = 0.15, landmarks: int = 8,
                      frame_interval: float = 0.03, pixel_spacing: float = 1e-3, return_truth: bool = False,
-                     beta: float | None = None):
+                     beta: float | None = None, material=None, drive: str = "penalty", peak_pressure: float = 2e3):
     """A sequence drawn from the filter's own generative model on a synthetic annulus.
 
     Every pixel of :func:`annulus_mask` is a point. The motion follows exactly the model that
-    :func:`sfem_filters.cardiac.measured.build_model` builds (causal penalty drive by the landmarks'
-    previous measurement, elastically correlated process noise of the spring targets with
-    ``landmark_step_px`` per frame, measurement noise ``noise_px``), plus, when ``effect`` names
-    one, that undeclared load with amplitudes ``amplitude`` (units of ``NOMINAL["E"]``) shaped
-    as a systolic bell in time. With ``effect=None`` a correct baseline filter is consistent
-    with the data by construction: what the diagnostics must not flag.
+    :func:`sfem_filters.cardiac.measured.build_model` builds for ``drive``:
 
-    ``beta`` (s) overrides the model's Rayleigh stiffness coefficient (see
-    :func:`sfem_filters.cardiac.measured.build_model`).
+    * ``"penalty"``: causal penalty drive by the landmarks' previous measurement, elastically
+      correlated process noise of the spring targets with ``landmark_step_px`` per frame;
+    * ``"pressure"``: a cavity pressure ``peak_pressure sin^2(pi t / (F - 1))`` (Pa) on the
+      endocardium, recorded in the sequence's ``pressure``, and the model's own process noise;
+
+    with measurement noise ``noise_px``, plus undeclared loads: ``effect`` names one effect of
+    :data:`sfem_filters.cardiac.effects.CATALOGUE` (with ``amplitude`` its amplitudes, units of
+    ``NOMINAL["E"]``) or several (a sequence of names, ``amplitude`` a sequence of amplitude
+    tuples), each shaped as a systolic bell in time. With ``effect=None`` a correct baseline
+    filter is consistent with the data by construction: what the diagnostics must not flag.
+
+    ``beta`` (s) overrides the model's Rayleigh stiffness coefficient and ``material`` (a
+    :class:`sfem_filters.fem.material.Material` of the annulus mesh, for example another stiffness
+    scale) the nominal uniform material of the motion (see
+    :func:`sfem_filters.cardiac.measured.build_model`); the process noise stays the filter model's
+    (whose random spring loads act through the nominal material's dynamics), so that a model
+    estimating the material is right about everything else.
 
     Returns a :class:`sfem_filters.cardiac.sequence.Sequence` in pixels; with ``return_truth`` also a
     dict of the noise-free ``displacement`` (F, P, 2) px and ``velocity`` (F, P, 2) px/s.
     """
+    if drive not in ("penalty", "pressure"):
+        raise ValueError(f"drive: expected 'penalty' or 'pressure', got {drive!r}")
+    names = [] if effect is None else [effect] if isinstance(effect, str) else list(effect)
+    amps = [amplitude] if isinstance(effect, str) else list(amplitude) if names else []
+    if len(amps) != len(names):
+        raise ValueError(f"amplitude: expected one amplitude tuple per effect ({len(names)}), got {len(amps)}")
     rng = np.random.default_rng(seed)
     mask = annulus_mask()
     rows, cols = np.nonzero(mask)
     pts = np.column_stack([cols, rows]).astype(float)
+    bell = np.sin(np.pi * np.arange(n_frames) / (n_frames - 1)) ** 2
+    extra = {"pressure": peak_pressure * bell} if drive == "pressure" else {}
     stub = make_sequence(pts, np.zeros((n_frames, len(pts), 2)), frame_interval=frame_interval,
-                         pixel_spacing=pixel_spacing, reference_mask=mask)
+                         pixel_spacing=pixel_spacing, reference_mask=mask, **extra)
     setup = measured.prepare(stub, landmarks)
     setup.noise_px = noise_px
-    model, _ = measured.build_model(setup, (), "penalty", "none", landmark_step_px=landmark_step_px, beta=beta)
+    opts = {"landmark_step_px": landmark_step_px, "beta": beta}
+    model, _ = measured.build_model(setup, (), drive, "none", **opts)
     s = pixel_spacing
-    system = model.system()
     nx = model.dim_x
+    # the process noise of the filter's model (its random spring loads reach the tissue through the
+    # nominal material's dynamics, as the model assumes), the motion through the given material's
     L = np.linalg.cholesky(model.Q[:nx, :nx] + 1e-30 * np.eye(nx))
+    if material is not None:
+        model, _ = measured.build_model(setup, (), drive, "none", material=material, **opts)
+    system = model.system()
     n_dofs = setup.mesh.n_dofs
-    G = np.zeros((n_dofs, 0))
-    a = np.zeros((n_frames, 0))
-    if effect is not None:
-        eff = build_effects([effect], setup.mesh, setup.geometry, scale=measured.NOMINAL["E"])[0]
-        G = eff.loads
-        bell = np.sin(np.pi * np.arange(n_frames) / (n_frames - 1)) ** 2
-        a = bell[:, None] * np.broadcast_to(np.asarray(amplitude, float)[: G.shape[1]], (G.shape[1],))[None]
-    k = measured.NOMINAL["penalty"] * np.median(
-        stiffness_matrix(setup.mesh, model.material.E, model.material.nu).diagonal())
+    G, a = [np.zeros((n_dofs, 0))], [np.zeros((n_frames, 0))]
+    for name, amp in zip(names, amps):
+        eff = build_effects([name], setup.mesh, setup.geometry, scale=measured.NOMINAL["E"])[0]
+        k_eff = eff.loads.shape[1]
+        G.append(eff.loads)
+        a.append(bell[:, None] * np.broadcast_to(np.asarray(amp, float)[:k_eff], (k_eff,))[None])
+    G, a = np.hstack(G), np.hstack(a)
+    k = measured.NOMINAL["penalty"] * np.median(stiffness_matrix(
+        setup.mesh, measured.NOMINAL["E"] * np.ones(setup.mesh.n_elements),
+        measured.NOMINAL["nu"] * np.ones(setup.mesh.n_elements)).diagonal())
     lm_dofs = node_dofs(setup.landmarks)
     x = model.x0[:nx].copy()
     disp = np.empty((n_frames, len(pts), 2))
@@ -78,8 +102,11 @@ def annulus_sequence(effect: str | None = None, amplitude=(0.15, -0.3), seed: in
     true_v = np.empty_like(disp)
     for t in range(n_frames):
         if t > 0:
-            w = np.zeros(n_dofs)
-            w[lm_dofs] = k * disp[t - 1][setup.landmarks].reshape(-1) * s      # measured, previous frame
+            if drive == "penalty":
+                w = np.zeros(n_dofs)
+                w[lm_dofs] = k * disp[t - 1][setup.landmarks].reshape(-1) * s      # measured, previous frame
+            else:
+                w = model.loads[t].copy()
             w = w + G @ a[t]
             x = system.step(x, model.dofmap.restrict(w)) + L @ rng.standard_normal(nx)
         U = model.displacements(x).reshape(-1, 2) / s
@@ -87,8 +114,8 @@ def annulus_sequence(effect: str | None = None, amplitude=(0.15, -0.3), seed: in
         true_v[t] = model.velocities(x).reshape(-1, 2) / s
         disp[t] = U + rng.standard_normal(U.shape) * noise_px / np.sqrt(2.0)
     seq = make_sequence(pts, disp, frame_interval=frame_interval, pixel_spacing=pixel_spacing,
-                         reference_mask=mask, provenance=f"sfem_filters.synthetic.annulus_sequence(effect={effect!r}, "
-                                                         f"seed={seed})")
+                        reference_mask=mask, provenance=f"sfem_filters annulus_sequence(effect={effect!r}, "
+                                                        f"drive={drive!r}, seed={seed})", **extra)
     return (seq, {"displacement": true_u, "velocity": true_v}) if return_truth else seq
 
 

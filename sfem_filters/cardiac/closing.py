@@ -1,23 +1,67 @@
-"""Closing the loop on measured data: residual diagnosis, missing effects, before and after.
+"""Closing the loop on measured data: residual diagnosis, missing effects added round by round.
 
-Step 5 of the paper's section 3.2 workflow, on top of :mod:`sfem_filters.cardiac.measured`:
-the baseline model's innovations are scored against a catalogue of candidate missing effects
-(:mod:`sfem_filters.cardiac.effects`, a score test per candidate), the chosen effects are added
-and the model is run again; :func:`closing_the_loop` returns both runs, the ranking and what
-the data themselves say about the wall as a :class:`LoopResult`.
+Step 5 of the paper's section 3.2 workflow, on top of :mod:`sfem_filters.cardiac.measured`,
+repeated until the data stop asking for more. Each round scores every remaining candidate of
+the catalogue (:mod:`sfem_filters.cardiac.effects`) on the current model's innovations (a score
+test per candidate, :func:`sfem_filters.filtering.diagnostics.rank_effects`) and adds the best
+one only if
+
+(a) its score is significant after a Bonferroni correction for every score test made so far
+    (``-log10 p > -log10(alpha / m)``, m counted over all rounds), and
+(b) the model's evidence ``log p(y)`` from the observed data alone rises by more than
+    ``min_evidence`` nats (:func:`log_evidence`: the Laplace approximation of the marginal
+    likelihood, which the iterated smoother's final pass gives by the prediction-error
+    decomposition).
+
+The evidence is the criterion rather than cross-validation over the observed points because the
+observed points are few (16 landmarks on the shipped slice: leaving some out changes the drive
+itself) and because it already carries its own Occam penalty: an effect's amplitudes are random
+walks with a prior, integrated out, so a term that does not explain the data lowers ``log p(y)``
+(Laplace's approximation is the origin of BIC, without BIC's count of "free parameters" that
+random-walk states do not have). A significant candidate that fails (b) is set aside and the
+next significant one is fitted (at most ``max_tries`` fits per round).
+
+When no effect passes, corrections of the model's own drive and priors are the candidates,
+each only when the residual points to it (:func:`_corrections`): springs on the whole contour,
+the landmarks' motion interpolated along it, instead of on the isolated landmarks, whose pull
+forms tents in the wall between them; springs ten times stiffer; when the
+innovations are correlated in time, spring targets extrapolated from the last two frames
+instead of held a frame behind, and effect amplitudes that follow a trend; when the NIS is off
+its expected value from above, the process noise doubled. They have no score test (the drive's direction changes with each frame's
+data): all that apply are fitted, and the one that raises the evidence most is kept.
+
+Candidates that explain the same thing are kept from piling up in three ways: the ranking is
+redone on the extended model's innovations, so what the added effect explains no longer counts
+for the others (``cavity_pressure`` after ``active_polar`` on a circular wall); a candidate whose
+loads lie in the span of the current effects' loads is not scored (it can explain nothing new);
+and a candidate whose span contains a current effect replaces it instead of joining it
+(``active_segments`` contains ``active_polar``: six segments with equal amplitudes are the
+uniform effect), so the model never carries two unidentifiable copies of one cause. With a
+measured pressure the stiffness level is a parameter of the material (see
+:func:`sfem_filters.cardiac.measured.build_model`), so a scale error is not left for
+``cavity_pressure`` to absorb.
+
+Every report carries the physics-free yardstick (:func:`sfem_filters.cardiac.reference.spline_reference`):
+a thin-plate spline through the same observed points, scored on the same held-out points.
+:func:`closing_the_loop` returns all rounds as a :class:`LoopResult`.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from .._validate import integer, non_negative
 from ..filtering import diagnostics
 from .effects import CATALOGUE, build_effects
 from .measured import (NOMINAL, Run, Setup, equivalent_eigenstrain, measured_wall_kinematics, prepare, run)
+from .reference import spline_reference
 from .sequence import Sequence
 
-__all__ = ["LoopResult", "closing_the_loop", "candidate_loads", "format_report"]
+__all__ = ["LoopResult", "Round", "Variant", "closing_the_loop", "candidate_loads", "spans", "log_evidence", "format_report",
+           "DRIVE_CORRECTIONS"]
+
+_SPAN_TOL = 1e-6
 
 
 def candidate_loads(setup: Setup, names=None) -> list:
@@ -25,6 +69,125 @@ def candidate_loads(setup: Setup, names=None) -> list:
     names = sorted(CATALOGUE) if names is None else names
     effs = build_effects(names, setup.mesh, setup.geometry, scale=NOMINAL["E"])
     return [(e.name, e.loads) for e in effs]
+
+
+def spans(A, B, tol: float = _SPAN_TOL) -> bool:
+    """True when every column of ``B`` lies in the column span of ``A`` (relative residual of
+    the least-squares fit below ``tol``): the loads ``B`` add nothing the loads ``A`` lack."""
+    A, B = np.asarray(A, float), np.asarray(B, float)
+    if A.size == 0:
+        return not np.any(B)
+    coef = np.linalg.lstsq(A, B, rcond=None)[0]
+    return bool(np.linalg.norm(B - A @ coef) <= tol * max(np.linalg.norm(B), np.finfo(float).tiny))
+
+
+@dataclass(frozen=True)
+class Variant:
+    """What a round's model is, beyond the set-up: its effects and the corrections made so far.
+
+    Attributes
+    ----------
+    effects : tuple of str
+        Catalogue effects (:data:`~sfem_filters.cardiac.effects.CATALOGUE`).
+    drive : str
+        The drive (:data:`~sfem_filters.cardiac.measured.DRIVES`).
+    drive_trend : bool
+        Spring targets extrapolated from the two previous frames instead of held.
+    effect_rates : bool
+        Effect amplitudes with rate states (integrated random walks).
+    process_scale : float
+        Scale of every process noise.
+    spring_scale : float
+        Scale of the drive's spring stiffness.
+    """
+
+    effects: tuple = ()
+    drive: str = "penalty"
+    drive_trend: bool = False
+    effect_rates: bool = False
+    process_scale: float = 1.0
+    spring_scale: float = 1.0
+
+    def with_(self, **change) -> "Variant":
+        return replace(self, **change)
+
+    def label(self, drive: str) -> str:
+        """Short text: the effects, and what differs from the configured ``drive`` and defaults."""
+        out = ",".join(self.effects) or "none"
+        if self.drive != drive:
+            out += f" [drive {self.drive}]"
+        if self.drive_trend:
+            out += " [drive trend]"
+        if self.effect_rates:
+            out += " [effect trend]"
+        if self.process_scale != 1.0:
+            out += f" [noise x{self.process_scale:g}]"
+        if self.spring_scale != 1.0:
+            out += f" [springs x{self.spring_scale:g}]"
+        return out
+
+    def as_json(self) -> dict:
+        return {"effects": list(self.effects), "drive": self.drive, "drive_trend": self.drive_trend,
+                "effect_rates": self.effect_rates, "process_scale": self.process_scale,
+                "spring_scale": self.spring_scale}
+
+
+@dataclass(eq=False)
+class Round:
+    """One round of :func:`closing_the_loop`.
+
+    Attributes
+    ----------
+    number : int
+        0 for the baseline.
+    variant : Variant
+        The round's model.
+    added : str or None
+        The effect or correction this round added (None for the baseline).
+    replaced : tuple of str
+        Effects the added one contains and replaced.
+    run : Run
+        The run of the round's model.
+    ranking : list of dict
+        Score test of every candidate on the previous round's innovations, best first
+        (empty for the baseline).
+    threshold : float
+        The score (-log10 p) a candidate needed: ``-log10(alpha / m)``, m the score tests so far.
+    tried : list of dict
+        Candidates fitted in this round: effect or correction, score (None for corrections),
+        evidence gain (nats), accepted.
+    log_evidence : float
+        The round's model's ``log p(y)`` (nats).
+    """
+
+    number: int
+    variant: Variant
+    added: str | None
+    replaced: tuple
+    run: Run
+    ranking: list = field(default_factory=list)
+    threshold: float = np.nan
+    tried: list = field(default_factory=list)
+    log_evidence: float = np.nan
+
+    @property
+    def effects(self) -> tuple:
+        return self.variant.effects
+
+    def as_json(self) -> dict:
+        m = self.run.metrics
+        return {"round": self.number, **self.variant.as_json(), "added": self.added,
+                "replaced": list(self.replaced), "log_evidence": self.log_evidence,
+                "threshold": None if not np.isfinite(self.threshold) else float(self.threshold),
+                "tried": list(self.tried),
+                "ranking": [{"effect": r["effect"], "score": r["score"], "lm": r["lm"], "df": r["df"],
+                             "explained": r["explained"]} for r in self.ranking],
+                **{k: m[k] for k in _ROUND_KEYS}}
+
+
+_ROUND_KEYS = ("heldout_rmse_px", "heldout_rmse_radial_px", "heldout_rmse_circumferential_px",
+               "nis_mean_over_dof", "innovation_lag1_autocorrelation", "nis_z", "lag1_z",
+               "shear_strain_rms_peak_model", "shear_strain_error_rms_peak", "shear_strain_correlation_peak")
 
 
 @dataclass(eq=False)
@@ -35,78 +198,273 @@ class LoopResult:
     ----------
     setup : Setup
         Mesh, geometry and the observed / held-out split.
-    baseline, extended : Run
-        The run without effects and the run with :attr:`effects` (the same run when none).
-    effects : list of str
-        The effects added.
+    rounds : list of Round
+        The baseline (round 0) and every round that added an effect, in order.
+    stop_reason : str
+        Why the rounds ended: ``"no significant candidate"``, ``"evidence"`` (significant
+        candidates did not raise the evidence), ``"max_rounds"``, ``"given"`` (effects named by
+        the user) or ``"none"``.
     ranking : list of dict
         Score test of every candidate on the baseline innovations, best first.
+    last_attempt : dict
+        The round that added nothing: its ``ranking``, ``threshold`` and ``tried`` (empty when the
+        rounds ended otherwise).
     measured : dict
         What the data say about the wall (:func:`sfem_filters.cardiac.measured.measured_wall_kinematics`).
+    reference : dict
+        The thin-plate spline's held-out errors (:func:`sfem_filters.cardiac.reference.spline_reference`).
     config : dict
         The settings of the workflow.
     """
 
     setup: Setup
-    baseline: Run
-    extended: Run
-    effects: list
+    rounds: list
+    stop_reason: str
     ranking: list
+    last_attempt: dict
     measured: dict
+    reference: dict
     config: dict
+
+    @property
+    def baseline(self) -> Run:
+        return self.rounds[0].run
+
+    @property
+    def extended(self) -> Run:
+        """The final model's run (the baseline's when no effect was added)."""
+        return self.rounds[-1].run
+
+    @property
+    def effects(self) -> list:
+        return list(self.rounds[-1].effects)
+
 
     def as_json(self) -> dict:
         """The report as plain JSON-able values (the ``--json`` file of ``sfem-filters dense``)."""
         setup = self.setup
+        ref = {k: v for k, v in self.reference.items() if k != "U"}
         return {
             "noise_floor_px": setup.noise_px,
             "measured": self.measured,
             "nominal": {k: NOMINAL[k] for k in setup.nominal},
             "config": dict(self.config),
+            "observed_points": setup.observed.tolist(),
+            "heldout_points": setup.heldout.tolist(),
+            "spline_reference": ref,
             "baseline": self.baseline.metrics,
-            "extended": {"effects": list(self.effects), **self.extended.metrics},
+            "extended": {"effects": self.effects, **self.extended.metrics},
             "ranking": [{"effect": r["effect"], "score": r["score"], "lm": r["lm"], "df": r["df"],
                          "explained": r["explained"]} for r in self.ranking],
+            "rounds": [r.as_json() for r in self.rounds],
+            "stop_reason": self.stop_reason,
+            "last_attempt": {"threshold": self.last_attempt.get("threshold"), "tried": self.last_attempt.get("tried", []),
+                             "ranking": [{"effect": r["effect"], "score": r["score"], "df": r["df"]}
+                                         for r in self.last_attempt.get("ranking", [])]},
         }
+
+
+def log_evidence(r: Run) -> float:
+    """``log p(y)`` of a run's model (nats), the criterion of the rounds.
+
+    For the iterated smoother, the log-likelihood of its final pass: the model linearised at the
+    mode, parameters integrated over their Gaussian prior, kinematics and effect states over
+    theirs (prediction-error decomposition), i.e. the Laplace approximation of the marginal
+    likelihood. For the cyclic EKF it is formed from the exact ``log p(y | theta)`` at its
+    estimate and the one-cycle covariance ``Sigma``: ``log p(y | theta) + log p(theta) +
+    log det(2 pi Sigma) / 2`` (:func:`sfem_filters.cardiac.measured.evaluate` computes both).
+    """
+    return float(r.metrics["log_evidence"])
+
+
+def _fit(setup, variant: Variant, opts) -> Run:
+    return run(setup, variant.effects, variant.drive, name=variant.label(variant.drive), effect_rates=variant.effect_rates,
+               drive_trend=variant.drive_trend, process_scale=variant.process_scale,
+               spring_scale=variant.spring_scale, **opts)
+
+
+#: Corrections of the drive the rounds may make: from the drive in use to the one tried instead.
+DRIVE_CORRECTIONS = {"penalty": "contour"}
+
+#: |z| of the innovations' checks (NIS, lag-1 whiteness; each ~N(0, 1) for a consistent model)
+#: beyond which the residual points to a correction of the model's noise or dynamics.
+CHECK_Z = 3.0
+
+
+def _corrections(cur: Round) -> list:
+    """(name, Variant) of the corrections the current round's residual points to.
+
+    ``drive:<new>``: the drive's correction (:data:`DRIVE_CORRECTIONS`), always a candidate.
+    When the innovations are correlated in time (whiteness z above :data:`CHECK_Z`), the model
+    is a frame behind the motion: ``drive:trend``, spring targets extrapolated from the two
+    previous frames instead of held at the last one (also with the drive's correction,
+    ``drive:<new>+trend``: the drive is one factor, its alternatives are tried side by side);
+    ``effects:trend``, effect amplitudes that
+    follow a trend (integrated random walks) instead of holding their last value.
+    ``springs:x10``: for spring drives, the springs ten times stiffer (soft springs let the tissue
+    lag its border and leave the interior to the elastic response of a few updates; on isolated
+    landmarks stiff springs pull tents, which the evidence then rejects), always a candidate.
+    ``noise:x2``: when the innovations are too large for their covariance (NIS z above +3) and no
+    effect explains them, every process noise (kinematics, drive, effects) doubled. Not the other
+    way: a NIS below 1 in the smoother's final pass comes from the parameters' prior as well as
+    from the process noise (a model that is right everywhere gives NIS/dof 0.5-0.8 on the
+    synthetic checks), so it is no evidence that the noise is too large.
+    """
+    v, m = cur.variant, cur.run.metrics
+    out = []
+    lagged = m["lag1_z"] > CHECK_Z
+    alt = DRIVE_CORRECTIONS.get(v.drive)
+    if alt is not None:
+        out.append((f"drive:{alt}", v.with_(drive=alt)))
+    if lagged and v.drive in ("penalty", "contour") and not v.drive_trend:
+        out.append(("drive:trend", v.with_(drive_trend=True)))
+        if alt is not None:             # the drive's two corrections together: one alternative drive
+            out.append((f"drive:{alt}+trend", v.with_(drive=alt, drive_trend=True)))
+    if lagged and v.effects and not v.effect_rates:
+        out.append(("effects:trend", v.with_(effect_rates=True)))
+    if v.drive in ("penalty", "contour"):
+        out.append(("springs:x10", v.with_(spring_scale=v.spring_scale * 10.0)))
+    if m["nis_z"] > CHECK_Z:
+        out.append(("noise:x2", v.with_(process_scale=v.process_scale * 2.0)))
+    return out
 
 
 def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", landmarks: int = 8,
                      observe: str = "boundary", holdout_seed: int = 0, parameterisation: str = "region",
-                     max_loops: int = 5, progress: bool = False) -> LoopResult:
-    """Baseline run, residual diagnostics, effect ranking, extended run: the whole loop.
+                     max_loops: int = 5, progress: bool = False, estimator: str = "smoother",
+                     max_iterations: int = 20, max_rounds: int = 5, alpha: float = 0.01,
+                     min_evidence: float = 0.0, max_tries: int = 2, candidates=None,
+                     corrections: bool = True) -> LoopResult:
+    """Baseline run, then rounds of ranking and adding effects (module docstring), with the spline
+    reference.
 
     Parameters
     ----------
-    effects : "auto", "none" or a sequence of effect names
-        ``auto`` adds the effect the score test ranks first.
+    effects : "auto", "none" or a sequence (or comma-separated string) of effect names
+        ``auto`` runs the rounds; ``none`` only the baseline; names: the baseline and one run with
+        exactly those effects (no test).
     drive, parameterisation : str
         See :func:`sfem_filters.cardiac.measured.build_model`.
     landmarks, observe, holdout_seed :
         See :func:`sfem_filters.cardiac.measured.prepare`.
-    max_loops : int
-        Cyclic loop limit of each run.
+    estimator : {"smoother", "cyclic"}
+        The iterated smoother (at most ``max_iterations`` Gauss-Newton steps) or the paper's
+        cyclic joint EKF (at most ``max_loops`` loops); see :func:`sfem_filters.cardiac.measured.run`.
+    max_rounds : int
+        Most effects added (>= 1).
+    alpha : float
+        Family-wise level of the score tests, in (0, 1).
+    min_evidence : float
+        Least rise of ``log p(y)`` (nats, >= 0) for an effect to be kept.
+    max_tries : int
+        Most significant candidates fitted per round (>= 1).
+    candidates : sequence of str, optional
+        The catalogue names to consider (default: all of :data:`~sfem_filters.cardiac.effects.CATALOGUE`).
+    corrections : bool
+        Also try corrections of the drive and of the effects' dynamics (:func:`_corrections`)
+        when no effect passes a round.
     """
+    max_rounds = integer("max_rounds", max_rounds, 1)
+    max_tries = integer("max_tries", max_tries, 1)
+    min_evidence = non_negative("min_evidence", min_evidence)
+    if not (isinstance(alpha, (int, float)) and 0.0 < float(alpha) < 1.0):
+        raise ValueError(f"alpha: expected a level in (0, 1), got {alpha!r}")
+    names = sorted(CATALOGUE) if candidates is None else list(candidates)
+    unknown = [n for n in names if n not in CATALOGUE]
+    if unknown:
+        raise ValueError(f"candidates: unknown effects {unknown}; expected names from {sorted(CATALOGUE)}")
     setup = prepare(seq, landmarks, observe, holdout_seed)
-    base = run(setup, (), drive, parameterisation, max_loops, progress=progress, name="baseline")
-    ranking = diagnostics.rank_effects(base.model, base.result.history, candidate_loads(setup))
-    if isinstance(effects, str):
-        if effects == "auto":
-            chosen = [ranking[0]["effect"]]
-        elif effects == "none":
-            chosen = []
-        else:
-            chosen = [e.strip() for e in effects.split(",") if e.strip()]
+    opts = {"parameterisation": parameterisation, "max_loops": max_loops, "progress": progress,
+            "estimator": estimator, "max_iterations": max_iterations}
+    start = Variant(drive=drive)
+    base = _fit(setup, start, opts)
+    last = {}
+    rounds = [Round(0, start, None, (), base, log_evidence=log_evidence(base))]
+    loads = dict(candidate_loads(setup, names))
+    if isinstance(effects, str) and effects not in ("auto", "none"):
+        effects = [e.strip() for e in effects.split(",") if e.strip()]
+    first = diagnostics.rank_effects(base.model, base.result.history, list(loads.items()))
+    if effects == "none":
+        stop = "none"
+    elif effects != "auto":
+        chosen = start.with_(effects=tuple(effects))
+        ext = _fit(setup, chosen, opts)
+        rounds.append(Round(1, chosen, ",".join(chosen.effects), (), ext, first, np.nan,
+                            [{"effect": ",".join(chosen.effects), "score": None,
+                              "evidence_gain": log_evidence(ext) - rounds[0].log_evidence, "accepted": True}],
+                            log_evidence(ext)))
+        stop = "given"
     else:
-        chosen = list(effects)
-    ext = run(setup, chosen, drive, parameterisation, max_loops, progress=progress, name="extended") \
-        if chosen else base
+        stop, tests, rejected = "max_rounds", 0, set()
+        n_dofs = setup.mesh.n_dofs
+        for number in range(1, max_rounds + 1):
+            cur = rounds[-1]
+            G_cur = np.column_stack([loads[e] for e in cur.effects]) if cur.effects else np.zeros((n_dofs, 0))
+            pool = [(n, G) for n, G in loads.items()
+                    if n not in cur.effects and n not in rejected and not spans(G_cur, G)]
+            ranking = first if number == 1 else diagnostics.rank_effects(cur.run.model, cur.run.result.history, pool)
+            ranking = [r for r in ranking if r["effect"] in dict(pool)]
+            tests += len(ranking)
+            threshold = -np.log10(alpha / max(tests, 1))
+            tried, accepted = [], None
+            for cand in ranking:
+                if cand["score"] <= threshold or len(tried) >= max_tries:
+                    break
+                replaced = tuple(e for e in cur.effects if spans(loads[cand["effect"]], loads[e]))
+                new = tuple(e for e in cur.effects if e not in replaced) + (cand["effect"],)
+                trial = _fit(setup, cur.variant.with_(effects=new), opts)
+                gain = log_evidence(trial) - cur.log_evidence
+                ok = bool(np.isfinite(gain) and gain > min_evidence)
+                tried.append({"effect": cand["effect"], "score": cand["score"], "evidence_gain": float(gain),
+                              "accepted": ok})
+                if ok:
+                    accepted = Round(number, cur.variant.with_(effects=new), cand["effect"], replaced, trial, ranking,
+                                     threshold, tried, log_evidence(trial))
+                    break
+                rejected.add(cand["effect"])
+            if corrections and accepted is None:
+                # no effect passes: every correction of the model's own drive and priors that the
+                # residual points to is fitted, and the one with the largest evidence gain is kept
+                # if the evidence rises
+                # (a correction that fails here is tried again on a later round's model)
+                best = None
+                for name, variant in _corrections(cur):
+                    trial = _fit(setup, variant, opts)
+                    gain = log_evidence(trial) - cur.log_evidence
+                    tried.append({"effect": name, "score": None, "evidence_gain": float(gain), "accepted": False})
+                    if np.isfinite(gain) and gain > min_evidence and (best is None or gain > best[0]):
+                        best = (gain, name, variant, trial, len(tried) - 1)
+                if best is not None:
+                    gain, name, variant, trial, k = best
+                    tried[k]["accepted"] = True
+                    accepted = Round(number, variant, name, (), trial, ranking, threshold, tried, log_evidence(trial))
+            if accepted is None:
+                stop = ("evidence" if any(t["score"] is not None for t in tried)
+                        else "no significant candidate")
+                last = {"ranking": ranking, "threshold": float(threshold), "tried": tried}
+                break
+            rounds.append(accepted)
     config = {"drive": drive, "landmarks": landmarks, "observe": observe, "holdout_seed": holdout_seed,
-              "parameterisation": parameterisation, "max_loops": max_loops, "n_points": int(seq.n_points),
+              "parameterisation": parameterisation, "estimator": estimator,
+              "max_loops" if estimator == "cyclic" else "max_iterations":
+                  max_loops if estimator == "cyclic" else max_iterations, "n_points": int(seq.n_points),
               "n_frames": int(seq.n_frames), "n_observed": int(len(setup.observed)),
               "n_heldout": int(len(setup.heldout)), "mesh_nodes": int(setup.mesh.n_nodes),
-              "mesh_elements": int(setup.mesh.n_elements)}
-    return LoopResult(setup=setup, baseline=base, extended=ext, effects=chosen, ranking=ranking,
-                      measured=measured_wall_kinematics(setup), config=config)
+              "mesh_elements": int(setup.mesh.n_elements), "max_rounds": max_rounds, "alpha": float(alpha),
+              "min_evidence": min_evidence, "max_tries": max_tries, "candidates": names,
+              "corrections": bool(corrections), "final": rounds[-1].variant.as_json()}
+    g = setup.geometry
+    held = setup.node_of_point[setup.heldout]
+    reference = spline_reference(seq.points, seq.displacement, setup.observed, setup.heldout,
+                                 g.radial[held], g.circumferential[held])
+    return LoopResult(setup=setup, rounds=rounds, stop_reason=stop, ranking=first, last_attempt=last,
+                      measured=measured_wall_kinematics(setup), reference=reference, config=config)
+
+
+def _variant(js: dict) -> Variant:
+    """The :class:`Variant` of a round's JSON."""
+    return Variant(tuple(js["effects"]), js["drive"], js["drive_trend"], js["effect_rates"], js["process_scale"],
+                   js["spring_scale"])
 
 
 def format_report(result: "LoopResult") -> str:
@@ -117,7 +475,7 @@ def format_report(result: "LoopResult") -> str:
     lines = [f"{cfg['n_points']} points, {cfg['n_frames']} frames; mesh {cfg['mesh_nodes']} nodes, "
              f"{cfg['mesh_elements']} triangles; {cfg['n_observed']} observed, {cfg['n_heldout']} held out "
              f"({cfg['landmarks']} landmarks per contour, observe {cfg['observe']}, drive {cfg['drive']}, "
-             f"material {cfg['parameterisation']})",
+             f"material {cfg['parameterisation']}, estimator {cfg['estimator']})",
              f"noise floor {report['noise_floor_px']:.3f} px" + (
                  f"; nominal (not in the file): {report['nominal']}" if report["nominal"] else ""),
              "data: wall area x{w:.3f} and wall thickness {t0:.2f} -> {tp:.2f} px at frame {f} (peak area); mean strain "
@@ -132,19 +490,65 @@ def format_report(result: "LoopResult") -> str:
     for r in report["ranking"]:
         lines.append(f"  {r['effect']:<24} {r['score']:9.1f}   LM = {r['lm']:9.1f} on {r['df']:3d} dof, "
                      f"explains {100 * r['explained']:5.1f}% of the NIS")
-    lines += ["", f"{'':<34}{'baseline':>12}{'extended':>18}", f"{'effects':<34}{'none':>12}{','.join(e['effects']) or 'none':>18}"]
+    lines += ["", "rounds (each adds the best significant candidate while log p(y) rises; held-out points "
+              "untouched until here):",
+              f"  {'round':<6}{'model':<44}{'score':>8}{'need':>7}{'dlogp(y)':>10}{'NIS/dof':>9}{'lag-1':>7}"
+              f"{'held-out':>9}{'radial':>8}{'circ.':>8}"]
+    for r in report["rounds"]:
+        tried = {t["effect"]: t for t in r["tried"]}
+        t = tried.get(r["added"], {})
+        score = f"{t['score']:.1f}" if t.get("score") is not None else "-"
+        need = f"{r['threshold']:.1f}" if r["threshold"] is not None else "-"
+        gain = f"{t['evidence_gain']:+.1f}" if "evidence_gain" in t else "-"
+        label = _variant(r).label(cfg["drive"])
+        lines.append(f"  {r['round']:<6}{label:<44}{score:>8}{need:>7}{gain:>10}"
+                     f"{r['nis_mean_over_dof']:>9.3f}{r['innovation_lag1_autocorrelation']:>7.3f}"
+                     f"{r['heldout_rmse_px']:>9.3f}{r['heldout_rmse_radial_px']:>8.3f}"
+                     f"{r['heldout_rmse_circumferential_px']:>8.3f}")
+    ref = report["spline_reference"]
+    lines.append(f"  {'-':<6}{'thin-plate spline, no physics':<44}{'':>8}{'':>7}{'':>10}{'':>9}{'':>7}"
+                 f"{ref['heldout_rmse_px']:>9.3f}{ref['heldout_rmse_radial_px']:>8.3f}"
+                 f"{ref['heldout_rmse_circumferential_px']:>8.3f}")
+    att = report["last_attempt"]
+    rejected = [f"{t['effect']} ({t['evidence_gain']:+.1f} nats)" for t in att["tried"] if not t["accepted"]]
+    lines.append(f"  stopped: {report['stop_reason']}" + (
+        f" (needed score > {att['threshold']:.1f}; best left "
+        f"{att['ranking'][0]['effect']} {att['ranking'][0]['score']:.1f})" if att["ranking"] else "")
+        + (f"; fitted and rejected: {', '.join(rejected)}" if rejected else ""))
+    final = report["rounds"][-1]
+    lines += ["", "final model: " + _variant(final).label(cfg["drive"]),
+              f"{'':<34}{'baseline':>12}{'final':>18}"]
     for key, label in (("heldout_rmse_px", "held-out RMSE [px]"), ("heldout_rmse_radial_px", "  radial [px]"),
                        ("heldout_rmse_circumferential_px", "  circumferential [px]"),
                        ("heldout_rmse_worst_frame_px", "  worst frame [px]"),
                        ("innovation_rms_px", "innovation RMS [px]"), ("nis_mean_over_dof", "mean NIS / dof (1 = consistent)"),
                        ("nis_fraction_outside_95", "frames outside 95% NIS band"),
                        ("innovation_lag1_autocorrelation", "innovation lag-1 autocorrelation"),
-                       ("nis_z", "NIS z (|z| > 3: inconsistent)"), ("lag1_z", "whiteness z (|z| > 3: correlated)")):
+                       ("nis_z", "NIS z (|z| > 3: inconsistent)"), ("lag1_z", "whiteness z (|z| > 3: correlated)"),
+                       ("shear_strain_rms_peak_model", "2 E_rc at peak, RMS (model)"),
+                       ("shear_strain_error_rms_peak", "  error vs measured, RMS"),
+                       ("shear_strain_correlation_peak", "  correlation with measured")):
         lines.append(f"{label:<34}{b[key]:>12.3f}{e[key]:>18.3f}")
-    lines.append(f"{'loops (* material not converged)':<34}"
+    lines.append(f"{'2 E_rc at peak, RMS (measured)':<34}{report['measured']['shear_strain_rms_peak']:>12.3f}")
+    for key, col in (("baseline", b), ("extended", e)):
+        if col.get("absolute_stiffness"):
+            lo, hi = col["E_level_kPa_95"]
+            lines.append(f"stiffness level ({key}): {col['E_level_kPa']:.2f} kPa (95%: {lo:.2f}-{hi:.2f} kPa), "
+                         "set by the measured pressure")
+    smoother = cfg["estimator"] == "smoother"
+    label = "iterations (* not converged)" if smoother else "loops (* material not converged)"
+    lines.append(f"{label:<34}"
                  + "".join(f"{str(r['loops']) + ('' if r['converged'] else '*'):>{w}}" for r, w in ((b, 12), (e, 18))))
     if b.get("material_drift_sd") is not None and e.get("material_drift_sd") is not None:
-        lines.append(f"{'last loop material step / sd':<34}{b['material_drift_sd']:>12.3f}{e['material_drift_sd']:>18.3f}")
+        label = "last material step / sd" if smoother else "last loop material step / sd"
+        lines.append(f"{label:<34}{b['material_drift_sd']:>12.3f}{e['material_drift_sd']:>18.3f}")
+    if b.get("E_sd_log_median") is not None and e.get("E_sd_log_median") is not None:
+        lines.append(f"{'posterior sd of log E (median)':<34}{b['E_sd_log_median']:>12.3f}{e['E_sd_log_median']:>18.3f}")
+        lines.append(f"{'posterior sd of nu (median)':<34}{b['nu_sd_median']:>12.3f}{e['nu_sd_median']:>18.3f}")
+    if b.get("strain_sd_median") is not None and e.get("strain_sd_median") is not None:
+        for k, name in enumerate(("E_rr", "E_cc", "2 E_rc")):
+            lines.append(f"{'strain sd ' + name + ' (median)':<34}{b['strain_sd_median'][k]:>12.4f}"
+                         f"{e['strain_sd_median'][k]:>18.4f}")
     if "active_polar[0]" in e.get("effect_state_names", []):
         offset = e["effect_state_names"].index("active_polar[0]")
         st = np.array(e["effect_states"])[:, offset:offset + 2]

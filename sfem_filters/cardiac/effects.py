@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .._validate import as_float_array, positive
+from .._validate import as_float_array, integer, positive
 from ..fem.loads import pressure_load, stress_loads
 from ..fem.mesh import TriMesh
 from .myocardium import LVGeometry, transmural_depth
@@ -166,6 +166,62 @@ def transmural_active_stress(mesh: TriMesh, geometry: LVGeometry, scale: float =
                   **_noise(noise))
 
 
+def _symmetric(a, b) -> np.ndarray:
+    """Voigt stress of ``(a b^T + b a^T) / 2`` for unit vectors a, b per element."""
+    return np.column_stack([a[:, 0] * b[:, 0], a[:, 1] * b[:, 1], 0.5 * (a[:, 0] * b[:, 1] + a[:, 1] * b[:, 0])])
+
+
+def segment_labels(mesh: TriMesh, geometry: LVGeometry, n_segments: int = 6, offset_deg: float = 0.0) -> np.ndarray:
+    """Wall segment of each element: equal sectors of the angle about the cavity centre, counted
+    from ``offset_deg`` (degrees, from +x) in the direction of increasing angle."""
+    integer("n_segments", n_segments, 2)
+    ang = np.degrees(geometry.angle(mesh.centroids)) - float(offset_deg)
+    return np.floor(np.mod(ang, 360.0) / (360.0 / n_segments)).astype(int)
+
+
+def segmental_active_stress(mesh: TriMesh, geometry: LVGeometry, n_segments: int = 6, offset_deg: float = 0.0,
+                            scale: float = 1e3, thickness: float = 1.0, **noise) -> Effect:
+    """Active circumferential and radial stress with its own amplitudes in each wall segment.
+
+    ``n_segments`` equal angular sectors (six, as the clinical mid-ventricular segment model),
+    each with a circumferential and a radial amplitude (``2 n_segments`` states, ordered segment
+    by segment): regional timing or strength of contraction, an akinetic segment (its amplitudes
+    stay near zero) or a hypokinetic one.
+    """
+    seg = segment_labels(mesh, geometry, n_segments, offset_deg)
+    ucc = _uniaxial(_element_direction(mesh, geometry.circumferential)) * scale
+    urr = _uniaxial(_element_direction(mesh, geometry.radial)) * scale
+    cols = []
+    for k in range(int(n_segments)):
+        w = (seg == k).astype(float)[:, None]
+        cols += [stress_loads(mesh, ucc * w, thickness), stress_loads(mesh, urr * w, thickness)]
+    return Effect("active_segments", np.column_stack(cols), f"{scale:g} Pa",
+                  description=f"active circumferential and radial stress in each of {n_segments} wall segments",
+                  **_noise(noise))
+
+
+def helical_active_stress(mesh: TriMesh, geometry: LVGeometry, scale: float = 1e3, thickness: float = 1.0,
+                          **noise) -> Effect:
+    """Active tension along fibres whose in-plane angle turns through the wall (2 states).
+
+    A fibre direction ``d = cos(phi) e_c + sin(phi) e_r`` whose angle goes from ``+phi_0`` at the
+    endocardium to ``-phi_0`` at the epicardium, ``phi = phi_0 (1 - 2 depth)``, carries the active
+    stress ``a d d^T = a [e_c e_c + phi (e_c e_r + e_r e_c) + O(phi^2)]``. Its two terms, linear in
+    their amplitudes: a circumferential tension, and a shear stress ``(1 - 2 depth) (e_c e_r +
+    e_r e_c)`` that changes sign through the wall and produces the transmural shear E_rc of a
+    twisting ventricle. The angle's size and sign are the ratio of the two amplitudes.
+    """
+    depth = transmural_depth(mesh, geometry)
+    ec = _element_direction(mesh, geometry.circumferential)
+    er = _element_direction(mesh, geometry.radial)
+    shear = 2.0 * _symmetric(ec, er) * (1.0 - 2.0 * depth)[:, None]
+    G = np.column_stack([stress_loads(mesh, _uniaxial(ec) * scale, thickness),
+                         stress_loads(mesh, shear * scale, thickness)])
+    return Effect("active_helical", G, f"{scale:g} Pa",
+                  description="active tension along fibres turning through the wall: circumferential and "
+                              "transmural shear amplitudes", **_noise(noise))
+
+
 def in_plane_dilatation(mesh: TriMesh, scale: float = 1e3, thickness: float = 1.0, **noise) -> Effect:
     """Isotropic in-plane active stress: area change of the slice that plane strain forbids
     (through-plane motion, longitudinal shortening). Positive states shrink the area."""
@@ -197,6 +253,8 @@ CATALOGUE = {
     "active_transmural": lambda mesh, geo, **kw: transmural_active_stress(mesh, geo, **kw),
     "dilatation": lambda mesh, geo, **kw: in_plane_dilatation(mesh, **kw),
     "cavity_pressure": lambda mesh, geo, **kw: cavity_pressure(mesh, geo, **kw),
+    "active_segments": lambda mesh, geo, **kw: segmental_active_stress(mesh, geo, **kw),
+    "active_helical": lambda mesh, geo, **kw: helical_active_stress(mesh, geo, **kw),
 }
 
 

@@ -179,8 +179,9 @@ def fusion_setup(seq: Sequence, tracks: BoundaryTracks, velocity: VelocityData |
 
 def compare_fusion(seq: Sequence, tracks: BoundaryTracks, velocity: VelocityData, landmarks: int = 8,
                    holdout_seed: int = 0, parameterisation: str = "region", max_loops: int = 3, beta: float = 0.03,
-                   progress: bool = False) -> dict:
-    """Joint EKF on tracked borders alone and on tracked borders plus velocity, same held-out points.
+                   progress: bool = False, estimator: str = "smoother", max_iterations: int = 20) -> dict:
+    """Tracked borders alone and tracked borders plus velocity, estimated jointly (the iterated
+    smoother, or ``estimator="cyclic"`` with ``max_loops``), scored on the same held-out points.
 
     ``beta`` (s) is the Rayleigh stiffness coefficient of both runs: velocity data inform the
     displacement only through transients that last a good part of a frame (see
@@ -189,7 +190,8 @@ def compare_fusion(seq: Sequence, tracks: BoundaryTracks, velocity: VelocityData
     out = {}
     for name, with_v in (("borders", False), ("borders+velocity", True)):
         setup = fusion_setup(seq, tracks, velocity, landmarks, holdout_seed=holdout_seed, with_velocity=with_v)
-        r = run(setup, (), "penalty", parameterisation, max_loops, progress=progress, name=name, beta=beta)
+        r = run(setup, (), "penalty", parameterisation, max_loops, progress=progress, name=name, beta=beta,
+                estimator=estimator, max_iterations=max_iterations)
         out[name] = {"heldout_rmse_px": r.metrics["heldout_rmse_px"],
                      "heldout_rmse_per_frame_px": r.metrics["heldout_rmse_per_frame_px"],
                      "nis_mean_over_dof": r.metrics["nis_mean_over_dof"],

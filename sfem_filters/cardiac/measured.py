@@ -11,8 +11,11 @@ Steps 1-4 of the paper's section 3.2 workflow on a :class:`sfem_filters.cardiac.
    confidence-weighted penalty springs (section 2.7), with a measured cavity pressure, or
    with nothing but its effects; the material map is a parameterisation (regions, a smooth
    basis, per element or fixed);
-3. :func:`run`: the joint EKF over cyclic loops;
-4. :func:`evaluate`: held-out error, innovations, NIS and whiteness.
+3. :func:`run`: estimate kinematics and material from one cycle with the iterated smoother
+   (the default: the MAP of the cycle, its data counted once, with a Laplace posterior) or the
+   paper's cyclic joint EKF (``estimator="cyclic"``, reported with the covariance of one cycle);
+4. :func:`evaluate`: held-out error, innovations, NIS and whiteness, and the posterior sd of the
+   material and of the strains.
 
 Units: the sequence is in pixels unless it says otherwise. Inside, everything is SI: a pixel
 is ``pixel_spacing`` metres and frames are ``frame_interval`` seconds apart, taken from the
@@ -29,6 +32,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse.linalg as spla
 
+from .._validate import positive
 from ..fem.dofs import node_dofs
 from ..fem.elasticity import stiffness_matrix
 from ..fem.loads import penalty_load, penalty_stiffness, pressure_load
@@ -37,11 +41,20 @@ from ..fem.observation import node_observation_matrix
 from ..fem.strain import nodal_strains
 from ..filtering import diagnostics
 from ..filtering.cyclic import cyclic_estimate
+from ..filtering.iterated import IteratedSmoother
+from ..filtering.marginal import log_posterior
 from ..geometry import polygon_centroid, radius_by_angle, triangle_double_areas
 from ..model import SFEMModel
 from .effects import build_effects
-from .myocardium import (contour_landmarks, lv_geometry, mesh_from_points, polar_strains,
-                         transmural_depth)
+from .myocardium import (
+    contour_landmarks,
+    lv_geometry,
+    mesh_from_points,
+    polar_strain_operator,
+    polar_strains,
+    transmural_depth,
+)
+from .reference import contour_interpolant
 from .sequence import Sequence
 
 #: Values used when a sequence does not record them (documented in every report).
@@ -56,6 +69,8 @@ NOMINAL = {
     "penalty": 0.03,            # penalty springs in units of the median diagonal of K: soft, so
                                 # that the tissue's own mechanics shape the landmark motion
     "foundation": 1e-3,         # ground springs (drive pressure/none) in the same units
+    "E_level_sd": 1.5,          # prior sd of log E's global level when a measured pressure fixes the
+                                # force scale: 5-100 kPa lie within 1.5 sd of 10 kPa
 }
 
 #: Per-frame random-walk step of effect amplitudes (units of NOMINAL["E"]): a myocardial active
@@ -69,8 +84,13 @@ BASIS = {"modes_E": 6, "modes_nu": 3, "length_fraction": 0.25}
 
 #: Material parameterisations by name (``parameterisation=``, ``--parameterisation``).
 PARAMETERISATIONS = ("region", "basis", "element", "none")
-#: What drives the model besides its effects (``drive=``, ``--drive``).
-DRIVES = ("penalty", "pressure", "none")
+#: How kinematics and material are estimated (``estimator=``, ``--estimator``): the iterated
+#: smoother (one cycle, data counted once, Laplace posterior) or the paper's cyclic joint EKF.
+ESTIMATORS = ("smoother", "cyclic")
+#: What drives the model besides its effects (``drive=``, ``--drive``): springs toward the
+#: landmarks, springs toward the whole contours interpolated from the landmarks, a measured
+#: cavity pressure, or nothing.
+DRIVES = ("penalty", "contour", "pressure", "none")
 #: Which points are observed (``observe=``, ``--observe``).
 OBSERVE = ("boundary", "boundary+midwall")
 
@@ -203,15 +223,39 @@ def smooth_parameterisation(mesh, modes_E: int | None = None, modes_nu: int | No
 
 def build_model(setup: Setup, effects=(), drive: str = "penalty", parameterisation: str = "region",
                 process_scale: float = 1.0, landmark_step_px: float | None = None,
-                beta: float | None = None, model_options: dict | None = None) -> tuple:
+                beta: float | None = None, model_options: dict | None = None,
+                material: Material | None = None, drive_lag: int = 1, effect_rates: bool = False,
+                drive_trend: bool = False, spring_scale: float = 1.0) -> tuple:
     """The filter model of a set-up, and the observations it is fed (m, and m/s for velocities).
 
+    Drives (:data:`DRIVES`): ``"penalty"``, confidence-weighted springs (section 2.7) pulling the
+    landmark nodes toward their measured positions; ``"contour"``, the same springs on every node
+    of both contours, toward the landmarks' motion interpolated along each contour (a periodic
+    cubic spline in angle, :func:`sfem_filters.cardiac.reference.contour_interpolant`), as shape
+    tracking of the whole border would give; ``"pressure"``, the measured cavity pressure on the
+    endocardium (soft ground springs keep K positive definite); ``"none"``, only the effects.
+    The springs pull over the interval into frame t toward the data of frame ``t - drive_lag``
+    (1: causal, frame t's data enter only through the measurement update; 0: the same frame).
+    With ``drive_trend`` (lag 1 only) they pull toward the linear extrapolation ``2 y_{t-1} -
+    y_{t-2}`` instead of holding ``y_{t-1}``: a drive that is not a frame behind a steady motion
+    (still causal), whose targets are then uncertain by the data's second differences.
+
+    ``spring_scale`` multiplies the springs' stiffness ``NOMINAL["penalty"]`` (soft springs let the
+    tissue lag its border; stiff ones on isolated landmarks make tents).
+
     ``landmark_step_px`` sets the per-frame uncertainty of the spring targets (data units);
-    by default it is the RMS frame-to-frame motion of the landmarks in the data. ``beta`` (s)
+    by default it is the RMS frame-to-frame motion of the landmarks in the data (of their second
+    differences with ``drive_trend``). ``beta`` (s)
     overrides the Rayleigh stiffness coefficient ``NOMINAL["beta"]``: velocity data inform the
     displacement only when the model's transients last a good part of a frame.
+    ``effect_rates``: each effect amplitude also gets a rate state (an integrated random walk,
+    :class:`sfem_filters.cardiac.effects.Effect` ``rate_std``, ``EFFECT_STEP`` per frame), so the
+    model extrapolates a contraction's trend one frame ahead instead of holding it.
     ``model_options`` are passed on to :class:`sfem_filters.model.SFEMModel` (for example
-    ``system_class``).
+    ``system_class``). ``material`` is the tissue's material when it is fixed
+    (``parameterisation="none"``) and the start of the estimate otherwise (default: uniform
+    ``NOMINAL["E"]``, ``NOMINAL["nu"]``); the drive's springs are scaled by the nominal
+    material either way.
 
     Returns ``(model, observations)`` with observations of shape (frames, 2 * n_observed
     [+ 2 * n_velocity_points]): displacement rows, then velocity rows (Eq. 13).
@@ -221,33 +265,54 @@ def build_model(setup: Setup, effects=(), drive: str = "penalty", parameterisati
     seq, mesh, s = setup.seq, setup.mesh, setup.spacing
     F = seq.n_frames
     data = seq.displacement if setup.obs_displacement is None else setup.obs_displacement
-    mat0 = Material.uniform(mesh.n_elements, NOMINAL["E"], NOMINAL["nu"])
-    Kdiag = np.median(stiffness_matrix(mesh, mat0.E, mat0.nu).diagonal())
+    nominal = Material.uniform(mesh.n_elements, NOMINAL["E"], NOMINAL["nu"])
+    mat0 = nominal if material is None else material
+    Kdiag = np.median(stiffness_matrix(mesh, nominal.E, nominal.nu).diagonal())
     loads = np.zeros((F, mesh.n_dofs))
     penalty = None
     nodes = setup.node_of_point
     load_std = None
-    if drive == "penalty":
-        lm_nodes = nodes[setup.landmarks]
-        dofs = node_dofs(lm_nodes)
-        conf = np.repeat(_confidence(seq, setup.landmarks, setup.obs_confidence), 2, axis=-1)  # per dof
-        k = NOMINAL["penalty"] * Kdiag
+    if int(drive_lag) != drive_lag or drive_lag not in (0, 1):
+        raise ValueError(f"drive_lag: expected 0 or 1 frames, got {drive_lag!r}")
+    if drive_trend and drive_lag != 1:
+        raise ValueError("drive_trend: the trend extrapolates from the previous frames; it needs drive_lag=1")
+    if drive in ("penalty", "contour"):
+        if drive == "penalty":
+            drive_nodes = nodes[setup.landmarks]
+            targets = _filled(data[:, setup.landmarks]) * s                    # (F, L, 2) m
+            conf = _confidence(seq, setup.landmarks, setup.obs_confidence)
+            interp = None
+        else:
+            drive_nodes, targets, conf, interp = _contour_targets(setup, data)
+        dofs = node_dofs(drive_nodes)
+        conf = np.repeat(conf, 2, axis=-1)                                      # per dof
+        k = NOMINAL["penalty"] * positive("spring_scale", spring_scale) * Kdiag
         penalty = penalty_stiffness(mesh.n_dofs, dofs, k, conf.mean(axis=0) if conf.ndim == 2 else conf)
-        b = _filled(data[:, setup.landmarks]) * s                          # (F, L, 2) m
-        # Causal zero-order hold of the data: over the interval into frame t the springs pull
-        # toward the landmarks measured at frame t - 1, so frame t's data enter only through
-        # the measurement update and the innovation stays a one-step-ahead prediction error.
+        # Zero-order hold of the data: over the interval into frame t the springs pull toward the
+        # targets measured at frame t - drive_lag; with the causal lag 1, frame t's data enter only
+        # through the measurement update and the innovation stays a one-step-ahead prediction error.
         for t in range(F):
-            c_t = conf[max(t - 1, 0)] if conf.ndim == 2 else conf
-            loads[t] = penalty_load(mesh.n_dofs, dofs, k, b[max(t - 1, 0)].reshape(-1), c_t)
-        # Process noise: the landmarks move by an unknown amount between frames, so the spring
-        # targets are uncertain by the data's own frame-to-frame landmark motion; the random
-        # spring loads reach the tissue through the dynamics (elastically correlated noise).
+            src = max(t - int(drive_lag), 0)
+            c_t = conf[src] if conf.ndim == 2 else conf
+            target = 2.0 * targets[src] - targets[src - 1] if drive_trend and src >= 1 else targets[src]
+            loads[t] = penalty_load(mesh.n_dofs, dofs, k, target.reshape(-1), c_t)
+        # Process noise: the targets move by an unknown amount between frames, so they are
+        # uncertain by the data's own frame-to-frame landmark motion; the random spring loads
+        # reach the tissue through the dynamics (elastically correlated noise).
         if landmark_step_px is None:
-            landmark_step_px = np.sqrt(np.nanmean(np.diff(data[:, setup.landmarks], axis=0) ** 2))
+            landmark_step_px = np.sqrt(np.nanmean(np.diff(data[:, setup.landmarks], n=2 if drive_trend else 1,
+                                                          axis=0) ** 2))
         step = landmark_step_px * s
-        load_std = np.zeros(mesh.n_dofs)
-        load_std[dofs] = k * step * (conf.mean(axis=0) if conf.ndim == 2 else conf)
+        c_mean = conf.mean(axis=0) if conf.ndim == 2 else conf
+        if interp is None:
+            load_std = np.zeros(mesh.n_dofs)
+            load_std[dofs] = k * step * c_mean
+        else:
+            # the contour's targets move as the interpolant of independent landmark steps: loads
+            # correlated along the contour, one unit-variance pattern per landmark and component
+            W = np.kron(interp, np.eye(2)) * (k * step * c_mean)[:, None]        # (contour dofs, 2 L)
+            load_std = np.zeros((mesh.n_dofs, W.shape[1]))
+            load_std[dofs] = W
     else:
         ground = NOMINAL["foundation"] * Kdiag
         penalty = penalty_stiffness(mesh.n_dofs, np.arange(mesh.n_dofs), ground)
@@ -276,8 +341,17 @@ def build_model(setup: Setup, effects=(), drive: str = "penalty", parameterisati
         param = smooth_parameterisation(mesh)
     elif parameterisation == "element":
         param = Parameterisation.per_element(mesh.n_elements)
+    prior_cov = None
+    if param is not None and drive == "pressure":
+        # a measured pressure sets the force scale: the absolute stiffness is identifiable, so the
+        # map gets a global level with a wide prior beside its contrasts
+        param = param.with_level(NOMINAL["E"])
+        sd = np.concatenate([np.full(param.n_E, 0.3), np.full(param.n_params - param.n_E, 1.0)])
+        sd[param.level_index] = NOMINAL["E_level_sd"]
+        prior_cov = np.diag(sd ** 2)
     effs = build_effects(effects, mesh, setup.geometry, scale=NOMINAL["E"], process_std=EFFECT_STEP * process_scale,
-                         initial_std=EFFECT_STEP) if effects else []
+                         initial_std=EFFECT_STEP, rate_std=EFFECT_STEP * process_scale if effect_rates else None
+                         ) if effects else []
     # initial state: at rest in equilibrium with the frame-0 drive
     Kt = stiffness_matrix(mesh, mat0.E, mat0.nu) + (penalty if penalty is not None else 0)
     u0 = spla.spsolve(Kt.tocsc(), loads[0]) if drive != "none" else np.zeros(mesh.n_dofs)
@@ -286,10 +360,36 @@ def build_model(setup: Setup, effects=(), drive: str = "penalty", parameterisati
                       measurement_std=sigma, velocity_operator=Dv,
                       process_std=(0.1 * process_scale * noise_c, 0.1 * process_scale * noise_c / setup.frame_interval),
                       initial_std=(noise_c, noise_c / setup.frame_interval), parameterisation=param,
-                      prior_std=(0.3, 1.0), penalty=penalty, effects=effs, initial_displacement=u0,
+                      prior_std=(0.3, 1.0), prior_cov=prior_cov, penalty=penalty, effects=effs, initial_displacement=u0,
                       process_load_std=None if load_std is None else process_scale * load_std,
-                      **(model_options or {}))
+                      outputs={"strain_polar": polar_strain_operator(mesh, setup.geometry)}, **(model_options or {}))
     return model, y
+
+
+def _contour_targets(setup: Setup, data) -> tuple:
+    """Nodes of both contours, their target trajectories (F, N, 2) in m, confidences (N,) or
+    (F, N), and the interpolation matrix (N, L) from the landmarks (``setup.landmarks`` order)
+    to the contour nodes: each contour's landmarks interpolated along it in angle (periodic
+    cubic spline, linear in the landmarks' values)."""
+    g, mesh, s = setup.geometry, setup.mesh, setup.spacing
+    conf_lm = _confidence(setup.seq, setup.landmarks, setup.obs_confidence)
+    nodes, targets, conf = [], [], []
+    interp = np.zeros((0, len(setup.landmarks)))
+    for loop in (g.endo, g.epi):
+        on = np.flatnonzero(np.isin(setup.node_of_point[setup.landmarks], loop))
+        lm_nodes = setup.node_of_point[setup.landmarks[on]]
+        values = _filled(data[:, setup.landmarks[on]]) * s                           # (F, L, 2)
+        ang_lm, ang = g.angle(mesh.nodes[lm_nodes]), g.angle(mesh.nodes[loop])
+        nodes.append(loop)
+        targets.append(contour_interpolant(ang_lm, values, ang))
+        rows = np.zeros((len(loop), len(setup.landmarks)))
+        rows[:, on] = contour_interpolant(ang_lm, np.eye(len(on))[:, :, None], ang)[..., 0].T
+        interp = np.vstack([interp, rows])
+        c = conf_lm[..., on]
+        conf.append(contour_interpolant(ang_lm, c[..., None], ang)[..., 0] if c.ndim == 2
+                    else np.full(len(loop), float(np.mean(c))))
+    return (np.concatenate(nodes), np.concatenate(targets, axis=1), np.clip(np.concatenate(conf, axis=-1), 0, 1),
+            interp)
 
 
 def _confidence(seq: Sequence, points, override=None) -> np.ndarray:
@@ -332,10 +432,18 @@ class Run:
     metrics: dict
 
 
-def evaluate(setup: Setup, model: SFEMModel, result, seconds: float = 0.0) -> tuple:
-    """Held-out error, innovations and NIS of a run, in data units (pixels)."""
+def evaluate(setup: Setup, model: SFEMModel, result, seconds: float = 0.0, observations=None) -> tuple:
+    """Held-out error, innovations, NIS, material and strain of a run, in data units (pixels).
+
+    The material's posterior sd is the smoother's Laplace covariance, or for the cyclic EKF the
+    covariance of one cycle (:func:`sfem_filters.filtering.cyclic.one_cycle_covariance`: the
+    carried one counts the cycle once per loop). Smoothed polar strains (E_rr, E_cc, 2 E_rc of
+    each point, relative to the data's reference configuration) come with their sd from the
+    smoother's displacement covariance.
+    """
     s = setup.spacing
-    U = model.displacements(result.states).reshape(setup.seq.n_frames, -1, 2)[:, setup.node_of_point] / s
+    F = setup.seq.n_frames
+    U = model.displacements(result.states).reshape(F, -1, 2)[:, setup.node_of_point] / s
     meas = setup.seq.displacement
     h = setup.heldout
     r = meas[:, h] - U[:, h]                                              # (F, H, 2)
@@ -350,7 +458,9 @@ def evaluate(setup: Setup, model: SFEMModel, result, seconds: float = 0.0) -> tu
     white = diagnostics.whiteness(result.history)
     cons = diagnostics.consistency(result.history)
     mat = model.material_of_theta(result.theta)
+    smoother = getattr(result, "method", "") == "iterated_smoother"
     metrics = {
+        "estimator": "smoother" if smoother else "cyclic",
         "heldout_rmse_px": float(np.sqrt(np.nanmean(norm2))),
         "heldout_rmse_radial_px": float(np.sqrt(np.nanmean(rad ** 2))),
         "heldout_rmse_circumferential_px": float(np.sqrt(np.nanmean(circ ** 2))),
@@ -363,33 +473,98 @@ def evaluate(setup: Setup, model: SFEMModel, result, seconds: float = 0.0) -> tu
         "whiteness_Q": white["Q"], "whiteness_p": white["p_value"],
         "nis_z": cons["nis_z"], "lag1_z": cons["lag1_z"], "inconsistent": cons["inconsistent"],
         "loops": int(result.loops), "converged": bool(result.converged),
-        # how far the last loop moved the material against its carried sd (None: material fixed)
-        "material_drift_sd": (float(diagnostics.material_drift(model, result.history)["max_sd"][-1])
-                              if model.estimates_material else None),
         "E_relative_range": [float(mat.E.min() / NOMINAL["E"]), float(mat.E.max() / NOMINAL["E"])],
         "nu_range": [float(mat.nu.min()), float(mat.nu.max())],
         "seconds": float(seconds),
+        "material_drift_sd": None,          # the material's last step against its sd (None: material fixed)
     }
+    if model.estimates_material:
+        if smoother:
+            # the last accepted step against the posterior sd, and the Gauss-Newton record
+            metrics["material_drift_sd"] = float(result.records[-1]["step_sd"]) if result.records else 0.0
+            metrics["stop_reason"] = result.stop_reason
+            metrics["iterations"] = [{k: float(v) for k, v in rec.items()} for rec in result.records]
+            metrics["map_cost"] = float(result.cost)
+            P_theta = result.P_theta
+        else:
+            # how far the last loop moved the material against its carried sd
+            metrics["material_drift_sd"] = float(diagnostics.material_drift(model, result.history)["max_sd"][-1])
+            P_theta = result.P_theta_one_cycle
+        sd_logE, sd_nu = model.material_sd(result.theta, P_theta)
+        a, c = model.parameterisation.level_functional()
+        level, level_sd = float(a @ result.theta + c), float(np.sqrt(max(a @ P_theta @ a, 0.0)))
+        metrics.update({"E_level_kPa": float(np.exp(level) / 1e3), "E_level_sd_log": level_sd,
+                        "E_level_kPa_95": [float(np.exp(level - 1.96 * level_sd) / 1e3),
+                                           float(np.exp(level + 1.96 * level_sd) / 1e3)],
+                        "absolute_stiffness": model.parameterisation.level_index is not None})
+        metrics.update({"E_relative": (mat.E / NOMINAL["E"]).tolist(), "nu": mat.nu.tolist(),
+                        "E_sd_log": sd_logE.tolist(), "nu_sd": sd_nu.tolist(),
+                        "E_sd_log_median": float(np.median(sd_logE)), "nu_sd_median": float(np.median(sd_nu))})
+    # transmural shear 2 E_rc at the data's systolic peak (largest wall area): model vs measured
+    data_U = _filled(meas)
+    peak = int(np.argmax([np.abs(triangle_double_areas(setup.seq.points + data_U[t], setup.mesh.elements)).sum()
+                          for t in range(F)]))
+    shear_data = strain_maps(setup, data_U)[peak, :, 2]
+    shear_model = strain_maps(setup, U)[peak, :, 2]
+    metrics.update({"shear_strain_rms_peak_model": float(np.sqrt(np.mean(shear_model ** 2))),
+                    "shear_strain_error_rms_peak": float(np.sqrt(np.mean((shear_model - shear_data) ** 2))),
+                    "shear_strain_correlation_peak": float(np.corrcoef(shear_model, shear_data)[0, 1])
+                    if np.std(shear_model) > 0 and np.std(shear_data) > 0 else 0.0})
+    if smoother:
+        metrics["log_evidence"] = float(result.log_likelihood)
+    elif observations is not None:
+        nr = int(model.n_restart)
+        P0 = np.asarray(model.P0, float)[nr:, nr:]
+        lp = log_posterior(model, observations, result.theta)
+        if P0.size:
+            Pc = np.asarray(result.P_theta_one_cycle, float)
+            lp += 0.5 * (np.linalg.slogdet(Pc)[1] - np.linalg.slogdet(P0)[1])
+        metrics["log_evidence"] = float(lp)
+    if smoother and "strain_polar" in result.output_sd:
+        eps = (model.output_operators()["strain_polar"] @ result.states[:, : model.n_restart].T).T
+        sd = result.output_sd["strain_polar"]
+        eps = eps.reshape(F, -1, 3)[:, setup.node_of_point]
+        sd = sd.reshape(F, -1, 3)[:, setup.node_of_point]
+        metrics.update({"strain_polar": eps.tolist(), "strain_polar_sd": sd.tolist(),
+                        "strain_sd_median": np.median(sd, axis=(0, 1)).tolist()})
     if model.dim_eta:
         eta = np.array([model.eta_of(x) for x in result.states])
         metrics["effect_states"] = eta.tolist()
         metrics["effect_state_names"] = [f"{e.name}[{i}]" for e in model.effects for i in range(e.n_states)]
+        var = np.asarray(result.P_diag, float)[:, model.dim_x:model.n_restart] if smoother else None
+        if var is not None and np.all(np.isfinite(var)):
+            metrics["effect_states_sd"] = np.sqrt(np.maximum(var, 0.0)).tolist()   # smoothed, per frame
     return U, metrics
 
 
 def run(setup: Setup, effects=(), drive: str = "penalty", parameterisation: str = "region", max_loops: int = 5,
         process_scale: float = 1.0, tol: float = 1e-3, progress: bool = False, name: str = "",
-        landmark_step_px: float | None = None, beta: float | None = None, model_options: dict | None = None) -> Run:
-    """Build the model, run the cyclic joint EKF and evaluate it (``beta``, ``model_options``: see
-    :func:`build_model`)."""
+        landmark_step_px: float | None = None, beta: float | None = None, model_options: dict | None = None,
+        estimator: str = "smoother", max_iterations: int = 20, effect_rates: bool = False,
+        drive_trend: bool = False, spring_scale: float = 1.0) -> Run:
+    """Build the model, estimate and evaluate.
+
+    ``estimator`` (:data:`ESTIMATORS`): ``"smoother"``, the iterated smoother with at most
+    ``max_iterations`` Gauss-Newton steps, or ``"cyclic"``, the paper's cyclic joint EKF with at
+    most ``max_loops`` loops and the relative tolerance ``tol``. ``beta``, ``model_options``,
+    ``effect_rates``, ``drive_trend``, ``spring_scale``: see :func:`build_model`.
+    """
+    if estimator not in ESTIMATORS:
+        raise ValueError(f"estimator: expected one of {ESTIMATORS}, got {estimator!r}")
     model, y = build_model(setup, effects, drive, parameterisation, process_scale, landmark_step_px, beta,
-                           model_options)
+                           model_options, effect_rates=effect_rates, drive_trend=drive_trend,
+                           spring_scale=spring_scale)
     t0 = time.perf_counter()
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message="cyclic_estimate: the material did not converge")
-        result = cyclic_estimate(model, y, max_loops=max_loops, tol=tol, progress=progress,
-                                 description=name or "dense")
-    U, metrics = evaluate(setup, model, result, time.perf_counter() - t0)
+        warnings.filterwarnings("ignore", message="iterated smoother: stopped by")
+        if estimator == "smoother":
+            result = IteratedSmoother(max_iterations=max_iterations).run(model, y, progress=progress,
+                                                                        description=name or "dense")
+        else:
+            result = cyclic_estimate(model, y, max_loops=max_loops, tol=tol, progress=progress,
+                                     description=name or "dense")
+    U, metrics = evaluate(setup, model, result, time.perf_counter() - t0, y)
     return Run(name, model, result, U, metrics)
 
 
@@ -408,7 +583,8 @@ def measured_wall_kinematics(setup: Setup) -> dict:
 
     Wall area ratio (deformed over reference area of the tissue mesh), mean wall thickness
     (mean over angle of epicardial minus endocardial radius about the cavity centre, both
-    contours interpolated in angle), mean radial and circumferential strain w.r.t. frame 0;
+    contours interpolated in angle), mean radial and circumferential strain w.r.t. frame 0, and
+    the mean and RMS over points of the engineering transmural shear 2 E_rc;
     the displacement RMS of the first frame (is it at rest?) and between the last and first
     frames (does the cycle close?). Data units (pixels).
     """
@@ -433,6 +609,8 @@ def measured_wall_kinematics(setup: Setup) -> dict:
             "wall_thickness_px_frame0": float(thick[0]), "wall_thickness_px_peak": float(thick[peak]),
             "mean_radial_strain_peak": float(eps[peak, :, 0].mean()),
             "mean_circumferential_strain_peak": float(eps[peak, :, 1].mean()),
+            "mean_shear_strain_peak": float(eps[peak, :, 2].mean()),
+            "shear_strain_rms_peak": float(np.sqrt(np.mean(eps[peak, :, 2] ** 2))),
             "frame0_displacement_rms_px": float(np.sqrt(np.mean(np.sum(U[0] ** 2, axis=1)))),
             "last_to_first_rms_px": float(np.sqrt(np.mean(np.sum((U[-1] - U[0]) ** 2, axis=1)))),
             "wall_area_ratio": area_ratio.tolist(), "wall_thickness_px": thick.tolist()}

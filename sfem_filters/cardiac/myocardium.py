@@ -11,10 +11,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+import scipy.sparse as sp
 from skimage.measure import label
 
 from .._validate import as_float_array, as_mask, integer, positive
 from ..fem.mesh import TriMesh, check_mesh, delaunay_mesh, mesh_quality
+from ..fem.strain import nodal_strain_operator
 from ..geometry import polygon_centroid, radius_by_angle, signed_area
 
 
@@ -189,6 +191,26 @@ def polar_strains(geometry: LVGeometry, nodal_strain) -> np.ndarray:
                 + 0.5 * gxy * (a[:, 0] * b[:, 1] + a[:, 1] * b[:, 0]))
 
     return np.stack([proj(er, er), proj(ec, ec), 2 * proj(er, ec)], axis=-1)
+
+
+def polar_strain_operator(mesh: TriMesh, geometry: LVGeometry) -> sp.csr_matrix:
+    """The linear map from displacements (m) to nodal (E_rr, E_cc, 2 E_rc), sparse (3 n_nodes, n_dofs).
+
+    :func:`polar_strains` of :func:`sfem_filters.fem.strain.nodal_strain_operator`: row
+    ``3 i + c`` is component c at node i, so a displacement covariance maps to the polar strains'
+    covariance.
+    """
+    er, ec = geometry.radial, geometry.circumferential
+
+    def row(a, b):   # coefficients of (e_xx, e_yy, gamma_xy) in a.E.b
+        return np.stack([a[:, 0] * b[:, 0], a[:, 1] * b[:, 1], 0.5 * (a[:, 0] * b[:, 1] + a[:, 1] * b[:, 0])], axis=1)
+
+    blocks = np.stack([row(er, er), row(ec, ec), 2.0 * row(er, ec)], axis=1)        # (n_nodes, 3, 3)
+    n = mesh.n_nodes
+    r = (3 * np.arange(n)[:, None, None] + np.arange(3)[None, :, None]) * np.ones((1, 1, 3), int)
+    c = (3 * np.arange(n)[:, None, None] + np.arange(3)[None, None, :]) * np.ones((1, 3, 1), int)
+    P = sp.csr_matrix((blocks.ravel(), (r.ravel(), c.ravel())), shape=(3 * n, 3 * n))
+    return sp.csr_matrix(P @ nodal_strain_operator(mesh))
 
 
 def contour_landmarks(geometry: LVGeometry, mesh: TriMesh, n_per_contour: int, offset_deg: float = 0.0):

@@ -10,9 +10,10 @@ points         (P, 2)           reference positions of the tracked material poin
 displacement   (F, P, 2)        Lagrangian displacement of each point at each frame, same unit as
                                  ``points``; NaN where a value is missing
 velocity       (F, P, 2)        optional: velocity, unit per second (phase-contrast); NaN if missing
-sigma          (P,) or (F, P)   optional: measurement standard deviation of each displacement, same
-                                 unit as ``points``
-confidence     (P,) or (F, P)   optional: confidence in [0, 1] of each displacement datum
+sigma          (), (P,), (F, P) optional: measurement standard deviation of each displacement, same
+                                 unit as ``points`` (a scalar: one value for every point and frame)
+confidence     (), (P,), (F, P) optional: confidence in [0, 1] of each displacement datum (a scalar:
+                                 the same for every datum)
 velocity_sigma (F, P)           optional: standard deviation of each velocity component, unit per
                                  second; NaN where there is no velocity
 velocity_confidence (F, P)      optional: confidence in [0, 1] of each velocity (local phase
@@ -107,6 +108,8 @@ def make_sequence(points, displacement, **optional) -> Sequence:
         v = optional.get(key)
         if v is not None:
             arr = np.asarray(v)
+            if arr.ndim == 0:                                  # one value for every point and frame
+                arr = np.full(P, float(as_float_array(key, arr, (), numeric_only=True)))
             arr = as_float_array(key, arr, (P,) if arr.ndim == 1 else (F, P), numeric_only=True)
             if key == "sigma" and np.any(arr <= 0):
                 raise ValueError("sigma: expected standard deviations > 0")

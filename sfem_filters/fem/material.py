@@ -85,6 +85,7 @@ class Parameterisation:
     basis_nu: sp.csr_matrix
     names: tuple = ()
     offset_E: np.ndarray | None = None     # s_E = offset_E + basis_E theta_E (default 0)
+    level_index: int | None = None         # the column of basis_E that is the global stiffness level
 
     @classmethod
     def per_element(cls, n_elements: int) -> "Parameterisation":
@@ -189,6 +190,33 @@ class Parameterisation:
         bnu = leading(kernel, modes_nu)
         names = tuple(f"E mode {i}" for i in range(modes_E)) + tuple(f"nu mode {i}" for i in range(modes_nu))
         return cls(sp.csr_matrix(bE), sp.csr_matrix(bnu), names, offset_E=offset)
+
+    def with_level(self, E_reference: float | None = None) -> "Parameterisation":
+        """This map plus one parameter for the global stiffness level (the last E parameter).
+
+        ``log E_e = offset_e + b_e theta_E + level``: a relative map (regions, smooth basis) gets
+        the absolute level it lacks, and an absolute one (per element) a level its parameters
+        share, so that a prior can leave the level wide while keeping the contrasts tight. With
+        ``E_reference`` (Pa) and no offset yet, the offset becomes ``log E_reference`` (the level
+        and every parameter are then 0 at that uniform material). Identifiable only with a
+        measured force scale (a cavity pressure): displacements alone do not fix it.
+        """
+        if self.level_index is not None:
+            raise ValueError("with_level: this parameterisation already has a stiffness level")
+        offset = self.offset_E
+        if offset is None and E_reference is not None:
+            offset = np.full(self.n_elements, np.log(positive("E_reference", E_reference, "Pa")))
+        bE = sp.hstack([self.basis_E, sp.csr_matrix(np.ones((self.n_elements, 1)))], format="csr")
+        names = (self.names[: self.n_E] + ("E level",) + self.names[self.n_E:]) if len(self.names) == self.n_params \
+            else ()
+        return Parameterisation(bE, self.basis_nu, names, offset_E=offset, level_index=self.n_E)
+
+    def level_functional(self) -> tuple:
+        """``(a, c)`` with the mean over elements of log E equal to ``a @ theta + c``."""
+        a = np.zeros(self.n_params)
+        a[: self.n_E] = np.asarray(self.basis_E.mean(axis=0)).ravel()
+        c = 0.0 if self.offset_E is None else float(np.mean(self.offset_E))
+        return a, c
 
     @property
     def n_elements(self) -> int:

@@ -336,7 +336,7 @@ class ModalSystem:
         """B = int_0^T e^{A_c s} ds B_c (Eq. 16), dense (2n, n)."""
         return np.vstack([(self.Phi * self.g[:, r]) @ self.Phi.T for r in range(2)])
 
-    def sensitivity(self, x, w, dK_elements, dofs, chunk: int = 256, combine=None) -> np.ndarray:
+    def sensitivity(self, x, w, dK_elements, dofs, chunk: int = 256, combine=None, modal: bool = False) -> np.ndarray:
         """Exact d(A x + B w)/d p for element-level stiffness perturbations (Eq. 33).
 
         Parameters
@@ -354,6 +354,10 @@ class ModalSystem:
         combine : (P, k) array or sparse matrix, optional
             Return ``result @ combine`` (e.g. the chain rule to k material parameters),
             contracted before the final modal-to-nodal product: cheaper when k << P.
+        modal : bool
+            Return the derivative in the modal coordinates ``[q; p] = [Phi^T M U; Phi^T M U']``
+            (the rows are ``W d(A x + B w)`` with ``W = diag(Phi^T M, Phi^T M)``), skipping the final
+            modal-to-nodal products.
 
         Returns
         -------
@@ -406,12 +410,28 @@ class ModalSystem:
                 # (k x p) @ (p x 2N): a sparse-dense or BLAS product, never a dense einsum
                 acc += np.asarray(combine[sl].T @ z.reshape(len(z), -1)).reshape(k, 2, N)
                 continue
-            out[:n, sl] = Phi @ z[:, 0, :].T
-            out[n:, sl] = Phi @ z[:, 1, :].T
+            out[:n, sl] = z[:, 0, :].T if modal else Phi @ z[:, 0, :].T
+            out[n:, sl] = z[:, 1, :].T if modal else Phi @ z[:, 1, :].T
         if combine is not None:
-            out[:n] = Phi @ acc[:, 0, :].T
-            out[n:] = Phi @ acc[:, 1, :].T
+            out[:n] = acc[:, 0, :].T if modal else Phi @ acc[:, 0, :].T
+            out[n:] = acc[:, 1, :].T if modal else Phi @ acc[:, 1, :].T
         return out
+
+    def modal_transition(self) -> "sp.csr_matrix":
+        """The transition in modal coordinates ``[q; p]``: four diagonals of the 2 x 2 blocks ``E_i``.
+
+        ``W A = A_modal W`` with ``W = diag(Phi^T M, Phi^T M)``: sparse (2n, 2n), 4n entries.
+        """
+        E = self.E
+        return sp.bmat([[sp.diags(E[:, 0, 0]), sp.diags(E[:, 0, 1])],
+                        [sp.diags(E[:, 1, 0]), sp.diags(E[:, 1, 1])]], format="csr")
+
+    def modal_input(self, G) -> np.ndarray:
+        """``W B G`` for a (n, k) load matrix G: the held-load response in modal coordinates."""
+        f = self.Phi.T @ np.asarray(G, float)
+        if f.ndim == 1:
+            return np.concatenate([self.g[:, 0] * f, self.g[:, 1] * f])
+        return np.vstack([self.g[:, 0, None] * f, self.g[:, 1, None] * f])
 
     def _frechet_pairs(self, y) -> np.ndarray:
         """h[i, j] = int_0^1 e^{S_i T (1-s)} e_2 [1, beta] e^{S_j T s} ds y_j, shape (N, N, 2).

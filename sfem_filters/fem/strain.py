@@ -6,6 +6,7 @@ strains of the elements around each node.
 from __future__ import annotations
 
 import numpy as np
+import scipy.sparse as sp
 
 from .._validate import as_float_array
 from .elasticity import strain_displacement
@@ -49,3 +50,28 @@ def nodal_average(mesh: TriMesh, element_values) -> np.ndarray:
 def nodal_strains(mesh: TriMesh, U) -> np.ndarray:
     """Area-weighted nodal strains, (..., n_nodes, 3), from displacements U (m)."""
     return nodal_average(mesh, element_strains(mesh, U))
+
+
+def nodal_averaging_matrix(mesh: TriMesh) -> sp.csr_matrix:
+    """Sparse (n_nodes, n_elements) area weights of :func:`nodal_average` (rows sum to 1)."""
+    check_mesh("mesh", mesh)
+    rows = mesh.elements.T.ravel()
+    cols = np.tile(np.arange(mesh.n_elements), 3)
+    W = sp.csr_matrix((np.tile(mesh.areas, 3), (rows, cols)), shape=(mesh.n_nodes, mesh.n_elements))
+    return sp.csr_matrix(sp.diags(1.0 / np.asarray(W.sum(axis=1)).ravel()) @ W)
+
+
+def nodal_strain_operator(mesh: TriMesh) -> sp.csr_matrix:
+    """The linear map from displacements to nodal strains, sparse (3 n_nodes, n_dofs).
+
+    Row ``3 i + c`` gives component c (e_xx, e_yy, gamma_xy) of node i's area-weighted strain,
+    so ``(S @ U).reshape(-1, 3)`` equals :func:`nodal_strains` of ``U`` (m); a covariance C of U
+    gives the strains' covariance ``S C S^T``.
+    """
+    B = strain_displacement(mesh)                                # (n_el, 3, 6)
+    W = nodal_averaging_matrix(mesh).tocoo()
+    dofs = mesh.element_dofs                                     # (n_el, 6)
+    rows = (3 * W.row[:, None, None] + np.arange(3)[None, :, None]) * np.ones((1, 1, 6), int)
+    cols = np.broadcast_to(dofs[W.col][:, None, :], rows.shape)
+    vals = W.data[:, None, None] * B[W.col]
+    return sp.csr_matrix((vals.ravel(), (rows.ravel(), cols.ravel())), shape=(3 * mesh.n_nodes, mesh.n_dofs))

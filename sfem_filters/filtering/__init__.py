@@ -6,7 +6,7 @@ dimensions; optional capabilities such as per-frame noise). Any object with thos
 model; :class:`LinearGaussianModel` is a complete small one:
 
 >>> import numpy as np
->>> from sfem_filters.filtering import CyclicEKF, LinearGaussianModel, diagnostics
+>>> from sfem_filters.filtering import CyclicEKF, IteratedSmoother, LinearGaussianModel, diagnostics
 >>> def transition(theta):                        # x_{t+1} = a x_t, a = theta[0], dA/da = I
 ...     return theta[0] * np.eye(1), np.ones((1, 1, 1))
 >>> model = LinearGaussianModel(transition, H=np.eye(1), Q=0.01 * np.eye(1), R=0.01 * np.eye(1),
@@ -15,6 +15,9 @@ model; :class:`LinearGaussianModel` is a complete small one:
 >>> result = CyclicEKF(max_loops=5, engine="structured").run(model, y)
 >>> bool(abs(result.theta[0] - 0.9) < 0.05)
 True
+>>> mode = IteratedSmoother().run(model, y)          # the MAP of one cycle, data counted once
+>>> bool(abs(mode.theta[0] - 0.9) < 0.05), mode.stop_reason
+(True, 'step')
 >>> 0.0 < diagnostics.nis_summary(result.history)["nis_mean_over_dof"] < 1.0
 True
 
@@ -25,6 +28,10 @@ Modules: :mod:`~sfem_filters.filtering.protocol` (the model contract),
 :mod:`~sfem_filters.filtering.ud`: U-D factorised), :mod:`~sfem_filters.filtering.ljung`
 (Ljung's coupling, Eq. 40), :mod:`~sfem_filters.filtering.safeguards`,
 :mod:`~sfem_filters.filtering.cyclic` (the paper's cyclic driver),
+:mod:`~sfem_filters.filtering.linearised` and :mod:`~sfem_filters.filtering.smoother` (the model
+linearised about a trajectory, and its RTS smoother), :mod:`~sfem_filters.filtering.iterated`
+(the iterated smoother: Gauss-Newton on the MAP of one cycle),
+:mod:`~sfem_filters.filtering.marginal` (the exact marginal posterior of a few parameters),
 :mod:`~sfem_filters.filtering.checkpoint`, :mod:`~sfem_filters.filtering.history`,
 :mod:`~sfem_filters.filtering.diagnostics` (NIS, whiteness, score test, material drift),
 :mod:`~sfem_filters.filtering.linear` (linear observations, the linear-Gaussian template model).
@@ -32,15 +39,19 @@ Modules: :mod:`~sfem_filters.filtering.protocol` (the model contract),
 from . import diagnostics
 from .base import Engine
 from .checkpoint import CHECKPOINT_FORMAT, load_checkpoint, run_fingerprint, save_checkpoint
-from .cyclic import CyclicEKF, CyclicResult, check_observations, cyclic_estimate, filter_loop
+from .cyclic import CyclicEKF, CyclicResult, check_observations, cyclic_estimate, filter_loop, one_cycle_covariance
 from .ekf import FilterpyEngine, SFEMExtendedKalmanFilter
 from .engines import ENGINES, make_engine
 from .history import History
+from .iterated import IteratedSmoother, MapObjective, SmootherResult, iterated_smoother
 from .linear import LinearGaussianModel, LinearObservation
+from .linearised import LinearisedModel, linearise, linearise_dense
 from .ljung import LJUNG_MAX_PARAMS, LjungCoupling
-from .protocol import (FilterModel, Fingerprinted, LoadResponse, PerFrameNoise, PhysicalParameters,
-                       TransitionDerivatives, check_model, measurement_cov)
+from .marginal import MarginalCheck, laplace_check, log_likelihood, log_posterior
+from .protocol import (FilterModel, Fingerprinted, Linearisable, LoadResponse, OutputOperators, PerFrameNoise,
+                       PhysicalParameters, TransitionDerivatives, check_model, measurement_cov)
 from .safeguards import FilterDivergence, Safeguards, nearest_psd
+from .smoother import ForwardPass, SmoothedPass, kalman_forward, rts_reference, smooth, smooth_backward
 from .structured import StructuredEngine, joseph_update
 from .ud import UDEngine, bierman_update, mwgs, psd_factor, ud_factor
 
@@ -50,4 +61,7 @@ __all__ = ["diagnostics", "Engine", "CyclicEKF", "CyclicResult", "cyclic_estimat
            "FilterModel", "PerFrameNoise", "Fingerprinted", "PhysicalParameters", "TransitionDerivatives",
            "LoadResponse", "check_model", "measurement_cov", "Safeguards", "FilterDivergence", "nearest_psd",
            "joseph_update", "ud_factor", "psd_factor", "mwgs", "bierman_update", "CHECKPOINT_FORMAT",
-           "save_checkpoint", "load_checkpoint", "run_fingerprint"]
+           "save_checkpoint", "load_checkpoint", "run_fingerprint", "one_cycle_covariance", "IteratedSmoother",
+           "SmootherResult", "MapObjective", "iterated_smoother", "LinearisedModel", "linearise", "linearise_dense",
+           "smooth", "kalman_forward", "smooth_backward", "rts_reference", "ForwardPass", "SmoothedPass",
+           "Linearisable", "OutputOperators", "MarginalCheck", "laplace_check", "log_likelihood", "log_posterior"]

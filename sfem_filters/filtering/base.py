@@ -5,7 +5,7 @@ import numpy as np
 
 from .ljung import LjungCoupling
 
-__all__ = ["Engine"]
+__all__ = ["Engine", "DenseEngine"]
 
 
 class Engine:
@@ -68,3 +68,34 @@ class Engine:
             return np.linalg.cholesky(0.5 * (self.P + self.P.T))
         except np.linalg.LinAlgError:
             return None
+
+
+class DenseEngine(Engine):
+    """An engine that keeps ``x`` and a dense, exactly symmetric ``P``, with its Cholesky factor
+    computed once on demand and cached until P changes (:meth:`_set_P`)."""
+
+    def reset(self, x, P) -> None:
+        self._x = np.asarray(x, float).ravel().copy()
+        P = np.asarray(P, float)
+        self._set_P(0.5 * (P + P.T))       # the steps keep it exactly symmetric from here on
+
+    def _set_P(self, P) -> None:
+        self._P = P
+        self._L = None                     # Cholesky factor of P, computed on demand
+
+    @property
+    def x(self) -> np.ndarray:
+        return self._x
+
+    @property
+    def P(self) -> np.ndarray:
+        return self._P
+
+    def cholesky(self):
+        """Lower Cholesky factor of the current P (cached), or None if P is not positive definite."""
+        if self._L is None:
+            try:
+                self._L = np.linalg.cholesky(self._P)
+            except np.linalg.LinAlgError:
+                self._L = False
+        return None if self._L is False else self._L

@@ -20,7 +20,7 @@ from .history import History
 from .protocol import check_model, physical_parameters
 from .safeguards import Safeguards
 
-__all__ = ["CyclicEKF", "CyclicResult", "cyclic_estimate", "filter_loop", "check_observations"]
+__all__ = ["CyclicEKF", "CyclicResult", "cyclic_estimate", "filter_loop", "check_observations", "one_cycle_covariance"]
 
 
 def check_observations(model, observations) -> np.ndarray:
@@ -77,6 +77,9 @@ class CyclicResult:
     converged: bool
     rel_changes: list           # relative material change after each loop
     history: History
+    P_theta_one_cycle: np.ndarray = None   # P_theta with the cycle's information counted once
+
+    method = "cyclic_ekf"
 
 
 @dataclass
@@ -218,7 +221,28 @@ class CyclicEKF:
         arrays = history.as_arrays()
         last = arrays["loop"] == arrays["loop"].max()
         return CyclicResult(states=states, P_diag=arrays["P_diag"][last], theta=theta, P_theta=P_theta,
-                            loops=loops, converged=converged, rel_changes=rel_changes, history=history)
+                            loops=loops, converged=converged, rel_changes=rel_changes, history=history,
+                            P_theta_one_cycle=one_cycle_covariance(P0[nx:, nx:], P_theta, loops))
+
+
+def one_cycle_covariance(P_prior, P_loops, loops: int) -> np.ndarray:
+    """The material covariance with the cycle's information counted once (the data-cloning correction).
+
+    After ``k`` loops of the paper's scheme the carried covariance holds the prior and ``k``
+    copies of one cycle's information, ``P_k^-1 = P_0^-1 + k J`` (exactly for a linear model,
+    ``tests/filtering/test_drift.py``; Lele et al. 2007), so the posterior of one cycle is
+    ``(P_0^-1 + (P_k^-1 - P_0^-1) / k)^-1``. It keeps the loops' estimate (the data-cloned one,
+    near the maximum of the likelihood) and gives it the spread one cycle's data justify.
+    """
+    P_prior = np.asarray(P_prior, float)
+    if P_prior.size == 0 or loops < 1:
+        return np.asarray(P_loops, float).copy()
+    I = np.eye(len(P_prior))
+    A = sla.cho_solve(sla.cho_factor(P_prior), I)
+    B = sla.cho_solve(sla.cho_factor(0.5 * (P_loops + P_loops.T)), I)
+    info = A + (B - A) / float(loops)
+    out = sla.cho_solve(sla.cho_factor(0.5 * (info + info.T)), I)
+    return 0.5 * (out + out.T)
 
 
 def cyclic_estimate(model, observations, *, max_loops: int = 50, tol: float = 1e-3,

@@ -27,7 +27,8 @@ class History:
         self.loop.append(loop)
         self.frame.append(frame)
         self.x.append(np.array(x, float))
-        self.P_diag.append(np.diag(P).copy())
+        P = np.asarray(P, float)
+        self.P_diag.append(np.diag(P).copy() if P.ndim == 2 else P.copy())   # a covariance or its diagonal
         self.innovation.append(innovation)
         self.S.append(S)
         self.nis.append(nis)

@@ -28,7 +28,7 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 __all__ = ["FilterModel", "PerFrameNoise", "Fingerprinted", "PhysicalParameters", "TransitionDerivatives",
-           "LoadResponse", "check_model", "measurement_cov", "model_fingerprint",
+           "LoadResponse", "Linearisable", "OutputOperators", "check_model", "measurement_cov", "model_fingerprint",
            "physical_parameters", "n_parameters"]
 
 
@@ -128,6 +128,26 @@ class LoadResponse(Protocol):
         """(m, k): the change of the next frame's predicted observation per unit of each
         column of ``load_matrix`` (the model's own load representation) held over one frame,
         at the parameters of state ``z``."""
+
+
+@runtime_checkable
+class Linearisable(Protocol):
+    """Optional: the model linearised about a trajectory, in coordinates where its transition is
+    sparse (used by the smoother). Fallback: dense ``F_jacobian`` at every frame
+    (:func:`sfem_filters.filtering.linearised.linearise_dense`)."""
+
+    def linearise(self, states, sensitivity: bool = True) -> object:
+        """A :class:`sfem_filters.filtering.linearised.LinearisedModel` about ``states``
+        (n_frames, n) sharing one ``theta``; ``sensitivity=False``: theta held fixed (p = 0)."""
+
+
+@runtime_checkable
+class OutputOperators(Protocol):
+    """Optional: named linear functions of the restart state whose uncertainty a smoother reports
+    (for the SFEM model: nodal strains). Fallback: none."""
+
+    def output_operators(self) -> dict:
+        """``{name: (k, n_restart) matrix}``, in model coordinates."""
 
 
 def check_model(model, name: str = "model"):

@@ -6,7 +6,7 @@ import scipy.linalg as sla
 import scipy.linalg.blas as blas
 import scipy.sparse as sp
 
-from .base import Engine
+from .base import DenseEngine
 from .protocol import measurement_cov
 
 __all__ = ["StructuredEngine", "joseph_update", "propagate_factored"]
@@ -57,7 +57,7 @@ def propagate_factored(A, Mt, P, L, nx: int) -> np.ndarray:
     return G1 @ G1.T
 
 
-class StructuredEngine(Engine):
+class StructuredEngine(DenseEngine):
     """The same filter exploiting F = [[A, M_t], [0, I]] and Cholesky factors of P and S.
 
     The time update propagates the factor ``P = L L^T``: with ``G = [A L_xx + M_t L_tx,
@@ -72,32 +72,9 @@ class StructuredEngine(Engine):
         self.reset(model.x0, model.P0)
 
     def reset(self, x, P):
-        self._x = np.asarray(x, float).ravel().copy()
-        P = np.asarray(P, float)
-        self._set_P(0.5 * (P + P.T))       # the steps keep it exactly symmetric from here on
+        super().reset(x, P)
         if self.ljung is not None:
             self.ljung.reset(self._P)
-
-    def _set_P(self, P):
-        self._P = P
-        self._L = None          # Cholesky factor of P, computed on demand
-
-    @property
-    def x(self):
-        return self._x
-
-    @property
-    def P(self):
-        return self._P
-
-    def cholesky(self):
-        """Lower Cholesky factor of the current P (cached), or None if P is not positive definite."""
-        if self._L is None:
-            try:
-                self._L = np.linalg.cholesky(self._P)      # exactly symmetric (see reset)
-            except np.linalg.LinAlgError:
-                self._L = False
-        return None if self._L is False else self._L
 
     def predict(self, t):
         m = self.model

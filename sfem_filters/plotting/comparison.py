@@ -85,33 +85,50 @@ def strain_cdfs(comp: Comparison, path: str, frame: int = REPORT_FRAME):
 
 
 def material_maps(comp: Comparison, path: str):
-    """True and estimated per-element E (kPa) and nu of the joint EKF."""
+    """True and estimated per-element E (kPa) and nu: the joint EKF, and the joint smoother with its
+    posterior standard deviation beside it (when the comparison has both)."""
     plt = _plt()
-    run = comp.runs["joint_ekf"]
-    est = run.model.material_of_theta(run.result.theta)
     true = comp.bench.true_material
     tri = _triangulation(comp.bench.mesh)
-    fig, axes = plt.subplots(2, 2, figsize=(8.5, 5.6), constrained_layout=True)
-    for col, (t, e, label, scale, cmap) in enumerate(
-            ((true.E, est.E, "E [kPa]", 1e-3, "magma"), (true.nu, est.nu, r"$\nu$", 1.0, "cividis"))):
-        vmin = min(t.min(), e.min()) * scale
-        vmax = max(t.max(), e.max()) * scale
-        for row, (v, what) in enumerate(((t, "true"), (e, "estimated"))):
-            ax = axes[row, col]
-            im = ax.tripcolor(tri, facecolors=v * scale, vmin=vmin, vmax=vmax, cmap=cmap, edgecolors="k",
+    cols = [("true", true.E, true.nu)]
+    for name in ("joint_ekf", "joint_smoother"):
+        if name in comp.runs:
+            m = comp.runs[name].metrics
+            cols.append((LABELS[name], np.asarray(m["E_kPa"]) * 1e3, np.asarray(m["nu"])))
+    sd = comp.runs["joint_smoother"].metrics if "joint_smoother" in comp.runs else None
+    ncol = len(cols) + (sd is not None)
+    fig, axes = plt.subplots(2, ncol, figsize=(3.6 * ncol, 5.8), constrained_layout=True, squeeze=False)
+    for row, (k, label, scale, cmap) in enumerate(((1, "E [kPa]", 1e-3, "magma"), (2, r"$\nu$", 1.0, "cividis"))):
+        vmin = min(c[k].min() for c in cols) * scale
+        vmax = max(c[k].max() for c in cols) * scale
+        for j, c in enumerate(cols):
+            ax = axes[row, j]
+            im = ax.tripcolor(tri, facecolors=c[k] * scale, vmin=vmin, vmax=vmax, cmap=cmap, edgecolors="k",
                               linewidth=0.2)
             ax.set_aspect("equal")
-            ax.set_title(f"{what} {label}")
-        fig.colorbar(im, ax=axes[:, col], label=label, shrink=0.8)
-    m = run.metrics
-    fig.suptitle(f"joint EKF after {m['loops']} loops: mean |rel. error| of E {m['E_rel_error_middle']:.3f} "
-                 f"(middle) / {m['E_rel_error_outside']:.3f} (outside)")
+            ax.set_title(f"{c[0]} {label}")
+        fig.colorbar(im, ax=axes[row, :len(cols)], label=label, shrink=0.8)
+        if sd is not None:
+            ax = axes[row, -1]
+            v = np.asarray(sd["E_sd_log"] if k == 1 else sd["nu_sd"])
+            im = ax.tripcolor(tri, facecolors=v, cmap="viridis", vmin=0, edgecolors="k", linewidth=0.2)
+            ax.set_aspect("equal")
+            ax.set_title("smoother: sd of log E" if k == 1 else r"smoother: sd of $\nu$")
+            fig.colorbar(im, ax=ax, shrink=0.8)
+    parts = []
+    for name in ("joint_ekf", "joint_smoother"):
+        if name in comp.runs:
+            m = comp.runs[name].metrics
+            parts.append(f"{LABELS[name]} E error {m['E_rel_error_middle']:.3f} (middle) / "
+                         f"{m['E_rel_error_outside']:.3f} (outside)")
+    fig.suptitle("; ".join(parts))
     fig.savefig(path, dpi=120)
     plt.close(fig)
 
 
 def convergence(comp: Comparison, path: str):
-    """Joint EKF over the cyclic loops: relative material change and mean E per part."""
+    """Joint EKF over the cyclic loops (and the joint smoother over its Gauss-Newton iterations):
+    relative material change and mean E per part."""
     plt = _plt()
     run = comp.runs["joint_ekf"]
     h = run.result.history.as_arrays()
@@ -121,9 +138,13 @@ def convergence(comp: Comparison, path: str):
     E = np.array([model.material_of(h["x"][r]).E for r in last_rows]) * 1e-3
     mid = comp.bench.middle
     fig, (a1, a2) = plt.subplots(1, 2, figsize=(10, 3.6), constrained_layout=True)
-    a1.semilogy(loops + 1, run.result.rel_changes, "o-")
+    a1.semilogy(loops + 1, run.result.rel_changes, "o-", label="joint EKF, per loop")
+    sm = comp.runs.get("joint_smoother")
+    if sm is not None and sm.result.records:
+        it = np.arange(1, len(sm.result.records) + 1)
+        a1.semilogy(it, sm.result.rel_changes, "s-", label="joint smoother, per iteration")
     a1.axhline(1e-3, color="k", ls="--", lw=1, label="tolerance")
-    a1.set_xlabel("loop")
+    a1.set_xlabel("loop or iteration")
     a1.set_ylabel("relative change of (E, nu)")
     a1.legend()
     a1.grid(alpha=0.3)

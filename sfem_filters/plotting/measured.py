@@ -4,11 +4,13 @@ from __future__ import annotations
 import numpy as np
 
 from ..cardiac.closing import LoopResult
-from ..cardiac.measured import NOMINAL, strain_maps
+from ..cardiac.myocardium import polar_strains
+from ..fem.strain import nodal_strains
 from ..filtering.diagnostics import nis_summary
 from ._common import _plt, _triangulation, _write_figures
 
-__all__ = ["dense_figures", "dense_residual_maps", "dense_strain_maps", "dense_material_maps", "nis_trace"]
+__all__ = ["dense_figures", "dense_residual_maps", "dense_strain_maps", "dense_material_maps", "nis_trace",
+           "rounds_figure"]
 
 
 def dense_residual_maps(loop: LoopResult, path: str):
@@ -27,7 +29,7 @@ def dense_residual_maps(loop: LoopResult, path: str):
     vmax = np.nanpercentile(mag[0], 99)
     fig, axes = plt.subplots(2, 2, figsize=(11, 8.5), constrained_layout=True)
     pts = setup.seq.points
-    names = ["baseline", "extended: " + ", ".join(loop.effects or ["none"])]
+    names = ["baseline", "final: " + loop.rounds[-1].variant.label(loop.config["drive"])]
     for i, (r, m, name) in enumerate(zip(res, mag, names)):
         ax = axes[0, i]
         ax.scatter(pts[:, 0], pts[:, 1], s=6, c="lightgray")
@@ -53,19 +55,24 @@ def dense_residual_maps(loop: LoopResult, path: str):
 
 
 def dense_strain_maps(loop: LoopResult, path: str, frame: int | None = None):
-    """Radial, circumferential and shear strain w.r.t. frame 0 (the paper's Figs. 10 and 12):
-    measured (from the DENSE displacements on the mesh) and estimated by the extended model."""
+    """Radial, circumferential and shear strain relative to the data's reference configuration (the
+    paper's Figs. 10 and 12): measured (from the DENSE displacements on the mesh), estimated by
+    the extended model, and, for the smoother, the estimate's posterior sd."""
     plt = _plt()
     setup = loop.setup
     ext = loop.extended
-    meas = strain_maps(setup, setup.seq.displacement)
-    est = strain_maps(setup, ext.U)
+    F = setup.seq.n_frames
+    meas = polar_strains(setup.geometry, nodal_strains(setup.mesh, np.nan_to_num(setup.seq.displacement).reshape(F, -1)
+                                                       * setup.spacing))
+    est = polar_strains(setup.geometry, nodal_strains(setup.mesh, ext.U.reshape(F, -1) * setup.spacing))
+    sd = np.asarray(ext.metrics["strain_polar_sd"]) if "strain_polar_sd" in ext.metrics else None
     if frame is None:
         frame = int(np.argmax(np.abs(meas[..., 1]).mean(axis=1)))
     tri = _triangulation(setup.mesh)
-    fig, axes = plt.subplots(2, 3, figsize=(12, 7.5), constrained_layout=True)
+    rows = 3 if sd is not None else 2
+    fig, axes = plt.subplots(rows, 3, figsize=(12, 3.8 * rows), constrained_layout=True)
     for j, (label, cmap) in enumerate((("radial E_rr", "RdBu_r"), ("circumferential E_cc", "RdBu_r"),
-                                       ("shear E_rc", "PuOr"))):
+                                       ("shear 2 E_rc", "PuOr"))):
         v = max(np.abs(meas[frame, :, j]).max(), np.abs(est[frame, :, j]).max())
         for i, (data, what) in enumerate(((meas, "measured"), (est, "estimated"))):
             ax = axes[i, j]
@@ -73,26 +80,38 @@ def dense_strain_maps(loop: LoopResult, path: str, frame: int | None = None):
             ax.set_aspect("equal")
             ax.invert_yaxis()
             ax.set_title(f"{what} {label}, frame {frame}")
-        fig.colorbar(im, ax=axes[:, j], shrink=0.7)
+        fig.colorbar(im, ax=axes[:2, j], shrink=0.7)
+        if sd is not None:
+            ax = axes[2, j]
+            im = ax.tripcolor(tri, sd[frame, :, j], shading="gouraud", cmap="viridis", vmin=0)
+            ax.set_aspect("equal")
+            ax.invert_yaxis()
+            ax.set_title(f"posterior sd of {label}")
+            fig.colorbar(im, ax=ax, shrink=0.7)
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
 
 def dense_material_maps(loop: LoopResult, path: str):
-    """Estimated relative Young's modulus and Poisson's ratio (extended model)."""
+    """Estimated relative Young's modulus and Poisson's ratio (extended model), each with its
+    posterior standard deviation beside it (relative sd of E, sd of nu)."""
     plt = _plt()
     setup = loop.setup
     ext = loop.extended
-    mat = ext.model.material_of_theta(ext.result.theta)
+    m = ext.metrics
     tri = _triangulation(setup.mesh)
-    fig, axes = plt.subplots(1, 2, figsize=(10, 4.5), constrained_layout=True)
-    for ax, v, label, cmap in ((axes[0], mat.E / NOMINAL["E"], "E / E_start (relative)", "magma"),
-                               (axes[1], mat.nu, r"$\nu$", "cividis")):
+    panels = [(np.asarray(m["E_relative"]), "estimated E / E_nominal (relative)", "magma"),
+              (np.asarray(m["E_sd_log"]), "posterior sd of log E (relative sd of E)", "viridis"),
+              (np.asarray(m["nu"]), r"estimated $\nu$", "cividis"),
+              (np.asarray(m["nu_sd"]), r"posterior sd of $\nu$", "viridis")]
+    fig, axes = plt.subplots(2, 2, figsize=(10, 8.5), constrained_layout=True)
+    for ax, (v, label, cmap) in zip(axes.ravel(), panels):
         im = ax.tripcolor(tri, facecolors=v, cmap=cmap)
         ax.set_aspect("equal")
         ax.invert_yaxis()
-        ax.set_title(f"estimated {label}")
+        ax.set_title(label)
         fig.colorbar(im, ax=ax, shrink=0.8)
+    fig.suptitle(f"{ext.metrics['estimator']}: " + loop.rounds[-1].variant.label(loop.config["drive"]))
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
@@ -114,8 +133,38 @@ def nis_trace(loop: LoopResult, path: str):
     plt.close(fig)
 
 
+def rounds_figure(loop: LoopResult, path: str):
+    """Held-out RMSE (total, radial, circumferential) of every round against the thin-plate
+    spline's, and the innovations' NIS/dof and lag-1 autocorrelation (1 and 0 when consistent)."""
+    plt = _plt()
+    fig, (ax, bx) = plt.subplots(1, 2, figsize=(11, 4), constrained_layout=True)
+    rounds = loop.as_json()["rounds"]
+    x = np.arange(len(rounds))
+    labels = ["baseline"] + [f"+ {r['added']}" for r in rounds[1:]]
+    ref = loop.reference
+    for key, style, name in (("heldout_rmse_px", "o-", "total"), ("heldout_rmse_radial_px", "s--", "radial"),
+                             ("heldout_rmse_circumferential_px", "^--", "circumferential")):
+        line, = ax.plot(x, [r[key] for r in rounds], style, label=f"model, {name}")
+        ax.axhline(ref[key], color=line.get_color(), ls=":", lw=1.5, label=f"thin-plate spline, {name}")
+    ax.set_ylabel("held-out RMSE [px]")
+    ax.set_title("held-out error by round (dotted: spline through the same points)")
+    bx.plot(x, [r["nis_mean_over_dof"] for r in rounds], "o-", label="NIS / dof")
+    bx.plot(x, [r["innovation_lag1_autocorrelation"] for r in rounds], "s-", label="lag-1 autocorrelation")
+    bx.axhline(1.0, color="gray", lw=0.8)
+    bx.axhline(0.0, color="gray", lw=0.8)
+    bx.set_title("innovations (consistent: NIS/dof 1, lag-1 0)")
+    for a in (ax, bx):
+        a.set_xticks(x, labels, rotation=20, ha="right", fontsize=8)
+        a.legend(fontsize=7)
+        a.grid(alpha=0.3)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def dense_figures(loop: LoopResult, directory: str) -> list:
     """Every figure of the closing-the-loop run into ``directory``."""
-    return _write_figures(loop, directory, (
-        ("residual_maps.png", dense_residual_maps), ("strain_maps.png", dense_strain_maps),
-        ("material_maps.png", dense_material_maps), ("nis_trace.png", nis_trace)))
+    figures = [("residual_maps.png", dense_residual_maps), ("strain_maps.png", dense_strain_maps),
+               ("nis_trace.png", nis_trace), ("rounds.png", rounds_figure)]
+    if "E_relative" in loop.extended.metrics:
+        figures.append(("material_maps.png", dense_material_maps))
+    return _write_figures(loop, directory, figures)

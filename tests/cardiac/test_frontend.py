@@ -75,7 +75,7 @@ def test_velocity_fusion_beats_borders_alone_on_heldout_points():
     vel = sample_velocity(pc, seq.points, venc, seq.pixel_spacing, floor=0.01 * vmax)
     reference = make_sequence(seq.points, truth["displacement"], frame_interval=seq.frame_interval,
                               pixel_spacing=seq.pixel_spacing, reference_mask=seq.reference_mask)
-    out = frontend.compare_fusion(reference, tracks, vel, max_loops=1, beta=0.03)
+    out = frontend.compare_fusion(reference, tracks, vel, max_loops=1, beta=0.03, estimator="cyclic")
     a, b = out["borders"], out["borders+velocity"]
     print({k: round(v["heldout_rmse_px"], 3) for k, v in out.items()})
     assert a["n_heldout"] == b["n_heldout"] and b["n_velocity_points"] > 0

@@ -2,51 +2,12 @@
 diagnostic that measures each loop's step against the carried uncertainty."""
 import numpy as np
 import pytest
+from helpers import bias_model as _model
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from sfem_filters.filtering import History, LinearGaussianModel, cyclic_estimate
 from sfem_filters.filtering.diagnostics import material_drift
-
-
-class _BiasModel(LinearGaussianModel):
-    """x_{t+1} = A x_t + G theta + w_t: linear in (x, theta), so the joint 'EKF' is exact."""
-
-    def __init__(self, A, G, H, Q, R, P0, P3, n_frames, theta0):
-        p = G.shape[1]
-        zero = np.zeros((p,) + A.shape)
-        super().__init__(lambda th: (A, zero), H, Q, R, np.zeros(len(A)), P0, n_frames, theta0, P3)
-        self._A, self._G = A, G
-
-    def fx(self, z, t):
-        x, th = z[: self.n_restart], z[self.n_restart:]
-        return np.concatenate([self._A @ x + self._G @ th, th])
-
-    def F_jacobian(self, z, t):
-        F = np.eye(self.dim_state)
-        F[: self.n_restart, : self.n_restart] = self._A
-        F[: self.n_restart, self.n_restart:] = self._G
-        return F
-
-
-def _model(rng, n, p, m, frames):
-    A = rng.standard_normal((n, n))
-    A *= 0.9 / max(abs(np.linalg.eigvals(A)))
-    G = 0.3 * rng.standard_normal((n, p))
-    H = rng.standard_normal((m, n))
-    Q = np.diag(rng.uniform(0.01, 0.1, n))
-    R = np.diag(rng.uniform(0.05, 0.2, m))
-    B = rng.standard_normal((p, p))
-    P3 = B @ B.T / p + 0.5 * np.eye(p)
-    model = _BiasModel(A, G, H, Q, R, 0.1 * np.eye(n), P3, frames, rng.standard_normal(p))
-    theta_true = rng.standard_normal(p)
-    x = np.zeros(n)
-    y = np.empty((frames, m))
-    for t in range(frames):
-        if t:
-            x = A @ x + G @ theta_true + rng.multivariate_normal(np.zeros(n), Q)
-        y[t] = H @ x + rng.multivariate_normal(np.zeros(m), R)
-    return model, y
 
 
 @settings(max_examples=15, deadline=None)

@@ -1,0 +1,87 @@
+"""Closing the loop in rounds where the answer is known: the issue-14 synthetic checks, with the spline beside.
+
+    OPENBLAS_NUM_THREADS=1 python benchmarks/rounds_synthetic.py [--cases scale two akinetic clean]
+
+Synthetic annulus sequences drawn from the library's own generative model
+(:func:`sfem_filters.cardiac.annulus_sequence`), run through
+:func:`sfem_filters.cardiac.closing_the_loop` with its defaults (rounds, smoother, region map):
+
+* ``scale``: pressure-driven passive tissue at 5, 30 and 100 kPa (pressure scaled with E), no
+  effect: the estimated stiffness level with its 95% interval;
+* ``two``: undeclared ``active_polar`` and ``active_helical`` at once, at two balances of strength;
+* ``akinetic``: ``active_segments`` with one segment not contracting;
+* ``clean``: no undeclared effect, seeds 0-3.
+
+Per case: the effects the rounds added, why they stopped, NIS/dof and held-out RMSE of the
+final model, the thin-plate spline's held-out RMSE, and the case's own check. The same cases
+are asserted in ``tests/cardiac/test_rounds.py`` (slow marks).
+"""
+from __future__ import annotations
+
+import argparse
+import time
+import warnings
+
+import numpy as np
+
+from sfem_filters.cardiac import annulus_sequence, closing_the_loop, measured, prepare
+from sfem_filters.fem import Material
+
+CASES = ("scale", "two", "akinetic", "clean")
+
+
+def _row(name, out, extra=""):
+    e = out.extended.metrics
+    print(f"{name:<30}{','.join(out.effects) or 'none':<32}{out.stop_reason:<25}{e['nis_mean_over_dof']:>8.3f}"
+          f"{e['heldout_rmse_px']:>9.3f}{out.reference['heldout_rmse_px']:>8.3f}  {extra}", flush=True)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--cases", nargs="*", choices=CASES, default=list(CASES))
+    args = ap.parse_args(argv)
+    warnings.simplefilter("ignore", RuntimeWarning)
+    print(f"{'case':<30}{'effects added':<32}{'stopped':<25}{'NIS/dof':>8}{'held-out':>9}{'spline':>8}  check",
+          flush=True)
+    t0 = time.perf_counter()
+    if "scale" in args.cases:
+        mesh = prepare(annulus_sequence(None, n_frames=4), 8).mesh
+        for E in (5.0, 30.0, 100.0):
+            mat = Material.uniform(mesh.n_elements, E * 1e3, measured.NOMINAL["nu"])
+            seq = annulus_sequence(None, seed=0, drive="pressure", material=mat, peak_pressure=2e3 * E / 10)
+            out = closing_the_loop(seq, effects="auto", drive="pressure", max_iterations=80)
+            m = out.baseline.metrics
+            lo, hi = m["E_level_kPa_95"]
+            _row(f"pressure, E = {E:g} kPa", out,
+                 f"level {m['E_level_kPa']:.2f} kPa (95% {lo:.2f}-{hi:.2f}), {m['loops']} iterations"
+                 f"{'' if m['converged'] else ' (not converged)'}, baseline NIS/dof {m['nis_mean_over_dof']:.3f}")
+    if "two" in args.cases:
+        for label, amps in (("polar (0.15, -0.3), helical 0.3", ((0.15, -0.3), (0.0, 0.3))),
+                            ("polar (0.1, -0.2), helical 0.6", ((0.1, -0.2), (0.0, 0.6)))):
+            out = closing_the_loop(annulus_sequence(["active_polar", "active_helical"], amplitude=amps, seed=0),
+                                   effects="auto", max_iterations=6)
+            _row(label, out, "order added: " + ", ".join(r.added for r in out.rounds[1:]))
+    if "akinetic" in args.cases:
+        amp = np.tile([0.15, -0.3], 6)
+        amp[[4, 5]] = 0.0
+        out = closing_the_loop(annulus_sequence("active_segments", amplitude=tuple(amp), seed=0), effects="auto",
+                               max_iterations=6)
+        m = out.extended.metrics
+        extra = ""
+        if "active_segments[4]" in m.get("effect_state_names", []):
+            names = m["effect_state_names"]
+            st, sd = np.array(m["effect_states"]), np.array(m["effect_states_sd"])
+            peak = int(np.argmax(np.abs(st[:, names.index("active_segments[1]")])))
+            k = names.index("active_segments[4]")
+            extra = (f"segment 2 at peak: a_c {st[peak, k]:+.3f} +- {sd[peak, k]:.3f}, a_r {st[peak, k + 1]:+.3f} +- "
+                     f"{sd[peak, k + 1]:.3f} (truth 0); segment 0: a_r {st[peak, 1]:+.3f} (truth -0.3)")
+        _row("akinetic segment 2", out, extra)
+    if "clean" in args.cases:
+        for seed in range(4):
+            _row(f"no effect, seed {seed}", closing_the_loop(annulus_sequence(None, seed=seed), effects="auto",
+                                                            max_iterations=6))
+    print(f"wall time {time.perf_counter() - t0:.0f} s")
+
+
+if __name__ == "__main__":
+    main()

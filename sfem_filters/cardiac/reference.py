@@ -1,0 +1,101 @@
+"""The physics-free yardstick: a thin-plate spline through the observed points, frame by frame.
+
+A model of the heart earns its keep only if it predicts held-out points better than an
+interpolant that knows no mechanics. :func:`spline_reference` interpolates the observed points'
+displacements of every frame with :class:`scipy.interpolate.RBFInterpolator` (kernel
+``thin_plate_spline``, no smoothing: it passes through every datum, as the library's own
+reports assume) and scores it on the held-out points exactly as
+:func:`sfem_filters.cardiac.measured.evaluate` scores a model: total, radial and circumferential
+RMSE in the data's unit (pixels).
+
+:func:`contour_interpolant` is the same idea along a contour: a periodic cubic spline in the
+angle about the cavity centre through a contour's landmarks, giving the whole border's motion
+from sparse points (the contour drive of :func:`sfem_filters.cardiac.measured.build_model`).
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy.interpolate import CubicSpline, RBFInterpolator
+
+from .._validate import as_float_array
+
+__all__ = ["spline_reference", "heldout_errors", "contour_interpolant"]
+
+
+def heldout_errors(residual, radial, circumferential) -> dict:
+    """RMSE of residuals (F, H, 2), total and along unit directions (H, 2), NaN ignored."""
+    r = np.asarray(residual, float)
+    rad = np.sum(r * np.asarray(radial)[None], axis=2)
+    circ = np.sum(r * np.asarray(circumferential)[None], axis=2)
+    norm2 = np.sum(r ** 2, axis=2)
+    count = np.sum(~np.isnan(norm2), axis=1)
+    per_frame = np.full(len(norm2), np.nan)           # NaN for a frame with no prediction
+    per_frame[count > 0] = np.sqrt(np.nansum(norm2, axis=1)[count > 0] / count[count > 0])
+    return {"heldout_rmse_px": float(np.sqrt(np.nanmean(norm2))),
+            "heldout_rmse_radial_px": float(np.sqrt(np.nanmean(rad ** 2))),
+            "heldout_rmse_circumferential_px": float(np.sqrt(np.nanmean(circ ** 2))),
+            "heldout_rmse_per_frame_px": per_frame.tolist(),
+            "heldout_rmse_worst_frame_px": float(np.nanmax(per_frame))}
+
+
+def spline_reference(points, displacement, observed, heldout, radial, circumferential) -> dict:
+    """Held-out errors of a thin-plate spline through the observed points, frame by frame.
+
+    Parameters
+    ----------
+    points : (P, 2) array
+        Reference positions (data unit).
+    displacement : (F, P, 2) array
+        Measured displacements (data unit), NaN where missing: a frame's spline uses the observed
+        points it has (at least 3).
+    observed, heldout : int arrays
+        Indices of the points the spline passes through and of those it is scored on.
+    radial, circumferential : (len(heldout), 2) arrays
+        Unit directions at the held-out points, for the split of the error.
+
+    Returns
+    -------
+    dict
+        ``heldout_rmse_px`` and its radial and circumferential parts (and per frame), and the
+        prediction ``U`` (F, len(heldout), 2).
+    """
+    pts = as_float_array("points", points, shape=(None, 2))
+    disp = as_float_array("displacement", displacement, shape=(None, len(pts), 2), allow_nan=True)
+    obs, held = np.asarray(observed, int), np.asarray(heldout, int)
+    pred = np.full((len(disp), len(held), 2), np.nan)
+    for t in range(len(disp)):
+        ok = obs[~np.isnan(disp[t, obs]).any(axis=1)]
+        if len(ok) >= 3:
+            pred[t] = RBFInterpolator(pts[ok], disp[t, ok], kernel="thin_plate_spline", smoothing=0.0)(pts[held])
+    out = heldout_errors(disp[:, held] - pred, radial, circumferential)
+    out["U"] = pred
+    return out
+
+
+def contour_interpolant(angles_landmarks, values, angles_query) -> np.ndarray:
+    """Periodic cubic spline in angle through a contour's landmarks, evaluated at other angles.
+
+    Parameters
+    ----------
+    angles_landmarks : (L,) array
+        Angles (rad) of the landmarks about the cavity centre (any order, distinct modulo 2 pi).
+    values : (..., L, k) array
+        Values at the landmarks (for example displacements, k = 2), leading axes broadcast.
+    angles_query : (Q,) array
+        Angles (rad) to evaluate at.
+
+    Returns
+    -------
+    (..., Q, k) array
+    """
+    a = np.mod(np.asarray(angles_landmarks, float), 2 * np.pi)
+    order = np.argsort(a)
+    a = a[order]
+    v = np.take(np.asarray(values, float), order, axis=-2)
+    if len(a) < 3 or np.any(np.diff(a) <= 0):
+        raise ValueError("angles_landmarks: expected at least 3 distinct angles")
+    x = np.concatenate([a, [a[0] + 2 * np.pi]])
+    y = np.concatenate([v, np.take(v, [0], axis=-2)], axis=-2)
+    spline = CubicSpline(x, y, axis=-2, bc_type="periodic")
+    q = np.mod(np.asarray(angles_query, float) - a[0], 2 * np.pi) + a[0]
+    return spline(q)

@@ -1,0 +1,483 @@
+"""The iterated extended Kalman smoother: Gauss-Newton on the MAP of one cycle, damped.
+
+The unknowns are the restart trajectory ``r_0..r_T`` (kinematics and effect states) and the
+static parameters theta (material); the data of the cycle are counted once. The negative log
+posterior (the MAP cost) is
+
+    J = 1/2 |r_0 - x0|^2_{P1^-1} + 1/2 |theta - theta0|^2_{P3^-1}
+        + 1/2 sum_t |r_{t+1} - f_r(r_t, theta, t)|^2_{Q^-1} + 1/2 sum_t |y_t - H r_t|^2_{R_t^-1}.
+
+Bell (1994, SIAM J. Optim. 4:626) showed that smoothing the model linearised about a trajectory
+(:mod:`sfem_filters.filtering.linearised`, :func:`sfem_filters.filtering.smoother.smooth`) is
+exactly a Gauss-Newton step on J. Two things make the steps robust:
+
+* **The trajectory is projected out.** For a fixed theta the model is linear in the trajectory
+  (``f_r = A(theta) r + B(theta) w``), so the best trajectory for a theta, and with it the
+  profile cost ``J_p(theta) = min_r J``, is one linear smoother pass with theta held fixed
+  (variable projection, Golub & Pereyra 1973). Every candidate theta is scored by ``J_p`` and
+  the next linearisation is taken at its optimal trajectory; a step is never judged by a
+  trajectory the old theta's linearisation left behind.
+* **Levenberg-Marquardt damping and a line search** (Sarkka & Svensson 2020, ICASSP,
+  "Levenberg-Marquardt and line-search extended Kalman smoothers"): a step is accepted only if
+  the MAP cost falls. The damping ``lambda/2 |theta - theta_bar|^2_{P3^-1}`` is a Gaussian
+  pseudo-observation of ``theta_bar`` with the prior's shape, so it simply tightens the prior of
+  the pass to ``N((theta0 + lambda theta_bar) / (1 + lambda), P3 / (1 + lambda))``. A failed step
+  is tried at half its length, then lambda grows (Nielsen's rule, :class:`IteratedSmoother`).
+
+Each iteration relinearises at the optimal trajectory of the last accepted theta and restarts
+from the prior. The run stops when an accepted step moves the material by less than ``tol``
+(relative, physical units) and by less than ``sd_tol`` posterior standard deviations, when the
+cost stops falling (an accepted decrease below ``cost_tol``, or no damping makes it fall), or at
+``max_iterations``. The reported posterior is the Laplace
+approximation at the mode: the mode itself, and the covariance of an undamped pass linearised
+there (the inverse Gauss-Newton Hessian), with smoothed marginal variances of the kinematics
+and of the model's output operators (strains).
+"""
+from __future__ import annotations
+
+import os
+import time
+import warnings
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.linalg as sla
+
+from .._validate import integer, non_negative, positive
+from .checkpoint import load_checkpoint, run_fingerprint, save_checkpoint
+from .cyclic import check_observations
+from .history import History
+from .linearised import check_static_parameters, linearise
+from .protocol import OutputOperators, check_model, measurement_cov, physical_parameters
+from .safeguards import Safeguards
+from .smoother import kalman_forward, smooth, smooth_backward
+
+__all__ = ["IteratedSmoother", "SmootherResult", "MapObjective", "iterated_smoother", "open_loop"]
+
+class _InverseRoot:
+    """``x -> L^-1 x`` with ``C = L L^T`` (Cholesky), or the pseudo-inverse square root of a
+    singular PSD ``C`` (directions of zero variance are left out of the norm)."""
+
+    def __init__(self, C):
+        C = np.asarray(C, float)
+        try:
+            self.L = np.linalg.cholesky(0.5 * (C + C.T))
+            self.U = None
+        except np.linalg.LinAlgError:
+            lam, U = np.linalg.eigh(0.5 * (C + C.T))
+            keep = lam > len(lam) * np.finfo(float).eps * max(lam.max(), 1e-300)
+            self.L, self.U = None, U[:, keep] / np.sqrt(lam[keep])
+
+    def norm2(self, x) -> float:
+        x = np.asarray(x, float)
+        if self.L is not None:
+            v = sla.solve_triangular(self.L, x.T, lower=True)
+        else:
+            v = self.U.T @ x.T
+        return float(np.sum(v * v))
+
+
+class MapObjective:
+    """The MAP cost J of a trajectory (module docstring), evaluated with the model's own ``fx``.
+
+    Parameters
+    ----------
+    model : a model of the contract with static parameters and a linear observation
+    observations : (n_frames, dim_obs) array, NaN where missing
+    """
+
+    def __init__(self, model, observations):
+        self.model = model
+        self.y = check_observations(model, observations)
+        self.nr = nr = int(model.n_restart)
+        P0, Q = np.asarray(model.P0, float), np.asarray(model.Q, float)
+        self.x0 = np.asarray(model.x0, float)
+        self.prior_r = _InverseRoot(P0[:nr, :nr])
+        self.prior_theta = _InverseRoot(P0[nr:, nr:]) if P0.shape[0] > nr else None
+        self.process = _InverseRoot(Q[:nr, :nr])
+        self.H = np.asarray(model.H_jacobian(self.x0, 0), float)[:, :nr]
+        self.noise = []
+        for t in range(model.n_frames):
+            mask = ~np.isnan(self.y[t])
+            self.noise.append((mask, _InverseRoot(measurement_cov(model, t)[np.ix_(mask, mask)]) if mask.any()
+                               else None))
+
+    def parts(self, states) -> dict:
+        """The four sums of J (``prior``, ``parameters``, ``process``, ``data``) and ``total``;
+        ``inf`` when the model cannot step a state (a material out of its representable range)."""
+        z = np.asarray(states, float)
+        nr = self.nr
+        out = {"prior": 0.5 * self.prior_r.norm2(z[0, :nr] - self.x0[:nr]),
+               "parameters": 0.0 if self.prior_theta is None else
+               0.5 * self.prior_theta.norm2(z[0, nr:] - self.x0[nr:])}
+        try:
+            f = np.array([np.asarray(self.model.fx(z[t], t), float).ravel()[:nr] for t in range(len(z) - 1)])
+        except (FloatingPointError, ValueError, np.linalg.LinAlgError):
+            f = None
+        if f is None or not np.all(np.isfinite(f)):
+            return {**out, "process": np.inf, "data": np.inf, "total": np.inf}
+        out["process"] = 0.5 * self.process.norm2(z[1:, :nr] - f)
+        data = 0.0
+        for t, (mask, root) in enumerate(self.noise):
+            if root is not None:
+                data += 0.5 * root.norm2(self.y[t, mask] - self.H[mask] @ z[t, :nr])
+        out["data"] = data
+        out["total"] = out["prior"] + out["parameters"] + out["process"] + out["data"]
+        return out
+
+    def __call__(self, states) -> float:
+        return self.parts(states)["total"]
+
+
+class _StructuredSecant:
+    """The curvature Gauss-Newton leaves out, learnt from gradients (Dennis, Gay & Welsch 1981).
+
+    The profile cost's Hessian is the Gauss-Newton part (the smoother's) plus the residuals times
+    their second derivatives, which matters when the model does not fit the data (large
+    residuals). After a step ``s`` the gradient changes by ``y``; the change the new
+    Gauss-Newton Hessian does not explain, ``y# = y - H_GN s``, updates the correction ``S`` by
+    the least symmetric change that satisfies ``S s = y#`` (NL2SOL's update, with its sizing of
+    the old ``S``). Skipped when ``y^T s <= 0``.
+    """
+
+    def __init__(self, p: int):
+        self.S = np.zeros((p, p))
+        self.s = self.g = None
+
+    def taken(self, step, g):
+        self.s, self.g = np.array(step, float), np.array(g, float)
+
+    def state(self) -> dict:
+        """Arrays for a checkpoint (``s`` and ``g`` empty before the first step)."""
+        empty = np.zeros(0)
+        return {"secant_S": self.S, "secant_s": empty if self.s is None else self.s,
+                "secant_g": empty if self.g is None else self.g}
+
+    def restore(self, state) -> None:
+        self.S = np.array(state["secant_S"], float)
+        if np.size(state["secant_s"]):
+            self.s, self.g = np.array(state["secant_s"], float), np.array(state["secant_g"], float)
+
+    def update(self, H, g) -> np.ndarray:
+        if self.s is not None:
+            s, y = self.s, g - self.g
+            ys = float(y @ s)
+            if ys > 0:
+                ysharp = y - H @ s
+                sSs = float(s @ self.S @ s)
+                if sSs != 0:
+                    self.S *= min(1.0, abs(float(s @ ysharp)) / abs(sSs))
+                r = ysharp - self.S @ s
+                self.S = self.S + (np.outer(r, y) + np.outer(y, r)) / ys - float(r @ s) * np.outer(y, y) / ys ** 2
+                self.S = 0.5 * (self.S + self.S.T)
+        return self.S
+
+
+def open_loop(model) -> np.ndarray:
+    """The prior's trajectory: ``x0`` stepped by ``fx`` without data, (n_frames, dim_state)."""
+    z = np.empty((model.n_frames, model.dim_state))
+    z[0] = np.asarray(model.x0, float)
+    for t in range(model.n_frames - 1):
+        z[t + 1] = np.asarray(model.fx(z[t], t), float).ravel()
+    return z
+
+
+@dataclass(eq=False)
+class SmootherResult:
+    """Outcome of :class:`IteratedSmoother` (model coordinates throughout).
+
+    Attributes
+    ----------
+    states : (n_frames, dim_state)
+        The MAP trajectory and parameters (the mode of the posterior).
+    theta, P_theta :
+        The parameters and their Laplace covariance (the undamped smoother's at the mode).
+    P_diag : (n_frames, dim_state)
+        Smoothed marginal variances (restart part: NaN unless computed; parameters: P_theta's).
+    iterations : int
+        Accepted Gauss-Newton steps.
+    converged : bool
+    stop_reason : str
+        ``"step"`` (the material step met the stop rule), ``"cost"`` (no damping made the cost
+        fall any more), ``"max_iterations"`` or ``"no parameters"``.
+    records : list of dict
+        Per accepted iteration: ``cost``, ``damping``, ``rejected`` (damped retries),
+        ``rel_change``, ``step_sd`` (max over parameters of |step| / posterior sd), ``seconds``.
+    history : History
+        One row per frame (loop 0): the smoothed mean of the final pass, its marginal variances,
+        and the forward pass's innovations, S and NIS (for the diagnostics).
+    log_likelihood : float
+        log p(y) of the model linearised at the mode (prediction-error decomposition).
+    output_sd : dict
+        Smoothed standard deviations of the model's output operators, name -> (n_frames, k).
+    cost : float
+        The MAP cost J at the mode.
+    """
+
+    states: np.ndarray
+    theta: np.ndarray
+    P_theta: np.ndarray
+    P_diag: np.ndarray
+    iterations: int
+    converged: bool
+    stop_reason: str
+    records: list
+    history: History
+    log_likelihood: float
+    output_sd: dict = field(default_factory=dict)
+    cost: float = np.nan
+    method: str = "iterated_smoother"
+
+    @property
+    def loops(self) -> int:
+        """Passes over the data of the accepted iterations (for tables shared with the cyclic EKF)."""
+        return self.iterations
+
+    @property
+    def rel_changes(self) -> list:
+        return [r["rel_change"] for r in self.records]
+
+
+@dataclass
+class IteratedSmoother:
+    """Settings of the iterated extended Kalman smoother (module docstring), one entry point :meth:`run`.
+
+    Parameters
+    ----------
+    max_iterations : int
+        Accepted Gauss-Newton steps at most (>= 1).
+    tol : float
+        Relative change of the physical parameters below which a step may end the run (> 0).
+    sd_tol : float
+        ... and its largest component in posterior standard deviations (> 0).
+    cost_tol : float
+        An accepted step that lowers the MAP cost by less than this (nats, > 0) ends the run: the
+        cost has stopped falling. The default is ``sd_tol^2 / 2``, what a move of ``sd_tol``
+        posterior sd along one parameter changes the cost by near the mode.
+    damping : float
+        Initial Levenberg-Marquardt lambda, in units of the prior precision of theta (>= 0;
+        0 starts with an undamped Gauss-Newton step).
+    max_damping : float
+        A step rejected at this damping ends the run: the cost no longer falls.
+    covariance : bool
+        Compute the smoothed marginal variances of the kinematics and of the model's output
+        operators in the final pass (O(k n^2) a frame per output).
+    safeguards : Safeguards, optional
+        Covariance check and repair in every pass, NIS monitoring in the final one.
+
+    The damping follows Nielsen's rule: after an accepted full step lambda is multiplied by
+    ``max(1/3, 1 - (2 rho - 1)^3)``, rho the ratio of the cost's actual to its predicted decrease;
+    after an accepted half step it doubles; after a rejection it grows by a factor that doubles
+    with every rejection in a row. The settings that shape the iterates (damping, max_damping,
+    the safeguards) enter the checkpoint fingerprint; the stopping rules (max_iterations, tol,
+    sd_tol, cost_tol) and ``covariance`` do not, so a finished run can be resumed with a
+    stricter rule.
+    """
+
+    max_iterations: int = 20
+    tol: float = 1e-3
+    sd_tol: float = 0.1
+    cost_tol: float = 5e-3
+    damping: float = 1.0
+    max_damping: float = 1e8
+    covariance: bool = True
+    safeguards: Safeguards | None = None
+
+    def __post_init__(self):
+        integer("max_iterations", self.max_iterations, 1)
+        positive("tol", self.tol)
+        positive("sd_tol", self.sd_tol)
+        positive("cost_tol", self.cost_tol)
+        non_negative("damping", self.damping)
+        positive("max_damping", self.max_damping)
+        if not isinstance(self.covariance, (bool, np.bool_)):
+            raise TypeError(f"covariance: expected True or False, got {self.covariance!r}")
+        if self.safeguards is not None and not isinstance(self.safeguards, Safeguards):
+            raise TypeError(f"safeguards: expected a Safeguards, got {type(self.safeguards).__name__}")
+
+    def trajectory_settings(self) -> dict:
+        guard = self.safeguards if self.safeguards is not None else Safeguards()
+        return {"method": "iterated_smoother", "damping": float(self.damping), "max_damping": float(self.max_damping),
+                **guard.settings()}
+
+    def run(self, model, observations, *, progress: bool = False, checkpoint=None,
+            description: str = "iterated smoother") -> SmootherResult:
+        """Estimate from one cycle's ``observations`` (n_frames, dim_obs), NaN where missing.
+
+        ``checkpoint``: a path saved after every accepted iteration; an existing checkpoint of
+        the same run is resumed and the run ends exactly as an uninterrupted one would.
+        """
+        check_model(model)
+        p = check_static_parameters(model)
+        y = check_observations(model, observations)
+        guard = self.safeguards if self.safeguards is not None else Safeguards()
+        nr = int(model.n_restart)
+        P3 = np.asarray(model.P0, float)[nr:, nr:]
+        theta0 = np.asarray(model.x0, float)[nr:]
+        fp = run_fingerprint(model, y, self.trajectory_settings())
+        records: list = []
+
+        P3_root = _InverseRoot(P3) if p else None
+
+        def profile(theta, like):
+            """J_p(theta) = min over the trajectory of J, by one linear filter pass with theta held
+            fixed (completing the square: the minimum is half the summed NIS plus theta's prior
+            term), with what the backward pass needs to recover the optimal trajectory."""
+            z = np.array(like, float)
+            z[:, nr:] = theta
+            try:
+                lin = linearise(model, z, sensitivity=False)
+                fwd = kalman_forward(lin, y, safeguards=guard, check_every_frame=False, label=len(records))
+            except (FloatingPointError, ValueError, np.linalg.LinAlgError):
+                return np.inf, None
+            return fwd.fit + (0.5 * P3_root.norm2(theta - theta0) if p else 0.0), (lin, fwd, z)
+
+        def trajectory(found):
+            lin, fwd, z = found
+            z[:, :nr] = lin.to_model(smooth_backward(lin, fwd).smoothed[:, :nr])
+            return z
+
+        secant = _StructuredSecant(p)
+        if checkpoint is not None and os.path.exists(checkpoint):
+            state = load_checkpoint(checkpoint, fp)
+            secant.restore(state)
+            z, lam, nu = np.array(state["trajectory"]), float(state["damping"]), float(state["nu"])
+            records = [dict(zip(state["record_keys"].tolist(), map(float, row))) for row in state["records"]]
+            cost, stop = float(state["cost"]), str(state["stop_reason"])
+        else:
+            lam, nu, stop = float(self.damping), 2.0, ""
+            cost, found = profile(theta0, open_loop(model))
+            if found is None or not np.isfinite(cost):
+                raise FloatingPointError("the prior's material gives no finite MAP cost: the model cannot step its "
+                                         "initial state")
+            z = trajectory(found)
+        if p == 0:
+            stop = "no parameters"
+        bar = None
+        if progress and not stop:
+            from tqdm import tqdm
+            bar = tqdm(total=self.max_iterations, initial=len(records), desc=description, unit="it", leave=False)
+        try:
+            P3_inv = sla.cho_solve(sla.cho_factor(P3), np.eye(p)) if p else None
+            while not stop and len(records) < self.max_iterations:
+                t0 = time.perf_counter()
+                lin = linearise(model, z)
+                theta_bar = z[0, nr:]
+                # One undamped pass of the linearised model gives the Gauss-Newton quadratic model
+                # of the profile cost about theta_bar: its Hessian is the inverse of the pass's
+                # posterior covariance of theta, and its gradient is exact (the linearisation is
+                # exact to first order and the trajectory part is at its optimum). Damped steps and
+                # rejections are then p x p solves, not further passes.
+                fwd = kalman_forward(lin, y, safeguards=guard, check_every_frame=False, label=len(records),
+                                     store=False)
+                P_theta = fwd.engine.P[nr:, nr:].copy()
+                cho_H = sla.cho_factor(P_theta, lower=True)
+                H = sla.cho_solve(cho_H, np.eye(p))
+                H = 0.5 * (H + H.T)
+                g = -H @ (fwd.filtered[-1, nr:] - theta_bar)
+                del fwd, lin                        # n^2 floats a frame: not needed for the trials
+                S = secant.update(H, g)
+                H_model = H + S
+                rejected = 0
+                while True:
+                    try:
+                        step = -sla.cho_solve(sla.cho_factor(H_model + lam * P3_inv, lower=True), g)
+                    except np.linalg.LinAlgError:
+                        lam, nu = max(lam, 1e-3) * nu, 2.0 * nu
+                        continue
+                    predicted = -(g @ step + 0.5 * step @ H_model @ step)
+                    lam_used, alpha = lam, 1.0
+                    new_cost, found = profile(theta_bar + step, z)
+                    gain = (cost - new_cost) / max(predicted, 1e-300)
+                    if new_cost < cost:
+                        lam *= max(1.0 / 3.0, 1.0 - (2.0 * gain - 1.0) ** 3)
+                        nu = 2.0
+                        break
+                    # line search: the minimum of the quadratic through J(0), J'(0) and J(1), in [0.1, 0.5]
+                    slope = g @ step
+                    curv = new_cost - cost - slope if np.isfinite(new_cost) else np.inf
+                    alpha = float(np.clip(-slope / (2.0 * curv), 0.1, 0.5)) if curv > 0 else 0.1
+                    new_cost, found = profile(theta_bar + alpha * step, z)
+                    if new_cost < cost:
+                        lam *= 2.0
+                        break
+                    rejected += 1
+                    if lam >= self.max_damping:
+                        stop = "cost"
+                        break
+                    lam, nu = max(lam, 1e-3) * nu, 2.0 * nu
+                if stop:
+                    break
+                taken = alpha * step
+                secant.taken(taken, g)
+                before = physical_parameters(model, theta_bar)
+                rel = float(np.linalg.norm(physical_parameters(model, theta_bar + taken) - before)
+                            / np.linalg.norm(before))
+                step_sd = float(np.max(np.abs(taken) / np.sqrt(np.diag(P_theta))))
+                records.append({"iteration": len(records) + 1, "cost": new_cost, "decrease": cost - new_cost,
+                                "damping": lam_used, "step_length": alpha, "gain_ratio": float(gain), "rejected": rejected,
+                                "rel_change": rel, "step_sd": step_sd, "max_abs_step": float(np.max(np.abs(taken))),
+                                "seconds": 0.0})
+                z, cost = trajectory(found), new_cost
+                records[-1]["seconds"] = time.perf_counter() - t0
+                if rel < self.tol and step_sd < self.sd_tol:
+                    stop = "step"
+                elif records[-1]["decrease"] < self.cost_tol:
+                    stop = "cost"
+                if checkpoint is not None:
+                    keys = list(records[0])
+                    save_checkpoint(checkpoint, fp, z[0, nr:], P3, [r["rel_change"] for r in records], History(),
+                                    len(records), trajectory=z, damping=lam, nu=nu, cost=cost, stop_reason=stop,
+                                    **secant.state(),
+                                    record_keys=np.array(keys), records=np.array([[r[k] for k in keys]
+                                                                                  for r in records]))
+                if bar is not None:
+                    bar.update(1)
+                    bar.set_postfix(cost=f"{cost:.6g}", damping=f"{records[-1]['damping']:.0e}",
+                                    step_sd=f"{step_sd:.2g}")
+        finally:
+            if bar is not None:
+                bar.close()
+        if not stop:
+            stop = "max_iterations"
+        converged = stop in ("step", "cost", "no parameters")
+        if not converged:
+            warnings.warn(f"iterated smoother: stopped by '{stop}' after {len(records)} iterations before the "
+                          f"material step met the rule (tol {self.tol:g}, {self.sd_tol:g} sd)", RuntimeWarning)
+        return self._final(model, y, z, cost, records, stop, converged, guard)
+
+    def _final(self, model, y, z, cost, records, stop, converged, guard) -> SmootherResult:
+        """The Laplace approximation at the mode: an undamped pass linearised there."""
+        nr = int(model.n_restart)
+        lin = linearise(model, z)
+        outputs = {}
+        if self.covariance:
+            outputs["state"] = lin.output_in_xi(np.eye(nr))
+            if isinstance(model, OutputOperators):
+                outputs.update({k: lin.output_in_xi(v) for k, v in model.output_operators().items()})
+        sm = smooth(lin, y, safeguards=guard, covariance=self.covariance, outputs=outputs, monitor_nis=True,
+                    label=len(records))
+        T, n = z.shape
+        P_diag = np.full((T, n), np.nan)
+        if self.covariance:
+            P_diag[:, :nr] = sm.variances.pop("state")
+        P_diag[:, nr:] = np.diag(sm.P_theta)
+        smoothed = np.empty_like(z)
+        smoothed[:, :nr] = lin.to_model(sm.smoothed[:, :nr])
+        smoothed[:, nr:] = sm.theta
+        history = History()
+        for t in range(T):
+            history.append(0, t, smoothed[t], P_diag[t], sm.innovation[t], sm.S[t], sm.nis[t],
+                           int(sm.n_obs[t]))
+        return SmootherResult(states=z, theta=z[0, nr:].copy(), P_theta=sm.P_theta, P_diag=P_diag,
+                              iterations=len(records), converged=converged, stop_reason=stop, records=records,
+                              history=history, log_likelihood=sm.log_likelihood,
+                              output_sd={k: np.sqrt(np.maximum(v, 0.0)) for k, v in sm.variances.items()},
+                              cost=cost)
+
+
+def iterated_smoother(model, observations, *, progress: bool = False, checkpoint=None,
+                      description: str = "iterated smoother", **settings) -> SmootherResult:
+    """``IteratedSmoother(**settings).run(model, observations, ...)``; see :class:`IteratedSmoother`."""
+    return IteratedSmoother(**settings).run(model, observations, progress=progress, checkpoint=checkpoint,
+                                            description=description)

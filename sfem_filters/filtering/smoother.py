@@ -1,0 +1,346 @@
+"""The fixed-interval (Rauch-Tung-Striebel) smoother of a linearised model, one pass of the cycle.
+
+:func:`smooth` runs the Kalman filter of a
+:class:`~sfem_filters.filtering.linearised.LinearisedModel` forward over the frames (the
+structured engine's algebra: F = [[A, M_t], [0, I]] block by block with a sparse A, Cholesky
+factors of S, the Joseph update) and then the backward pass in Bierman's modified
+Bryson-Frazier form (Bierman 1977, ch. X): with the filter's prior ``x_t-``, ``P_t-``, gain
+``K_t``, innovation ``e_t`` and covariance ``S_t``, from ``lambda = 0``, ``Lambda = 0`` after
+the last frame,
+
+    lambda~_t = (I - K_t H)^T lambda_t - H^T S_t^-1 e_t
+    Lambda~_t = (I - K_t H)^T Lambda_t (I - K_t H) + H^T S_t^-1 H
+    x_t|T = x_t- - P_t- lambda~_t,          P_t|T = P_t- - P_t- Lambda~_t P_t-
+    lambda_{t-1} = F_{t-1}^T lambda~_t,     Lambda_{t-1} = F_{t-1}^T Lambda~_t F_{t-1}.
+
+These are the RTS smoother's estimates exactly (:func:`rts_reference` computes them with the
+textbook gains ``G_t = P_t|t F_t^T P_t+1|t^-1`` by Cholesky solves; the tests compare the two)
+without any solve with an n x n matrix: smoothed means cost O(n^2) a frame, and covariances are
+formed only for the outputs asked for. Static parameters are part of the state, so the
+smoothed ``theta`` and its covariance are those of the whole cycle.
+
+Memory: the prior covariance of every frame is kept for the backward pass (n^2 floats a frame).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.linalg as sla
+import scipy.sparse as sp
+
+from .base import DenseEngine
+from .linearised import LinearisedModel
+from .structured import joseph_update
+
+__all__ = ["LinearisedEngine", "ForwardPass", "SmoothedPass", "kalman_forward", "smooth_backward", "smooth",
+           "rts_reference"]
+
+LOG_2PI = float(np.log(2.0 * np.pi))
+
+
+class LinearisedEngine(DenseEngine):
+    """The Kalman filter of a :class:`LinearisedModel` in its coordinates ``[xi; theta]``.
+
+    Records, per frame, what the backward pass needs: the prior mean and covariance, and the
+    observed rows, innovation, Cholesky factor of S and gain of the update.
+    """
+
+    def __init__(self, lin: LinearisedModel, theta_mean, theta_cov, store: bool = True):
+        self.lin, self.ljung, self.store = lin, None, bool(store)
+        self.nr, self.p = lin.n_restart, lin.n_params
+        self.priors: list = []
+        self.updates: dict = {}
+        self.log_likelihood = 0.0
+        x0 = np.concatenate([lin.xi0, np.asarray(theta_mean, float)])
+        P0 = sla.block_diag(lin.P0, np.asarray(theta_cov, float))
+        self.reset(x0, P0)
+        if self.store:
+            self.priors.append((self._x.copy(), self._P.copy()))
+
+    def predict(self, t):
+        lin, nr = self.lin, self.nr
+        A, M = lin.A_at(t), lin.M[t]
+        P = self._P
+        Prr, Prt, Ptt = P[:nr, :nr], P[:nr, nr:], P[nr:, nr:]
+        AP = np.asarray(A @ Prr)
+        APA = np.asarray(A @ AP.T)
+        new = np.empty_like(P)
+        rr = 0.5 * (APA + APA.T)
+        if self.p:
+            APrt = np.asarray(A @ Prt)
+            MPtt = M @ Ptt
+            Z = (APrt + 0.5 * MPtt) @ M.T
+            rr += Z + Z.T
+            cross = APrt + MPtt
+            new[:nr, nr:] = cross
+            new[nr:, :nr] = cross.T
+            new[nr:, nr:] = Ptt
+        new[:nr, :nr] = rr + lin.Q
+        x = self._x
+        xr = np.asarray(A @ x[:nr]).ravel() + lin.c[t]
+        if self.p:
+            xr += M @ (x[nr:] - lin.theta_bar)
+        self._x = np.concatenate([xr, x[nr:]])
+        self._set_P(new)
+        if self.store:
+            self.priors.append((self._x.copy(), self._P.copy()))
+
+    def update(self, y, t, mask):
+        lin, nr = self.lin, self.nr
+        H = lin.H[mask]
+        R = lin.R[t][np.ix_(mask, mask)]
+        PHt = self._P[:, :nr] @ H.T
+        S = H @ PHt[:nr] + R
+        cho = sla.cho_factor(S, lower=True)
+        K = sla.cho_solve(cho, PHt.T).T
+        e = y[mask] - H @ self._x[:nr]
+        self._x = self._x + K @ e
+        self._set_P(joseph_update(self._P, K, PHt, S))
+        quad = float(e @ sla.cho_solve(cho, e))
+        logdet = 2.0 * float(np.sum(np.log(np.diag(cho[0]))))
+        self.log_likelihood -= 0.5 * (quad + logdet + len(e) * LOG_2PI)
+        self.updates[t] = (mask, e, cho, K, quad) if self.store else (mask, None, None, None, quad)
+        return e, S
+
+
+@dataclass(eq=False)
+class ForwardPass:
+    """The Kalman filter's run over the frames (coordinates of the linearised model: ``[xi; theta]``)."""
+
+    engine: LinearisedEngine       # with the priors, gains and factors the backward pass needs
+    filtered: np.ndarray           # (n_frames, n) filtered means
+    innovation: np.ndarray         # (n_frames, m), NaN where not observed
+    S: np.ndarray                  # (n_frames, m, m), NaN rows/cols where not observed
+    nis: np.ndarray                # (n_frames,), NaN where nothing observed
+    n_obs: np.ndarray              # (n_frames,)
+
+    @property
+    def log_likelihood(self) -> float:
+        """log p(y) of the linearised model (prediction-error decomposition)."""
+        return self.engine.log_likelihood
+
+    @property
+    def fit(self) -> float:
+        """``1/2 sum_t e_t^T S_t^-1 e_t``: for a linear-Gaussian model the minimum over the
+        trajectory of the negative log joint density without its constant terms (completing the
+        square), i.e. the profile MAP cost less the parameters' prior term."""
+        return 0.5 * float(np.nansum(self.nis))
+
+
+@dataclass(eq=False)
+class SmoothedPass:
+    """Outcome of :func:`smooth` (coordinates of the linearised model: ``[xi; theta]``)."""
+
+    forward: ForwardPass
+    smoothed: np.ndarray           # (n_frames, n) smoothed means
+    theta: np.ndarray              # smoothed (whole-cycle) parameters
+    P_theta: np.ndarray            # their covariance
+    variances: dict = field(default_factory=dict)   # name -> (n_frames, k) smoothed output variances
+
+    def __getattr__(self, name):   # innovation, S, nis, n_obs, log_likelihood, filtered, fit
+        if name == "forward":
+            raise AttributeError(name)
+        return getattr(self.forward, name)
+
+
+def kalman_forward(lin: LinearisedModel, observations, theta_mean=None, theta_cov=None, *, safeguards=None,
+                   check_every_frame: bool = True, monitor_nis: bool = False, label: int = 0,
+                   store: bool = True) -> ForwardPass:
+    """The forward (filter) half of :func:`smooth`.
+
+    ``safeguards`` checks (and repairs) P after every frame when ``check_every_frame``, else only
+    after the last one (a Cholesky factor costs n^3/3, more than the rest of a frame's work here);
+    finiteness and positive variances are checked every frame either way. ``monitor_nis`` also
+    watches the NIS for divergence. ``store=False`` keeps nothing for a backward pass (the
+    filter's own results only: n^2 floats a frame less).
+    """
+    y = np.asarray(observations, float)
+    eng = LinearisedEngine(lin, lin.theta0 if theta_mean is None else theta_mean,
+                           lin.P_theta0 if theta_cov is None else theta_cov, store=store)
+    T, m = lin.n_frames, lin.dim_obs
+    filtered = np.empty((T, lin.dim_state))
+    innov = np.full((T, m), np.nan)
+    S_all = np.full((T, m, m), np.nan)
+    nis = np.full(T, np.nan)
+    n_obs = np.zeros(T, int)
+    run: list = []
+    for t in range(T):
+        if t > 0:
+            eng.predict(t - 1)
+        mask = ~np.isnan(y[t])
+        if mask.any():
+            e, S = eng.update(y[t], t, mask)
+            innov[t, mask] = e
+            S_all[t][np.ix_(mask, mask)] = S
+            nis[t] = eng.updates[t][4]
+            n_obs[t] = int(mask.sum())
+        if not np.all(np.isfinite(eng.x)) or not np.all(np.isfinite(eng.P)) or np.any(np.diag(eng.P) <= 0):
+            raise FloatingPointError(f"the smoother's forward pass lost its covariance (non-finite or a variance "
+                                     f"<= 0) at pass {label}, frame {t}")
+        if safeguards is not None and (check_every_frame or t == T - 1):
+            safeguards.check_covariance(eng, label, t)
+        if safeguards is not None and monitor_nis:
+            safeguards.check_nis(run, label, t, nis[t], n_obs[t])
+        filtered[t] = eng.x
+    return ForwardPass(engine=eng, filtered=filtered, innovation=innov, S=S_all, nis=nis, n_obs=n_obs)
+
+
+def _transpose_step(A, M, lt, nr):
+    """``F^T lambda`` for F = [[A, M], [0, I]]."""
+    out = np.empty_like(lt)
+    out[:nr] = np.asarray(A.T @ lt[:nr]).ravel()
+    out[nr:] = M.T @ lt[:nr] + lt[nr:]
+    return out
+
+
+def _congruence_step(A, M, Lam, nr):
+    """``F^T Lambda F`` for F = [[A, M], [0, I]], exactly symmetric."""
+    Lrr, Lrt, Ltt = Lam[:nr, :nr], Lam[:nr, nr:], Lam[nr:, nr:]
+    At = A.T
+    AtL = np.asarray(At @ Lrr)
+    out = np.empty_like(Lam)
+    rr = np.asarray(At @ AtL.T)
+    out[:nr, :nr] = 0.5 * (rr + rr.T)
+    if Lam.shape[0] > nr:
+        LM = Lrr @ M + Lrt
+        rt = np.asarray(At @ LM)
+        out[:nr, nr:] = rt
+        out[nr:, :nr] = rt.T
+        tt = M.T @ LM + Lrt.T @ M + Ltt
+        out[nr:, nr:] = 0.5 * (tt + tt.T)
+    return out
+
+
+def smooth(lin: LinearisedModel, observations, theta_mean=None, theta_cov=None, *, outputs=None,
+           covariance: bool = False, safeguards=None, check_every_frame: bool = True, monitor_nis: bool = False,
+           label: int = 0) -> SmoothedPass:
+    """Kalman filter forward, modified Bryson-Frazier (RTS) smoother backward (module docstring).
+
+    Parameters
+    ----------
+    lin : LinearisedModel
+    observations : (n_frames, m) array
+        NaN where a value is missing (those rows are left out of their frame's update).
+    theta_mean, theta_cov : arrays, optional
+        The prior of theta for this pass (default the model's, ``lin.theta0`` and
+        ``lin.P_theta0``); a Levenberg-Marquardt step tightens it about the linearisation.
+    outputs : dict, optional
+        ``{name: (k, n_r) matrix}`` linear functions of ``xi`` whose smoothed variances are wanted
+        (``covariance=True``), e.g. nodal displacements or strains via
+        :meth:`LinearisedModel.output_in_xi`.
+    covariance : bool
+        Run the covariance recursion (O(n^2 (m + p)) a frame) and return the outputs' smoothed
+        variances (O(c n^2) a frame for the c columns of xi an output reads, shared by outputs
+        that read the same columns); otherwise means only. The covariance of theta is returned
+        either way (for static parameters it is the forward pass's last).
+    safeguards, check_every_frame, monitor_nis :
+        See :func:`kalman_forward`.
+    """
+    fwd = kalman_forward(lin, observations, theta_mean, theta_cov, safeguards=safeguards,
+                         check_every_frame=check_every_frame, monitor_nis=monitor_nis, label=label)
+    return smooth_backward(lin, fwd, outputs=outputs, covariance=covariance)
+
+
+def smooth_backward(lin: LinearisedModel, forward: ForwardPass, *, outputs=None,
+                    covariance: bool = False) -> SmoothedPass:
+    """The backward half of :func:`smooth`, on a :func:`kalman_forward` pass."""
+    nr = lin.n_restart
+    eng = forward.engine
+    if not eng.store:
+        raise ValueError("forward: expected a pass run with store=True (it keeps what the backward pass needs)")
+    T, n = lin.n_frames, lin.dim_state
+    lam = np.zeros(n)
+    Lam = np.zeros((n, n)) if covariance else None
+    groups = _support_groups(outputs) if covariance else []
+    var = {name: np.empty((T, L.shape[0])) for _, members in groups for name, L in members}
+    smoothed = np.empty((T, n))
+    for t in range(T - 1, -1, -1):
+        xb, Pb = eng.priors[t]
+        lt, LamT = lam, Lam
+        if t in eng.updates:
+            mask, e, cho, K, _ = eng.updates[t]
+            H = lin.H[mask]
+            Sie = sla.cho_solve(cho, e)
+            lt = lam.copy()
+            lt[:nr] -= H.T @ (K.T @ lam + Sie)
+            if covariance:
+                G = Lam @ K
+                GH = G @ H
+                LamT = Lam.copy()
+                LamT[:, :nr] -= GH
+                LamT[:nr, :] -= GH.T
+                LamT[:nr, :nr] += H.T @ ((K.T @ G) @ H + sla.cho_solve(cho, H))
+                LamT = 0.5 * (LamT + LamT.T)
+        smoothed[t] = xb - Pb @ lt
+        for cols, members in groups:
+            PC = Pb[cols, :]
+            Ps = Pb[np.ix_(cols, cols)] - (PC @ LamT) @ PC.T          # smoothed covariance of the support
+            for name, Lc in members:
+                var[name][t] = np.einsum("ij,ij->i", Lc @ Ps, Lc)
+        if t > 0:
+            A, M = lin.A_at(t - 1), lin.M[t - 1]
+            lam = _transpose_step(A, M, lt, nr)
+            if covariance:
+                Lam = _congruence_step(A, M, LamT, nr)
+    # theta is static: its smoothed covariance is that of the last frame's filter (the whole cycle)
+    return SmoothedPass(forward=forward, smoothed=smoothed, theta=smoothed[0, nr:].copy(),
+                        P_theta=eng.P[nr:, nr:].copy(), variances=var)
+
+
+def _support_groups(outputs) -> list:
+    """Outputs grouped by the columns of xi they read: ``[(cols, [(name, L[:, cols]), ...]), ...]``,
+    so that the smoothed covariance of each support is formed once a frame."""
+    groups: dict = {}
+    for name, L in (outputs or {}).items():
+        L = np.asarray(L, float)
+        cols = np.flatnonzero(np.any(L != 0, axis=0))
+        groups.setdefault(cols.tobytes(), (cols, []))[1].append((name, L[:, cols]))
+    return list(groups.values())
+
+
+def rts_reference(lin: LinearisedModel, observations, theta_mean=None, theta_cov=None):
+    """The textbook RTS smoother, dense, for tests: returns smoothed means (n_frames, n) and
+    covariances (n_frames, n, n).
+
+    Forward Kalman filter with F = [[A, M], [0, I]] formed densely; backward
+    ``G_t = P_t|t F_t^T P_t+1|t^-1`` (a Cholesky solve), ``x_t|T = x_t|t + G_t (x_t+1|T - x_t+1|t)``,
+    ``P_t|T = P_t|t + G_t (P_t+1|T - P_t+1|t) G_t^T``.
+    """
+    nr, p, T = lin.n_restart, lin.n_params, lin.n_frames
+    y = np.asarray(observations, float)
+    n = nr + p
+    x = np.concatenate([lin.xi0, lin.theta0 if theta_mean is None else theta_mean])
+    P = sla.block_diag(lin.P0, lin.P_theta0 if theta_cov is None else theta_cov)
+    Hf = np.hstack([lin.H, np.zeros((lin.dim_obs, p))])
+    Qf = sla.block_diag(lin.Q, np.zeros((p, p)))
+    xf, Pf, xp, Pp, Fs = [], [], [None], [None], []
+    for t in range(T):
+        if t > 0:
+            A = lin.A_at(t - 1)
+            F = np.eye(n)
+            F[:nr, :nr] = A.toarray() if sp.issparse(A) else A
+            F[:nr, nr:] = lin.M[t - 1]
+            off = np.concatenate([lin.c[t - 1] - lin.M[t - 1] @ lin.theta_bar, np.zeros(p)])
+            x = F @ x + off
+            P = F @ P @ F.T + Qf
+            Fs.append(F)
+            xp.append(x.copy())
+            Pp.append(P.copy())
+        mask = ~np.isnan(y[t])
+        if mask.any():
+            H = Hf[mask]
+            S = H @ P @ H.T + lin.R[t][np.ix_(mask, mask)]
+            K = sla.cho_solve(sla.cho_factor(S), H @ P).T
+            x = x + K @ (y[t, mask] - H @ x)
+            IKH = np.eye(n) - K @ H
+            P = IKH @ P @ IKH.T + K @ lin.R[t][np.ix_(mask, mask)] @ K.T
+        xf.append(x.copy())
+        Pf.append(P.copy())
+    xs, Ps = [None] * T, [None] * T
+    xs[-1], Ps[-1] = xf[-1], Pf[-1]
+    for t in range(T - 2, -1, -1):
+        G = sla.cho_solve(sla.cho_factor(Pp[t + 1]), Fs[t] @ Pf[t]).T
+        xs[t] = xf[t] + G @ (xs[t + 1] - xp[t + 1])
+        Ps[t] = Pf[t] + G @ (Ps[t + 1] - Pp[t + 1]) @ G.T
+    return np.array(xs), np.array(Ps)

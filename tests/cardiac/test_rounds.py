@@ -1,0 +1,224 @@
+"""Closing the loop in rounds (issue 14): the spline yardstick, the absolute stiffness under a
+measured pressure, the regional and transmural effects, and rounds on data with a known answer."""
+import numpy as np
+import pytest
+from scipy import sparse
+from scipy.sparse.linalg import spsolve
+
+from sfem_filters.cardiac import annulus_sequence, closing, measured
+from sfem_filters.cardiac.effects import CATALOGUE, build_effects, segment_labels
+from sfem_filters.cardiac.myocardium import lv_geometry, mesh_from_mask, polar_strain_operator
+from sfem_filters.cardiac.annulus import annulus_mask
+from sfem_filters.cardiac.reference import contour_interpolant, spline_reference
+from sfem_filters.cardiac.sequence import make_sequence
+from sfem_filters.fem import Material
+from sfem_filters.fem.elasticity import stiffness_matrix
+
+
+@pytest.fixture(scope="module")
+def annulus():
+    mesh = mesh_from_mask(annulus_mask(), 1e-3)
+    return mesh, lv_geometry(mesh)
+
+
+# ------------------------------------------------------------------ the spline yardstick
+def test_spline_reference_reproduces_affine_motion_exactly():
+    """A thin-plate spline reproduces affine fields exactly, so its held-out error is round-off."""
+    rng = np.random.default_rng(1)
+    pts = rng.uniform(0, 20, (60, 2))
+    A = rng.standard_normal((4, 2, 2)) * 0.05
+    c = rng.standard_normal((4, 2))
+    disp = np.einsum("fij,pj->fpi", A, pts) + c[:, None]
+    obs, held = np.arange(12), np.arange(12, 60)
+    u = rng.standard_normal((48, 2))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    ref = spline_reference(pts, disp, obs, held, u, u[:, ::-1] * [1, -1])
+    assert ref["heldout_rmse_px"] < 1e-9
+    assert ref["U"].shape == (4, 48, 2)
+
+
+def test_spline_reference_errors_split_and_missing_data():
+    """Radial and circumferential parts add up to the total (orthonormal directions); frames
+    with too few observed points are skipped, not filled with zeros."""
+    rng = np.random.default_rng(2)
+    pts = rng.uniform(0, 20, (40, 2))
+    disp = rng.standard_normal((3, 40, 2)) * 0.1
+    disp[1, :38] = np.nan                       # frame 1: only two observed points remain
+    ang = rng.uniform(0, 2 * np.pi, 30)
+    er = np.column_stack([np.cos(ang), np.sin(ang)])
+    ec = np.column_stack([-np.sin(ang), np.cos(ang)])
+    ref = spline_reference(pts, disp, np.arange(10), np.arange(10, 40), er, ec)
+    assert np.isnan(ref["U"][1]).all()
+    np.testing.assert_allclose(ref["heldout_rmse_px"] ** 2,
+                               ref["heldout_rmse_radial_px"] ** 2 + ref["heldout_rmse_circumferential_px"] ** 2)
+
+
+def test_contour_interpolant_is_periodic_and_converges():
+    ang = np.linspace(0, 2 * np.pi, 9)[:-1] + 0.3
+    q = np.linspace(0, 2 * np.pi, 50)
+    np.testing.assert_allclose(contour_interpolant(ang, np.full((8, 1), 2.5), q), 2.5)
+    errs = []
+    for n in (8, 16, 32):
+        a = np.linspace(0, 2 * np.pi, n + 1)[:-1] + 0.1
+        v = np.column_stack([np.sin(a), np.cos(2 * a)])
+        errs.append(np.abs(contour_interpolant(a, v, q) - np.column_stack([np.sin(q), np.cos(2 * q)])).max())
+    assert errs[2] < errs[0] / 20                # fourth-order convergence of the cubic spline
+    with pytest.raises(ValueError, match="angles_landmarks"):
+        contour_interpolant([0.0, 1.0], np.zeros((2, 1)), q)
+
+
+# ------------------------------------------------------------------ inputs as users write them
+def test_scalar_sigma_and_confidence_are_accepted():
+    seq = annulus_sequence(None, n_frames=4, seed=0)
+    s = make_sequence(seq.points, seq.displacement, sigma=0.1, confidence=0.8)
+    assert s.sigma.shape == (seq.n_points,) and np.all(s.sigma == 0.1)
+    assert s.confidence.shape == (seq.n_points,) and np.all(s.confidence == 0.8)
+    with pytest.raises(ValueError, match="sigma"):
+        make_sequence(seq.points, seq.displacement, sigma=-1.0)
+    with pytest.raises(ValueError, match="confidence"):
+        make_sequence(seq.points, seq.displacement, confidence=1.5)
+
+
+# ------------------------------------------------------------------ regional and transmural effects
+def test_nested_effects_are_recognised_by_their_load_spans(annulus):
+    """Six segments with equal amplitudes are the uniform polar stress; the helical effect's first
+    column is the circumferential one; the rounds rely on these spans to replace, not pile up."""
+    mesh, g = annulus
+    G = {n: build_effects([n], mesh, g)[0].loads for n in CATALOGUE}
+    assert closing.spans(G["active_segments"], G["active_polar"])
+    assert closing.spans(G["active_polar"], G["active_circumferential"])
+    assert closing.spans(G["active_polar"], G["active_radial"])
+    assert closing.spans(G["active_helical"], G["active_circumferential"])
+    assert not closing.spans(G["active_polar"], G["active_segments"])
+    assert not closing.spans(G["active_polar"], G["active_helical"])
+    assert not closing.spans(G["active_polar"], G["cavity_pressure"])
+    assert G["active_segments"].shape[1] == 12
+
+
+def test_segmental_effect_moves_only_its_segment_and_helical_makes_transmural_shear(annulus):
+    mesh, g = annulus
+    K = stiffness_matrix(mesh, np.full(mesh.n_elements, 1e4), np.full(mesh.n_elements, 0.4))
+    K = (K + 1e-3 * K.diagonal().mean() * sparse.eye(mesh.n_dofs)).tocsc()   # soft ground: no rigid motion
+    eff = build_effects(["active_segments"], mesh, g)[0]
+    seg = segment_labels(mesh, g)
+    f = eff.loads[:, 0]                                  # circumferential tension in segment 0 only
+    nodes_loaded = np.unique(np.nonzero(np.abs(f.reshape(-1, 2)).sum(axis=1))[0])
+    in_seg0 = np.unique(mesh.elements[seg == 0])
+    assert set(nodes_loaded) <= set(in_seg0)
+    # helical: the shear column's strain E_rc changes sign through the wall
+    hel = build_effects(["active_helical"], mesh, g)[0]
+    u = spsolve(K, hel.loads[:, 1])
+    eps = (polar_strain_operator(mesh, g) @ u).reshape(-1, 3)
+    endo, epi = eps[g.endo, 2].mean(), eps[g.epi, 2].mean()
+    assert endo * epi < 0 and min(abs(endo), abs(epi)) > 0.1 * np.abs(eps[:, 2]).max()
+
+
+# ------------------------------------------------------------------ rounds: arguments
+def test_rounds_reject_bad_settings():
+    seq = annulus_sequence(None, n_frames=4, seed=0)
+    for kw, match in (({"alpha": 1.5}, "alpha"), ({"max_rounds": 0}, "max_rounds"), ({"max_tries": 0}, "max_tries"),
+                      ({"min_evidence": -1.0}, "min_evidence"), ({"candidates": ["nope"]}, "candidates")):
+        with pytest.raises(ValueError, match=match):
+            closing.closing_the_loop(seq, **kw)
+
+
+def _scale_run(E_kpa, seed=0):
+    seq0 = annulus_sequence(None, n_frames=4, seed=0)
+    mesh = measured.prepare(seq0, 8).mesh
+    mat = Material.uniform(mesh.n_elements, E_kpa * 1e3, measured.NOMINAL["nu"])
+    seq = annulus_sequence(None, seed=seed, drive="pressure", material=mat, peak_pressure=2e3 * E_kpa / 10)
+    return closing.closing_the_loop(seq, effects="auto", drive="pressure", max_iterations=80)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("E_kpa", [5.0, 30.0, pytest.param(100.0, marks=pytest.mark.xfail(
+    strict=True, reason="measured: 104.5 kPa, 95% interval 103.4-105.6, after 59 iterations; the level is "
+                        "biased by 4.5% at 100 kPa (issue 14 note)"))])
+def test_measured_pressure_sets_the_absolute_stiffness(E_kpa):
+    """Under a measured pressure the global stiffness level is estimated in kPa with an interval
+    that covers the truth, and no effect is added to absorb a scale error (the rounds stop at the
+    baseline; its NIS/dof is below 1, not above: the final pass starts the level from its wide prior)."""
+    out = _scale_run(E_kpa)
+    m = out.baseline.metrics
+    assert m["absolute_stiffness"] and m["converged"]
+    lo, hi = m["E_level_kPa_95"]
+    assert lo < E_kpa < hi and hi / lo < 1.5
+    assert out.effects == [] and m["nis_mean_over_dof"] < 1.4
+
+
+def test_a_measured_pressure_makes_the_level_a_parameter_of_every_map():
+    seq = annulus_sequence(None, n_frames=6, seed=0, drive="pressure")
+    su = measured.prepare(seq, 8)
+    for param in ("region", "basis", "element"):
+        model, _ = measured.build_model(su, (), "pressure", param)
+        p = model.parameterisation
+        k = model.n_restart + p.level_index
+        assert np.isclose(np.sqrt(model.P0[k, k]), measured.NOMINAL["E_level_sd"])
+        a, c = p.level_functional()
+        theta = np.asarray(model.x0, float)[model.n_restart:].copy()
+        theta[p.level_index] += np.log(3.0)                       # the level scales every E
+        np.testing.assert_allclose(p.material(theta).E, 3.0 * p.material(model.x0[model.n_restart:]).E)
+        assert np.isclose(a @ theta + c - (a @ model.x0[model.n_restart:] + c), np.log(3.0))
+
+
+def test_without_pressure_the_stiffness_stays_relative():
+    seq = annulus_sequence(None, n_frames=6, seed=0)
+    su = measured.prepare(seq, 8)
+    model, _ = measured.build_model(su, (), "penalty", "region")
+    assert model.parameterisation.level_index is None
+
+
+# ------------------------------------------------------------------ rounds on data with a known answer
+def _rounds(effect, amplitude, seed=0, **kw):
+    seq = annulus_sequence(effect, amplitude=amplitude, seed=seed)
+    return closing.closing_the_loop(seq, effects="auto", max_iterations=6, **kw)
+
+
+@pytest.mark.slow
+def test_clean_sequences_get_no_effect_in_three_of_four_seeds():
+    added = sum(bool(_rounds(None, (), seed=s).effects) for s in range(4))
+    assert added <= 1
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("amplitudes", [((0.15, -0.3), (0.0, 0.3)), ((0.1, -0.2), (0.0, 0.6))])
+def test_two_undeclared_effects_are_both_found_and_the_loop_stops(amplitudes):
+    """Uniform active stress and transmural shear at once, each the stronger in turn: both causes
+    end in the model (the uniform stress as ``active_polar`` or the segments that contain it), the
+    rounds stop by themselves, and the final model beats the spline on the held-out points."""
+    out = _rounds(["active_polar", "active_helical"], amplitudes)
+    assert "active_helical" in out.effects, out.effects
+    assert {"active_polar", "active_segments"} & set(out.effects), out.effects
+    assert out.stop_reason in ("no significant candidate", "evidence")
+    e = out.extended.metrics
+    assert e["nis_mean_over_dof"] < 1.4 < out.baseline.metrics["nis_mean_over_dof"]
+    assert e["heldout_rmse_px"] < out.reference["heldout_rmse_px"]        # the physics beats the spline
+    report = closing.format_report(out)
+    assert "thin-plate spline" in report and "rounds" in report
+
+
+@pytest.mark.slow
+def test_akinetic_segment_is_found_with_amplitude_near_zero():
+    amp = np.tile([0.15, -0.3], 6)
+    amp[[4, 5]] = 0.0                                   # segment 2 does not contract
+    out = _rounds("active_segments", tuple(amp))
+    assert "active_segments" in out.effects and "active_polar" not in out.effects
+    m = out.extended.metrics
+    names = m["effect_state_names"]
+    k = names.index("active_segments[4]")
+    st, sd = np.array(m["effect_states"]), np.array(m["effect_states_sd"])
+    peak = int(np.argmax(np.abs(st[:, names.index("active_segments[1]")])))
+    for j in (k, k + 1):
+        assert abs(st[peak, j]) < 2.5 * sd[peak, j] + 0.02
+    assert abs(st[peak, names.index("active_segments[1]")]) > 0.15
+    assert m["heldout_rmse_px"] < out.reference["heldout_rmse_px"]
+
+
+@pytest.mark.slow
+def test_report_json_keeps_every_round_and_the_split():
+    out = _rounds("active_polar", (0.15, -0.3))
+    js = out.as_json()
+    assert js["rounds"][0]["round"] == 0 and js["rounds"][-1]["effects"] == out.effects
+    assert sorted(js["observed_points"] + js["heldout_points"]) == list(range(out.setup.seq.n_points))
+    assert set(js["spline_reference"]) >= {"heldout_rmse_px", "heldout_rmse_radial_px",
+                                            "heldout_rmse_circumferential_px"}

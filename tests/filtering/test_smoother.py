@@ -1,0 +1,255 @@
+"""The RTS smoother of a linearised model and the iterated (Gauss-Newton, damped) smoother (issue 13)."""
+import os
+import warnings
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+from helpers import bias_model
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from sfem_filters.benchmark.pinned import benchmark_model, pinned_benchmark
+from sfem_filters.cardiac import annulus_sequence, build_model, prepare
+from sfem_filters.fem import Parameterisation
+from sfem_filters.filtering import (
+    CyclicEKF,
+    IteratedSmoother,
+    LinearGaussianModel,
+    LinearisedModel,
+    MapObjective,
+    laplace_check,
+    linearise,
+    linearise_dense,
+    load_checkpoint,
+    one_cycle_covariance,
+    rts_reference,
+    smooth,
+)
+from sfem_filters.filtering.iterated import open_loop
+from sfem_filters.filtering.smoother import kalman_forward
+
+
+def _spd(rng, k, scale=1.0):
+    X = rng.standard_normal((k, k))
+    return scale * (X @ X.T / k + 0.1 * np.eye(k))
+
+
+def _random_linearised(rng, nr, p, m, T, sparse):
+    A = [rng.standard_normal((nr, nr)) * 0.4 for _ in range(T - 1)]
+    if sparse:
+        A = [sp.csr_matrix(a) for a in A]
+    return LinearisedModel(A=A, M=rng.standard_normal((T - 1, nr, p)), c=rng.standard_normal((T - 1, nr)),
+                           H=rng.standard_normal((m, nr)), R=np.array([_spd(rng, m, 0.1) for _ in range(T)]),
+                           Q=_spd(rng, nr, 0.05), xi0=rng.standard_normal(nr), P0=_spd(rng, nr),
+                           theta_bar=rng.standard_normal(p), theta0=rng.standard_normal(p), P_theta0=_spd(rng, p))
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 10_000), nr=st.integers(1, 6), p=st.integers(0, 3), m=st.integers(1, 4),
+       T=st.integers(2, 7), sparse=st.booleans(), missing=st.floats(0.0, 0.5))
+def test_modified_bryson_frazier_equals_the_textbook_rts(seed, nr, p, m, T, sparse, missing):
+    """Smoothed means, the parameters' covariance and the variances of output operators: the
+    O(n^2)-per-frame backward pass gives the textbook RTS smoother's numbers (Cholesky-solved
+    gains), with missing rows and empty frames."""
+    rng = np.random.default_rng(seed)
+    lin = _random_linearised(rng, nr, p, m, T, sparse)
+    y = rng.standard_normal((T, m))
+    y[rng.uniform(size=y.shape) < missing] = np.nan
+    L = rng.standard_normal((3, nr))
+    L[:, 0] = 0.0                                     # an output that reads part of the state only
+    sm = smooth(lin, y, outputs={"L": L, "all": np.eye(nr)}, covariance=True)
+    xs, Ps = rts_reference(lin, y)
+    scale = max(np.abs(xs).max(), 1.0)
+    assert np.abs(sm.smoothed - xs).max() <= 1e-9 * scale
+    np.testing.assert_allclose(sm.P_theta, Ps[0][nr:, nr:], rtol=1e-8, atol=1e-12)
+    vL = np.array([np.diag(L @ P[:nr, :nr] @ L.T) for P in Ps])
+    vI = np.array([np.diag(P[:nr, :nr]) for P in Ps])
+    np.testing.assert_allclose(sm.variances["L"], vL, rtol=1e-7, atol=1e-10 * vL.max())
+    np.testing.assert_allclose(sm.variances["all"], vI, rtol=1e-7, atol=1e-10 * vI.max())
+    assert np.ptp(sm.smoothed[:, nr:], axis=0).max(initial=0.0) <= 1e-9 * scale     # theta is static
+
+
+@pytest.fixture(scope="module")
+def pinned():
+    return pinned_benchmark(0)
+
+
+def test_modal_linearisation_equals_the_dense_jacobians(pinned):
+    """The SFEM model's own linearisation (modal coordinates, sparse transition) and the generic
+    one (F_jacobian at every frame) are the same linear-Gaussian model: same smoothed trajectory,
+    covariance of theta, displacement variances and log-likelihood."""
+    m = benchmark_model(pinned, "joint_ekf", parameterisation=Parameterisation.per_region(pinned.middle))
+    z = np.tile(m.x0, (m.n_frames, 1))
+    z[:, : m.dim_x] += 1e-4 * np.random.default_rng(1).standard_normal((m.n_frames, m.dim_x))
+    out = {}
+    for name, lin in (("modal", m.linearise(z)), ("dense", linearise_dense(m, z))):
+        assert (lin.V is None) == (name == "dense")
+        u = lin.output_in_xi(m.output_operators()["displacement"])
+        sm = smooth(lin, pinned.observations, covariance=True, outputs={"u": u})
+        out[name] = (lin.to_model(sm.smoothed[:, : m.n_restart]), sm.P_theta, sm.variances["u"], sm.log_likelihood)
+    a, b = out["modal"], out["dense"]
+    assert np.abs(a[0] - b[0]).max() <= 1e-10 * np.abs(b[0]).max()
+    np.testing.assert_allclose(a[1], b[1], rtol=1e-9)
+    np.testing.assert_allclose(a[2], b[2], rtol=1e-9)
+    assert abs(a[3] - b[3]) <= 1e-9 * abs(b[3])
+
+
+def test_profile_cost_is_the_map_cost_of_the_optimal_trajectory(pinned):
+    """Completing the square: for a fixed theta the smallest MAP cost over the trajectory is half
+    the filter's summed NIS plus theta's prior term, and the smoothed trajectory attains it."""
+    m = benchmark_model(pinned, "joint_ekf", parameterisation=Parameterisation.per_region(pinned.middle))
+    nr = m.n_restart
+    theta = m.x0[nr:] + np.array([0.1, -0.2, 0.5, 0.3])
+    z = open_loop(m)
+    z[:, nr:] = theta
+    lin = linearise(m, z, sensitivity=False)
+    assert lin.n_params == 0
+    sm = smooth(lin, pinned.observations)
+    z[:, :nr] = lin.to_model(sm.smoothed[:, :nr])
+    d = theta - m.x0[nr:]
+    profile = sm.fit + 0.5 * d @ np.linalg.solve(m.P0[nr:, nr:], d)
+    objective = MapObjective(m, pinned.observations)
+    assert abs(objective(z) - profile) <= 1e-8 * profile
+    z2 = z.copy()
+    z2[3, :nr] += 1e-6                                    # any other trajectory costs more
+    assert objective(z2) > objective(z)
+
+
+def test_linear_model_smoother_is_the_exact_posterior_and_one_cycle_correction_is_exact():
+    """Linear in (x, theta): the smoother's posterior of theta is the exact one, which is the
+    first cyclic loop's (undamped, one Gauss-Newton step is exact and the next one is zero); the carried covariance after k loops, corrected to one cycle, gives it
+    back (the data-cloning correction is exact for a linear model)."""
+    rng = np.random.default_rng(3)
+    model, y = bias_model(rng, 3, 2, 2, 12)
+    nr = model.n_restart
+    res = IteratedSmoother(damping=0.0).run(model, y)      # undamped: the first Gauss-Newton step is exact
+    one = CyclicEKF(max_loops=1).run(model, y)
+    np.testing.assert_allclose(res.theta, one.theta, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(res.P_theta, one.P_theta, rtol=1e-9)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        five = CyclicEKF(max_loops=5, tol=1e-12).run(model, y)
+    np.testing.assert_allclose(five.P_theta_one_cycle, one.P_theta, rtol=1e-8)
+    np.testing.assert_allclose(one_cycle_covariance(model.P0[nr:, nr:], five.P_theta, 5), one.P_theta, rtol=1e-8)
+    assert np.all(np.linalg.eigvalsh(five.P_theta) < np.linalg.eigvalsh(one.P_theta) + 1e-15)
+
+
+def test_no_parameters_gives_the_rts_smoother():
+    """A model without parameters needs no iteration: the result is the exact smoothed trajectory."""
+    rng = np.random.default_rng(0)
+    model, y = bias_model(rng, 3, 1, 2, 8)
+    plain = LinearGaussianModel(model._A, model._Hx, model.Q[:3, :3], model.R, np.zeros(3), 0.1 * np.eye(3), 8)
+    res = IteratedSmoother().run(plain, y)
+    assert res.stop_reason == "no parameters" and res.converged and res.iterations == 0
+    xs, _ = rts_reference(linearise_dense(plain, np.zeros((8, 3))), y)
+    np.testing.assert_allclose(res.states, xs, rtol=1e-10, atol=1e-12)
+
+
+def test_pinned_smoother_converges_with_falling_cost_and_matches_the_exact_marginal(pinned):
+    """2-region map on the pinned benchmark: every accepted step lowers the MAP cost, the stop rule
+    is met, and the joint mode and its Gauss-Newton covariance agree with the exact marginal
+    posterior's MAP and Laplace covariance (one Kalman pass per theta) to about 1% of an sd."""
+    m = benchmark_model(pinned, "joint_ekf", parameterisation=Parameterisation.per_region(pinned.middle))
+    res = IteratedSmoother().run(m, pinned.observations)
+    costs = [r["cost"] for r in res.records]
+    assert res.converged and res.stop_reason == "step" and len(costs) <= 10
+    assert np.all(np.diff(costs) < 0) and all(r["decrease"] > 0 for r in res.records)
+    check = laplace_check(m, pinned.observations, res.theta, res.P_theta)
+    assert np.abs(check.z_mode).max() < 0.05
+    assert np.abs(check.sd_ratio - 1).max() < 0.05
+    assert check.kl < 0.01
+
+
+def test_damped_smoother_converges_where_undamped_gauss_newton_does_not():
+    """A region map on an annulus whose motion holds an undeclared active stress (the misspecified
+    baseline of the measured slice, in small): undamped Gauss-Newton (relinearise at each pass's
+    own smoothed trajectory, accept every step) raises the MAP cost and oscillates; the damped
+    smoother lowers it at every step and meets its stop rule."""
+    seq = annulus_sequence("active_polar", n_frames=12, seed=0, amplitude=(0.3, -0.6))
+    m, y = build_model(prepare(seq, 8), (), "penalty", "region")
+    nr = m.n_restart
+    objective = MapObjective(m, y)
+    z = open_loop(m)
+    costs = [objective(z)]
+    for _ in range(4):
+        lin = linearise(m, z)
+        sm = smooth(lin, y)
+        z = np.concatenate([lin.to_model(sm.smoothed[:, :nr]), np.tile(sm.theta, (m.n_frames, 1))], axis=1)
+        costs.append(objective(z))
+    assert costs[1] > 5 * costs[0] and min(costs[1:]) > costs[0]
+    res = IteratedSmoother().run(m, y)
+    assert res.converged
+    assert np.all(np.diff([r["cost"] for r in res.records]) < 0)
+    assert res.cost < costs[0] / 5
+
+
+def test_checkpoint_resumes_to_the_uninterrupted_result(pinned, tmp_path):
+    """Stopped after 2 iterations and resumed (a larger limit is a stopping rule, not part of the
+    fingerprint): the same mode, covariance and records as one uninterrupted run; a checkpoint of
+    another model is refused."""
+    m = benchmark_model(pinned, "joint_ekf", parameterisation=Parameterisation.per_region(pinned.middle))
+    full = IteratedSmoother().run(m, pinned.observations)
+    path = str(tmp_path / "smoother.npz")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        part = IteratedSmoother(max_iterations=2).run(m, pinned.observations, checkpoint=path)
+    assert part.iterations == 2 and not part.converged and os.path.exists(path)
+    assert int(load_checkpoint(path)["loops_done"]) == 2
+    resumed = IteratedSmoother().run(m, pinned.observations, checkpoint=path)
+    assert resumed.iterations == full.iterations
+    np.testing.assert_array_equal(resumed.states, full.states)
+    np.testing.assert_array_equal(resumed.P_theta, full.P_theta)
+    assert [r["cost"] for r in resumed.records] == [r["cost"] for r in full.records]
+    other = benchmark_model(pinned, "joint_ekf")
+    with pytest.raises(ValueError, match="checkpoint: .* belongs to a different model or data set"):
+        IteratedSmoother().run(other, pinned.observations, checkpoint=path)
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    (dict(max_iterations=0), "max_iterations: expected an integer >= 1"),
+    (dict(tol=0.0), "tol: expected a positive"),
+    (dict(sd_tol=-1.0), "sd_tol: expected a positive"),
+    (dict(cost_tol=0.0), "cost_tol: expected a positive"),
+    (dict(damping=-1.0), "damping: expected a non-negative"),
+    (dict(max_damping=0.0), "max_damping: expected a positive"),
+])
+def test_bad_settings_are_named(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        IteratedSmoother(**kwargs)
+
+
+def test_bad_inputs_are_named(pinned):
+    m = benchmark_model(pinned, "joint_ekf", parameterisation=Parameterisation.per_region(pinned.middle))
+    with pytest.raises(ValueError, match=r"observations: expected shape \(16, 26\)"):
+        IteratedSmoother().run(m, pinned.observations[:5])
+    with pytest.raises(TypeError, match="model: expected a model with the members"):
+        IteratedSmoother().run(object(), pinned.observations)
+    est = benchmark_model(pinned, "joint_ekf", parameterisation=Parameterisation.per_region(pinned.middle))
+    est.Q = est.Q.copy()
+    est.Q[-1, -1] = 1e-4
+    with pytest.raises(ValueError, match="expected static parameters"):
+        IteratedSmoother().run(est, pinned.observations)
+
+
+def test_forward_pass_profile_equals_log_likelihood_terms(pinned):
+    """The forward pass's log-likelihood is the prediction-error decomposition: -1/2 (sum NIS +
+    sum log det S + m log 2 pi)."""
+    m = benchmark_model(pinned, "perfect_kf")
+    lin = linearise(m, np.tile(m.x0, (m.n_frames, 1)), sensitivity=False)
+    fwd = kalman_forward(lin, pinned.observations)
+    logdet = sum(np.linalg.slogdet(S)[1] for S in fwd.S)
+    expected = -0.5 * (np.nansum(fwd.nis) + logdet + fwd.n_obs.sum() * np.log(2 * np.pi))
+    assert abs(fwd.log_likelihood - expected) <= 1e-10 * abs(expected)
+    assert abs(fwd.fit - 0.5 * np.nansum(fwd.nis)) == 0.0
+
+
+def test_smoother_row_of_the_comparison_keeps_table_1(pinned):
+    """The fourth row: not rejected, D between the uniform and the perfect material's, E error in
+    the middle part no worse than the joint EKF's (seed 0; all five seeds in the slow test)."""
+    from sfem_filters.benchmark.comparison import run_strategy
+    rows = {s: run_strategy(pinned, s).metrics for s in ("uniform_kf", "perfect_kf", "joint_ekf", "joint_smoother")}
+    sm = rows["joint_smoother"]
+    assert sm["ks_H"] == 0 and rows["perfect_kf"]["ks_D"] <= sm["ks_D"] < rows["uniform_kf"]["ks_D"]
+    assert sm["E_rel_error_middle"] <= rows["joint_ekf"]["E_rel_error_middle"]
+    assert sm["method"] == "iterated_smoother" and sm["converged"]
