@@ -180,9 +180,13 @@ class Round:
                 "replaced": list(self.replaced), "log_evidence": self.log_evidence,
                 "threshold": None if not np.isfinite(self.threshold) else float(self.threshold),
                 "tried": list(self.tried),
-                "ranking": [{"effect": r["effect"], "score": r["score"], "lm": r["lm"], "df": r["df"],
-                             "explained": r["explained"]} for r in self.ranking],
+                "ranking": _ranking_json(self.ranking),
                 **{k: m[k] for k in _ROUND_KEYS}}
+
+
+def _ranking_json(ranking) -> list:
+    """A ranking's score tests as plain values."""
+    return [{k: r[k] for k in ("effect", "score", "lm", "df", "explained")} for r in ranking]
 
 
 _ROUND_KEYS = ("heldout_rmse_px", "heldout_rmse_radial_px", "heldout_rmse_circumferential_px",
@@ -254,13 +258,11 @@ class LoopResult:
             "spline_reference": ref,
             "baseline": self.baseline.metrics,
             "extended": {"effects": self.effects, **self.extended.metrics},
-            "ranking": [{"effect": r["effect"], "score": r["score"], "lm": r["lm"], "df": r["df"],
-                         "explained": r["explained"]} for r in self.ranking],
+            "ranking": _ranking_json(self.ranking),
             "rounds": [r.as_json() for r in self.rounds],
             "stop_reason": self.stop_reason,
             "last_attempt": {"threshold": self.last_attempt.get("threshold"), "tried": self.last_attempt.get("tried", []),
-                             "ranking": [{"effect": r["effect"], "score": r["score"], "df": r["df"]}
-                                         for r in self.last_attempt.get("ranking", [])]},
+                             "ranking": _ranking_json(self.last_attempt.get("ranking", []))},
         }
 
 

@@ -485,11 +485,10 @@ def evaluate(setup: Setup, model: SFEMModel, result, seconds: float = 0.0, obser
             metrics["stop_reason"] = result.stop_reason
             metrics["iterations"] = [{k: float(v) for k, v in rec.items()} for rec in result.records]
             metrics["map_cost"] = float(result.cost)
-            P_theta = result.P_theta
         else:
             # how far the last loop moved the material against its carried sd
             metrics["material_drift_sd"] = float(diagnostics.material_drift(model, result.history)["max_sd"][-1])
-            P_theta = result.P_theta_one_cycle
+        P_theta = result.posterior_cov
         sd_logE, sd_nu = model.material_sd(result.theta, P_theta)
         a, c = model.parameterisation.level_functional()
         level, level_sd = float(a @ result.theta + c), float(np.sqrt(max(a @ P_theta @ a, 0.0)))
@@ -517,7 +516,7 @@ def evaluate(setup: Setup, model: SFEMModel, result, seconds: float = 0.0, obser
         P0 = np.asarray(model.P0, float)[nr:, nr:]
         lp = log_posterior(model, observations, result.theta)
         if P0.size:
-            Pc = np.asarray(result.P_theta_one_cycle, float)
+            Pc = np.asarray(result.posterior_cov, float)
             lp += 0.5 * (np.linalg.slogdet(Pc)[1] - np.linalg.slogdet(P0)[1])
         metrics["log_evidence"] = float(lp)
     if smoother and "strain_polar" in result.output_sd:

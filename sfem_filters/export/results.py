@@ -45,10 +45,7 @@ def export_dense(loop: LoopResult, directory) -> list:
             field = np.zeros((F, n, 3))
             field[:, nodes] = np.asarray(m[key], float)
             pd[key] = field
-    P_theta = getattr(result, "P_theta_one_cycle", None)
-    if getattr(result, "method", "") == "iterated_smoother":
-        P_theta = result.P_theta
-    cd = _material_fields(model, result.theta, P_theta)
+    cd = _material_fields(model, result.theta, result.posterior_cov)
     if setup.regions is not None:
         cd["region"] = np.asarray(setup.regions, np.int32)
     tissue = write_series(directory, "tissue", setup.mesh.nodes, setup.mesh.elements, times, pd, cd)
@@ -86,9 +83,7 @@ def export_comparison(comp: Comparison, directory) -> list:
                         {"E_Pa": bench.true_material.E, "nu": bench.true_material.nu, "middle": middle})]
     for name, r in comp.runs.items():
         model, result = r.model, r.result
-        P_theta = result.P_theta if getattr(result, "method", "") == "iterated_smoother" else \
-            getattr(result, "P_theta_one_cycle", None)
-        cd = {**_material_fields(model, result.theta, P_theta), "middle": middle}
+        cd = {**_material_fields(model, result.theta, result.posterior_cov), "middle": middle}
         out.append(write_series(directory, name, mesh.nodes, mesh.elements, times,
                                 {"displacement_m": r.U.reshape(F, n, 2),
                                  "velocity_m_s": model.velocities(result.states).reshape(F, n, 2),

@@ -81,6 +81,12 @@ class CyclicResult:
 
     method = "cyclic_ekf"
 
+    @property
+    def posterior_cov(self) -> np.ndarray:
+        """The material covariance to report: the one-cycle one (the carried ``P_theta`` counts
+        the cycle once per loop)."""
+        return self.P_theta_one_cycle
+
 
 @dataclass
 class CyclicEKF:

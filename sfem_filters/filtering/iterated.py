@@ -237,6 +237,11 @@ class SmootherResult:
     def rel_changes(self) -> list:
         return [r["rel_change"] for r in self.records]
 
+    @property
+    def posterior_cov(self) -> np.ndarray:
+        """The material covariance to report: the Laplace covariance ``P_theta``."""
+        return self.P_theta
+
 
 @dataclass
 class IteratedSmoother:
