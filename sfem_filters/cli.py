@@ -43,6 +43,17 @@ def _positive_int(text: str) -> int:
     return v
 
 
+def _batch_options(p, unit: str) -> None:
+    p.add_argument("--scheduler", metavar="local|serial|ADDRESS",
+                   help=f"run the {unit}s as a batch: 'local' (default with more than one {unit}: a Dask LocalCluster, "
+                        "one worker process per core, one thread each), 'serial' (this process) or the address of a "
+                        "running Dask scheduler, e.g. tcp://host:8786 (a cluster, or SLURM through dask-jobqueue)")
+    p.add_argument("--workers", type=_positive_int, help="worker processes of --scheduler local (default: one per core)")
+    p.add_argument("--batch-dir", metavar="DIR",
+                   help="result folder of a batch: a JSON per job and table.csv; jobs with a result there for the "
+                        "same configuration are skipped, so a rerun resumes (default out/batch/<command>-<config hash>)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="sfem-filters", description=(
         "Stochastic finite-element filters for cardiac kinematics and material (Shi & Liu 2003)."))
@@ -68,13 +79,18 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--checkpoint-dir", metavar="DIR",
                    help="save the joint EKF after every loop and resume from there if interrupted")
     c.add_argument("--no-progress", action="store_true", help="no progress bar")
+    _batch_options(c, "seed")
+    c.add_argument("--summary", action="store_true",
+                   help="Table 1 over the seeds: per strategy the rejection rate at 5%% with its 95%% Wilson interval, "
+                        "median and quartiles of D, p, errors, loops and time; with --figures DIR: DIR/batch_summary.png "
+                        "(the distributions of D and p) instead of each seed's figures")
 
     d = sub.add_parser("dense", help="close the loop on measured point-wise motion (DENSE, tagging, tracking)",
                        description="Baseline run on a sequence file, then rounds: rank the candidate missing "
                                    "effects on the current innovations, add the best while it is significant and "
                                    "log p(y) rises; held-out errors of every round beside a thin-plate spline's.")
-    d.add_argument("path", help="sequence .npz file (see the README for the format); 'example' for the "
-                                "shipped DENSE slice")
+    d.add_argument("path", nargs="+", help="sequence .npz file(s) (see the README for the format); 'example' for "
+                                           "the shipped DENSE slice; several files run as a batch, one job each")
     d.add_argument("--effects", default="auto",
                    help="none, auto (rounds of ranking and adding effects) or a comma list of: "
                         + ", ".join(sorted(CATALOGUE)) + " (default auto)")
@@ -102,6 +118,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--figures", metavar="DIR", help="write the figures (PNG) into DIR")
     d.add_argument("--export", metavar="DIR", help="write ParaView time series (.pvd + .vtu) into DIR")
     d.add_argument("--no-progress", action="store_true", help="no progress bar")
+    _batch_options(d, "file")
 
     o = sub.add_parser("observe", help="images or masks -> confidence-weighted observation sequence",
                        description="Shape-track the myocardial borders of a mask (or segmented image) sequence "
@@ -118,47 +135,103 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _batch_mode(args, n_jobs: int) -> bool:
+    if args.workers is not None and args.scheduler not in (None, "local"):
+        raise ValueError(f"--workers: only applies to --scheduler local, got --scheduler {args.scheduler}")
+    return n_jobs > 1 or args.scheduler is not None or args.batch_dir is not None
+
+
+def _run_batch(args, jobs, command: str):
+    import hashlib
+    import json
+
+    from .batch import run_batch
+    directory = args.batch_dir
+    if directory is None:
+        configs = json.dumps([{k: v for k, v in j.config.items() if k != "seed"} for j in jobs[:1]], sort_keys=True)
+        directory = os.path.join("out", "batch", f"{command}-{hashlib.sha256(configs.encode()).hexdigest()[:10]}")
+    report = run_batch(jobs, directory, scheduler=args.scheduler or ("local" if len(jobs) > 1 else "serial"),
+                       workers=args.workers, progress=not args.no_progress)
+    print(report.summary_line(), file=sys.stderr)
+    for name, message in report.failed.items():
+        print(f"sfem-filters {command}: job {name} failed: {message} (traceback in "
+              f"{os.path.join(report.directory, name + '.error.json')})", file=sys.stderr)
+    print(f"wrote {report.table}", file=sys.stderr)
+    return report
+
+
 def cmd_compare(args) -> int:
     from .benchmark.comparison import format_table, run_comparison
-    comps = []
-    for seed in args.seed:
-        comp = run_comparison(seed, args.refine, args.noise_mm, engine=args.engine, max_loops=args.max_loops,
+    from .benchmark.summary import format_summary, summarise
+    failed = False
+    if _batch_mode(args, len(args.seed)):
+        from .batch import compare_jobs, merge_timing
+        jobs = compare_jobs(args.seed, refine=args.refine, noise_mm=args.noise_mm, engine=args.engine,
+                            max_loops=args.max_loops, tol=args.tol, figures=None if args.summary else args.figures,
+                            export=args.export,
+                            checkpoint_dir=args.checkpoint_dir)
+        report = _run_batch(args, jobs, "compare")
+        results = [merge_timing(report.records[j.name]["result"], report.timings[j.name])
+                   for j in jobs if j.name in report.records]
+        failed = bool(report.failed)
+        if not results:
+            print("sfem-filters compare: error: no job produced a result", file=sys.stderr)
+            return 1
+    else:
+        comp = run_comparison(args.seed[0], args.refine, args.noise_mm, engine=args.engine, max_loops=args.max_loops,
                               tol=args.tol, progress=not args.no_progress, checkpoint_dir=args.checkpoint_dir)
-        comps.append(comp)
         if args.figures:
             from .plotting.comparison import comparison_figures
-            target = args.figures if len(args.seed) == 1 else os.path.join(args.figures, f"seed{seed}")
-            for path in comparison_figures(comp, target):
+            for path in comparison_figures(comp, args.figures):
                 print(f"wrote {path}", file=sys.stderr)
         if args.export:
             from .export import export_comparison
-            target = args.export if len(args.seed) == 1 else os.path.join(args.export, f"seed{seed}")
-            for path in export_comparison(comp, target):
+            for path in export_comparison(comp, args.export):
                 print(f"wrote {path}", file=sys.stderr)
-    print(format_table(comps))
+        results = [comp.as_json()]
+    print(format_table(results))
+    if args.summary:
+        summary = summarise(results)
+        print()
+        print(format_summary(summary))
+        if args.figures:
+            from .plotting.comparison import summary_figure
+            print(f"wrote {summary_figure(summary, os.path.join(args.figures, 'batch_summary.png'))}", file=sys.stderr)
     if args.json:
-        _write_json(args.json, comps[0].as_json() if len(comps) == 1 else [c.as_json() for c in comps])
-    return 0
+        _write_json(args.json, results[0] if len(args.seed) == 1 and len(results) == 1 else results)
+    return 1 if failed else 0
 
 
 def cmd_dense(args) -> int:
     from .cardiac.closing import closing_the_loop, format_report
     from .cardiac.sequence import example_path, load_sequence
-    seq = load_sequence(example_path() if args.path == "example" else args.path)
-    out = closing_the_loop(seq, effects=args.effects, drive=args.drive, landmarks=args.landmarks,
-                           observe=args.observe, holdout_seed=args.holdout_seed,
-                           parameterisation=args.parameterisation, max_loops=args.max_loops,
-                           progress=not args.no_progress, estimator=args.estimator,
-                           max_iterations=args.max_iterations, max_rounds=args.max_rounds, alpha=args.alpha)
+    config = dict(effects=args.effects, drive=args.drive, landmarks=args.landmarks, observe=args.observe,
+                  holdout_seed=args.holdout_seed, parameterisation=args.parameterisation, max_loops=args.max_loops,
+                  estimator=args.estimator, max_iterations=args.max_iterations, max_rounds=args.max_rounds,
+                  alpha=args.alpha)
+    if _batch_mode(args, len(args.path)):
+        from .batch import dense_jobs, describe_record, merge_timing
+        jobs = dense_jobs(args.path, figures=args.figures, export=args.export, **config)
+        report = _run_batch(args, jobs, "dense")
+        for j in jobs:
+            if j.name in report.records:
+                print(describe_record(report.records[j.name]))
+        if args.json:
+            _write_json(args.json, [merge_timing(report.records[j.name]["result"], report.timings[j.name])
+                                    for j in jobs if j.name in report.records])
+        return 1 if report.failed or not report.records else 0
+    path = args.path[0]
+    seq = load_sequence(example_path() if path == "example" else path)
+    out = closing_the_loop(seq, progress=not args.no_progress, **config)
     print(format_report(out))
     if args.figures:
         from .plotting.measured import dense_figures
-        for path in dense_figures(out, args.figures):
-            print(f"wrote {path}", file=sys.stderr)
+        for p in dense_figures(out, args.figures):
+            print(f"wrote {p}", file=sys.stderr)
     if args.export:
         from .export import export_dense
-        for path in export_dense(out, args.export):
-            print(f"wrote {path}", file=sys.stderr)
+        for p in export_dense(out, args.export):
+            print(f"wrote {p}", file=sys.stderr)
     if args.json:
         _write_json(args.json, out.as_json())
     return 0

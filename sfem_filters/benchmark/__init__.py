@@ -16,13 +16,17 @@ configurations of one :class:`sfem_filters.model.SFEMModel`:
 :func:`run_comparison` runs the strategies and measures them (Table 1); :func:`format_table`
 prints the table. Modules: :mod:`~sfem_filters.benchmark.pinned`,
 :mod:`~sfem_filters.benchmark.comparison`, :mod:`~sfem_filters.benchmark.statistics` (the
-two-sample KS test with MATLAB's asymptotic p).
+two-sample KS test with MATLAB's asymptotic p, Wilson intervals),
+:mod:`~sfem_filters.benchmark.summary` (Table 1 over many noise draws: :func:`summarise` the
+``as_json()`` of each seed's comparison, :func:`format_summary` prints rejection rates with
+their Wilson intervals).
 """
 from .comparison import LABELS, PAPER_TABLE1, REPORT_FRAME, Comparison, StrategyRun, format_table, run_comparison, \
     run_strategy
 from .pinned import STRATEGIES, Benchmark, benchmark_model, pinned_benchmark
-from .statistics import KSResult, kolmogorov_asymptotic_p, ks_test
+from .statistics import KSResult, kolmogorov_asymptotic_p, ks_test, wilson_interval
+from .summary import SUMMARY_QUANTITIES, format_summary, summarise
 
 __all__ = ["Benchmark", "pinned_benchmark", "benchmark_model", "STRATEGIES", "Comparison", "StrategyRun",
            "run_comparison", "run_strategy", "format_table", "LABELS", "PAPER_TABLE1", "REPORT_FRAME", "KSResult",
-           "ks_test", "kolmogorov_asymptotic_p"]
+           "ks_test", "kolmogorov_asymptotic_p", "wilson_interval", "summarise", "format_summary", "SUMMARY_QUANTITIES"]

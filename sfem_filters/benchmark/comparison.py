@@ -50,6 +50,7 @@ class Comparison:
 
     def as_json(self) -> dict:
         return {"seed": self.bench.seed, "refine": self.bench.refine, "frame": REPORT_FRAME,
+                "n_nodes": self.bench.mesh.n_nodes,
                 "noise_mm": self.bench.noise_std * 1e3,
                 "strategies": {k: r.metrics for k, r in self.runs.items()}}
 
@@ -135,27 +136,33 @@ def run_comparison(seed: int = 0, refine: int = 1, noise_mm: float = 0.1, *, eng
 
 
 def format_table(comparisons) -> str:
-    """Table-1 style text: KS test of e_yy at frame 9, RMSEs and material errors, per seed."""
-    if isinstance(comparisons, Comparison):
+    """Table-1 style text: KS test of e_yy at frame 9, RMSEs and material errors, per seed.
+
+    ``comparisons``: a :class:`Comparison`, or a list of them or of their ``as_json()`` dicts
+    (the per-job results of a batch run print the same table as the runs themselves).
+    """
+    if isinstance(comparisons, (Comparison, dict)):
         comparisons = [comparisons]
-    n = comparisons[0].bench.mesh.n_nodes
+    rows = [c.as_json() if isinstance(c, Comparison) else c for c in comparisons]
+    if not rows:
+        raise ValueError("comparisons: expected at least one comparison, got none")
+    n = rows[0]["n_nodes"]
     lines = [f"KS test of e_yy at frame {REPORT_FRAME}, truth vs estimate ({n} + {n} nodal samples, 5% level)",
              f"{'seed':>4}  {'strategy':<22}{'D':>8}{'D*n':>8}{'p asym':>9}{'p exact':>9}{'H':>3}"
              f"{'RMSE u [mm]':>13}{'RMSE e_yy':>11}{'loops':>7}{'E err mid/out':>15}{'nu err mid/out':>16}"]
-    for c in comparisons:
-        for s, r in c.runs.items():
-            m = r.metrics
+    for c in rows:
+        for s, m in c["strategies"].items():
             extra = ""
             if "loops" in m:
                 loops = f"{m['loops']}{'' if m['converged'] else '*'}"
                 extra = (f"{loops:>7}{m['E_rel_error_middle']:>8.3f}/{m['E_rel_error_outside']:<6.3f}"
                          f"{m['nu_rel_error_middle']:>9.3f}/{m['nu_rel_error_outside']:<6.3f}")
-            lines.append(f"{c.bench.seed:>4}  {LABELS[s]:<22}{m['ks_D']:>8.4f}{'%d/%d' % (round(m['ks_D'] * n), n):>8}"
+            lines.append(f"{c['seed']:>4}  {LABELS[s]:<22}{m['ks_D']:>8.4f}{'%d/%d' % (round(m['ks_D'] * n), n):>8}"
                          f"{m['ks_p_asymptotic']:>9.4f}{m['ks_p_exact']:>9.4f}{m['ks_H']:>3d}"
                          f"{m['rmse_displacement_mm']:>13.4f}{m['rmse_eyy']:>11.4f}{extra}")
-    if any(not r.metrics.get("converged", True) for c in comparisons for r in c.runs.values()):
+    if any(not m.get("converged", True) for c in rows for m in c["strategies"].values()):
         lines.append("* loop limit reached before the material converged")
-    if any("joint_smoother" in c.runs for c in comparisons):
+    if any("joint_smoother" in c["strategies"] for c in rows):
         lines.append("joint smoother: loops are its Gauss-Newton iterations (each one pass over the cycle, the data "
                      "counted once)")
     lines.append("paper (Table 1):        " + "; ".join(

@@ -7,9 +7,9 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from scipy import stats
 
-from .._validate import as_float_array, integer
+from .._validate import as_float_array, integer, probability
 
-__all__ = ["KSResult", "ks_test", "kolmogorov_asymptotic_p"]
+__all__ = ["KSResult", "ks_test", "kolmogorov_asymptotic_p", "wilson_interval"]
 
 
 def kolmogorov_asymptotic_p(D: float, n: int, m: int) -> float:
@@ -66,3 +66,37 @@ def ks_test(a, b, alpha: float = 0.05) -> KSResult:
     p_asym = kolmogorov_asymptotic_p(D, len(a), len(b))
     return KSResult(D=D, p_exact=float(res.pvalue), p_asymptotic=p_asym,
                     H=int(p_asym < alpha), alpha=alpha, exact=exact)
+
+
+def wilson_interval(successes: int, n: int, level: float = 0.95) -> tuple:
+    """Wilson score interval of a binomial proportion.
+
+    Parameters
+    ----------
+    successes : int
+        Number of successes (here: draws in which the KS test rejected), 0 <= successes <= n.
+    n : int
+        Number of trials (draws), >= 1.
+    level : float
+        Two-sided confidence level in (0, 1).
+
+    Returns
+    -------
+    (low, high) : tuple of float
+        ``(p + z^2/2n -+ z sqrt(p(1-p)/n + z^2/4n^2)) / (1 + z^2/n)`` with ``p = successes/n`` and
+        ``z`` the ``(1+level)/2`` normal quantile (Wilson 1927); unlike the Wald interval it stays
+        inside [0, 1] and does not collapse to a point at 0 or n successes.
+    """
+    n = integer("n", n, 1)
+    successes = integer("successes", successes, 0)
+    if successes > n:
+        raise ValueError(f"successes: expected at most n = {n}, got {successes}")
+    level = probability("level", level)
+    z = stats.norm.ppf(0.5 + level / 2)
+    p = successes / n
+    centre = p + z * z / (2 * n)
+    half = z * np.sqrt(p * (1 - p) / n + z * z / (4 * n * n))
+    denom = 1 + z * z / n
+    low = 0.0 if successes == 0 else float((centre - half) / denom)
+    high = 1.0 if successes == n else float((centre + half) / denom)
+    return low, high

@@ -1,12 +1,15 @@
 """Figures of the synthetic comparison, after the paper's Figs. 1-5."""
 from __future__ import annotations
 
+import os
+
 import numpy as np
 
-from ..benchmark.comparison import LABELS, REPORT_FRAME, Comparison
+from ..benchmark.comparison import LABELS, PAPER_TABLE1, REPORT_FRAME, Comparison
 from ._common import _plt, _triangulation, _write_figures
 
-__all__ = ["comparison_figures", "displacement_maps", "strain_maps", "strain_cdfs", "material_maps", "convergence"]
+__all__ = ["comparison_figures", "displacement_maps", "strain_maps", "strain_cdfs", "material_maps", "convergence",
+           "summary_figure"]
 
 
 def _fields(comp: Comparison):
@@ -168,3 +171,47 @@ def comparison_figures(comp: Comparison, directory: str) -> list:
         ("displacement_maps.png", displacement_maps), ("eyy_frame9.png", strain_maps),
         ("eyy_cdfs_frame9.png", strain_cdfs), ("material_maps.png", material_maps),
         ("convergence.png", convergence)))
+
+
+def summary_figure(summary: dict, path: str) -> str:
+    """Distributions over noise draws (``benchmark.summarise``): how often each strategy reaches
+    each KS D (D is a multiple of 1/n), and the asymptotic p of every draw against the 5% level
+    with the rejection rate and its Wilson interval; stars mark the paper's single draw."""
+    plt = _plt()
+    strategies = summary["strategies"]
+    names = list(strategies)
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(12, 4.2), constrained_layout=True)
+    width = 0.8 / len(names)
+    all_D = np.concatenate([strategies[s]["values"]["ks_D"] for s in names])
+    step = np.min(np.diff(np.unique(all_D))) if len(np.unique(all_D)) > 1 else 0.02
+    for i, s in enumerate(names):
+        D, counts = np.unique(strategies[s]["values"]["ks_D"], return_counts=True)
+        a1.bar(D + (i - (len(names) - 1) / 2) * width * step, counts, width=width * step, label=LABELS[s])
+        if s in PAPER_TABLE1:
+            a1.plot(PAPER_TABLE1[s]["D"], 0, "*", ms=12, color=f"C{i}", clip_on=False)
+    a1.set_xlabel(f"KS D of e_yy at frame {REPORT_FRAME} (stars: the paper's single draw)")
+    a1.set_ylabel("draws")
+    a1.set_title(f"{summary['n_draws']} noise draws")
+    a1.legend(fontsize=8)
+    a1.grid(alpha=0.3)
+    rng = np.random.default_rng(0)  # horizontal jitter of the points only
+    for i, s in enumerate(names):
+        v = strategies[s]
+        p = np.clip(v["values"]["ks_p_asymptotic"], 1e-6, 1)
+        a2.plot(i + rng.uniform(-0.2, 0.2, len(p)), p, "o", ms=3, alpha=0.5, color=f"C{i}")
+        if s in PAPER_TABLE1:
+            a2.plot(i, PAPER_TABLE1[s]["p"], "*", ms=12, color="k")
+        a2.text(i, 1.6, f"rejected {v['rate']:.0%}\n[{v['interval'][0]:.0%}, {v['interval'][1]:.0%}]",
+                ha="center", va="bottom", fontsize=8)
+    a2.axhline(0.05, color="k", ls="--", lw=1, label="5% level")
+    a2.set_yscale("log")
+    a2.set_ylim(None, 10)
+    a2.set_xticks(range(len(names)), [LABELS[s] for s in names], rotation=10)
+    a2.set_ylabel("KS p (asymptotic)")
+    a2.set_title(f"rejection rate with its {100 * summary['level']:.0f}% Wilson interval")
+    a2.legend(fontsize=8, loc="lower right")
+    a2.grid(alpha=0.3)
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
