@@ -70,9 +70,12 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--json", metavar="PATH", help="write the measured numbers as JSON")
     c.add_argument("--figures", metavar="DIR", help="write the figures (PNG) into DIR")
     c.add_argument("--export", metavar="DIR", help="write ParaView time series (.pvd + .vtu) into DIR")
-    c.add_argument("--engine", choices=tuple(ENGINES), default="structured",
-                   help="filter implementation: structured (default), filterpy (the reference) or ud "
-                        "(Bierman-Thornton U-D factorised, for ill-conditioned covariances)")
+    c.add_argument("--engine", choices=tuple(e for e in ENGINES if e != "roukf"), default="structured",
+                   help="filter implementation: structured (default), filterpy (the reference), ud "
+                        "(Bierman-Thornton U-D factorised, for ill-conditioned covariances) or ukf (filterpy's "
+                        "UnscentedKalmanFilter on the full state: slow). Moireau & Chapelle's reduced-order UKF "
+                        "estimates parameters only, so it has no fixed-material rows: 'dense --estimator roukf' "
+                        "and benchmarks/peers.py run it")
     c.add_argument("--max-loops", type=_positive_int, default=50, help="cyclic loop limit (default 50)")
     c.add_argument("--tol", type=_positive_float, default=1e-3,
                    help="relative material change that ends the loops (default 1e-3)")
@@ -106,7 +109,8 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--estimator", choices=ESTIMATORS, default="smoother",
                    help="smoother (default): the iterated smoother, the MAP of one cycle with its data counted once "
                         "and a Laplace posterior; cyclic: the paper's cyclic joint EKF, reported with the covariance "
-                        "of one cycle")
+                        "of one cycle; roukf: Moireau & Chapelle's reduced-order UKF (p + 1 simplex sigma points on "
+                        "the material, no tangent operator, no process noise) in the same cyclic driver")
     d.add_argument("--max-iterations", type=_positive_int, default=20,
                    help="Gauss-Newton iteration limit of the smoother (default 20)")
     d.add_argument("--max-loops", type=_positive_int, default=3, help="loop limit of the cyclic estimator (default 3)")

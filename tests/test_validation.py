@@ -290,7 +290,7 @@ CASES = [
     ("cyclic observations shape", lambda: cyclic_estimate(good_model(), np.zeros((1, 12))), V,
      r"observations: expected shape \(3, 12\), got shape \(1, 12\)"),
     ("cyclic engine", lambda: cyclic_estimate(good_model(), np.zeros((3, 12)), engine="fast"), V,
-     r"engine: expected one of \['filterpy', 'structured', 'ud'\], got 'fast'"),
+     r"engine: expected one of \['filterpy', 'roukf', 'structured', 'ud', 'ukf'\], got 'fast'"),
     ("cyclic tol", lambda: cyclic_estimate(good_model(), np.zeros((3, 12)), tol=0.0), V,
      r"tol: expected a positive relative tolerance, got 0.0"),
     ("filter_loop observations", lambda: filter_loop(ENGINES["ud"](good_model()), good_model(), np.zeros((3, 4))), V,

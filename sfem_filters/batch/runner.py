@@ -161,6 +161,7 @@ def run_batch(jobs, directory, *, scheduler: str = "local", workers=None, progre
                 else:
                     finished(j, outcome)
         elif pending:
+            environ = dict(os.environ)
             client, cluster = _client(scheduler, workers)
             try:
                 futures = {client.submit(run_job, j, key=f"sfem-{j.name}-{store.fingerprint(j)[:16]}", pure=False): j
@@ -175,6 +176,7 @@ def run_batch(jobs, directory, *, scheduler: str = "local", workers=None, progre
                 client.close()
                 if cluster is not None:
                     cluster.close()
+                _restore_environ(environ)
     finally:
         bar.close()
     table = store.write_table(jobs)
@@ -182,6 +184,18 @@ def run_batch(jobs, directory, *, scheduler: str = "local", workers=None, progre
     timings = {name: store.timing(j) for j in jobs if (name := j.name) in records}
     return BatchReport(os.fspath(directory), ran, [j.name for j in skipped], failed, table, time.perf_counter() - t0, scheduler,
                        records, timings)
+
+
+def _restore_environ(saved: dict) -> None:
+    """Undo what starting the cluster wrote into this process's environment: Dask's nanny sets
+    ``OMP_NUM_THREADS=1``, ``OPENBLAS_NUM_THREADS=1``, ``PYTHONHASHSEED`` ... in ``os.environ``
+    before spawning workers and leaves them there, where every later subprocess of the caller
+    would inherit them."""
+    for key in set(os.environ) - set(saved):
+        del os.environ[key]
+    for key, value in saved.items():
+        if os.environ.get(key) != value:
+            os.environ[key] = value
 
 
 def _worker_of(client, fut) -> str:

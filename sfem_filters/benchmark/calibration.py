@@ -21,7 +21,9 @@ normalised estimation error squared (NEES) averages to the number of parameters 
 Estimators (:data:`ESTIMATORS`): the paper's cyclic EKF with its carried covariance
 (``"cyclic_ekf"``), the same run with the covariance of one cycle
 (``"cyclic_ekf_one_cycle"``, :func:`sfem_filters.filtering.cyclic.one_cycle_covariance`), and
-the iterated smoother's Laplace posterior (``"iterated_smoother"``).
+the iterated smoother's Laplace posterior (``"iterated_smoother"``), and Moireau & Chapelle's
+reduced-order UKF in the same cyclic driver (``"roukf"``, ``"roukf_one_cycle"``;
+:mod:`sfem_filters.filtering.roukf`).
 
 >>> from sfem_filters.benchmark.calibration import pinned_problem
 >>> model, y, theta_true, _ = pinned_problem(0)
@@ -46,12 +48,13 @@ from ..fem.strain import nodal_strains
 from ..filtering.cyclic import CyclicEKF
 from ..filtering.iterated import IteratedSmoother
 from .pinned import benchmark_model, pinned_benchmark
+from .statistics import wilson_interval
 
 __all__ = ["ESTIMATORS", "PROBLEMS", "Replicate", "Calibration", "pinned_problem", "annulus_problem", "calibrate",
            "format_calibration", "wilson_interval"]
 
 #: Estimators compared, by name.
-ESTIMATORS = ("cyclic_ekf", "cyclic_ekf_one_cycle", "iterated_smoother")
+ESTIMATORS = ("cyclic_ekf", "cyclic_ekf_one_cycle", "iterated_smoother", "roukf", "roukf_one_cycle")
 #: Calibration problems, by name.
 PROBLEMS = ("pinned", "pinned_process_noise", "annulus")
 
@@ -144,15 +147,6 @@ class Replicate:
         return np.abs(self.theta_hat - self.theta_true) <= 1.96 * np.sqrt(np.diag(self.P_theta))
 
 
-def wilson_interval(k: int, n: int, level: float = 0.95) -> tuple:
-    """Wilson score interval of a binomial proportion ``k / n``."""
-    z = stats.norm.ppf(0.5 + level / 2)
-    phat = k / n
-    centre = (phat + z * z / (2 * n)) / (1 + z * z / n)
-    half = z * np.sqrt(phat * (1 - phat) / n + z * z / (4 * n * n)) / (1 + z * z / n)
-    return float(centre - half), float(centre + half)
-
-
 @dataclass
 class Calibration:
     """The replicates of one estimator on one problem, and their summary."""
@@ -215,7 +209,8 @@ def calibrate(problem: str = "pinned", estimators=ESTIMATORS, n: int = 200, star
               progress: bool = False) -> dict:
     """Run ``n`` replicates (indices ``start .. start + n - 1``) of ``problem`` with each estimator.
 
-    Returns ``{estimator: Calibration}``. The two cyclic estimators share one run per replicate.
+    Returns ``{estimator: Calibration}``. The two cyclic EKF estimators share one run per
+    replicate, as do the two reduced-order UKF ones.
     """
     if problem not in PROBLEMS:
         raise ValueError(f"problem: expected one of {PROBLEMS}, got {problem!r}")
@@ -241,6 +236,13 @@ def calibrate(problem: str = "pinned", estimators=ESTIMATORS, n: int = 200, star
                 res = CyclicEKF().run(model, y)
                 sec = time.perf_counter() - t0
                 for name, P in (("cyclic_ekf", res.P_theta), ("cyclic_ekf_one_cycle", res.P_theta_one_cycle)):
+                    if name in out:
+                        out[name].replicates.append(Replicate(i, theta_true, res.theta, P, res.converged, sec))
+            if {"roukf", "roukf_one_cycle"} & set(estimators):
+                t0 = time.perf_counter()
+                res = CyclicEKF(engine="roukf").run(model, y)
+                sec = time.perf_counter() - t0
+                for name, P in (("roukf", res.P_theta), ("roukf_one_cycle", res.P_theta_one_cycle)):
                     if name in out:
                         out[name].replicates.append(Replicate(i, theta_true, res.theta, P, res.converged, sec))
             if "iterated_smoother" in estimators:

@@ -349,7 +349,7 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
         See :func:`sfem_filters.cardiac.measured.build_model`.
     landmarks, observe, holdout_seed :
         See :func:`sfem_filters.cardiac.measured.prepare`.
-    estimator : {"smoother", "cyclic"}
+    estimator : {"smoother", "cyclic", "roukf"}
         The iterated smoother (at most ``max_iterations`` Gauss-Newton steps) or the paper's
         cyclic joint EKF (at most ``max_loops`` loops); see :func:`sfem_filters.cardiac.measured.run`.
     max_rounds : int
@@ -448,8 +448,8 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
             rounds.append(accepted)
     config = {"drive": drive, "landmarks": landmarks, "observe": observe, "holdout_seed": holdout_seed,
               "parameterisation": parameterisation, "estimator": estimator,
-              "max_loops" if estimator == "cyclic" else "max_iterations":
-                  max_loops if estimator == "cyclic" else max_iterations, "n_points": int(seq.n_points),
+              "max_iterations" if estimator == "smoother" else "max_loops":
+                  max_iterations if estimator == "smoother" else max_loops, "n_points": int(seq.n_points),
               "n_frames": int(seq.n_frames), "n_observed": int(len(setup.observed)),
               "n_heldout": int(len(setup.heldout)), "mesh_nodes": int(setup.mesh.n_nodes),
               "mesh_elements": int(setup.mesh.n_elements), "max_rounds": max_rounds, "alpha": float(alpha),

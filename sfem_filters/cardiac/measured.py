@@ -85,8 +85,9 @@ BASIS = {"modes_E": 6, "modes_nu": 3, "length_fraction": 0.25}
 #: Material parameterisations by name (``parameterisation=``, ``--parameterisation``).
 PARAMETERISATIONS = ("region", "basis", "element", "none")
 #: How kinematics and material are estimated (``estimator=``, ``--estimator``): the iterated
-#: smoother (one cycle, data counted once, Laplace posterior) or the paper's cyclic joint EKF.
-ESTIMATORS = ("smoother", "cyclic")
+#: smoother (one cycle, data counted once, Laplace posterior), the paper's cyclic joint EKF, or
+#: Moireau & Chapelle's reduced-order UKF in the same cyclic driver.
+ESTIMATORS = ("smoother", "cyclic", "roukf")
 #: What drives the model besides its effects (``drive=``, ``--drive``): springs toward the
 #: landmarks, springs toward the whole contours interpolated from the landmarks, a measured
 #: cavity pressure, or nothing.
@@ -544,8 +545,9 @@ def run(setup: Setup, effects=(), drive: str = "penalty", parameterisation: str 
     """Build the model, estimate and evaluate.
 
     ``estimator`` (:data:`ESTIMATORS`): ``"smoother"``, the iterated smoother with at most
-    ``max_iterations`` Gauss-Newton steps, or ``"cyclic"``, the paper's cyclic joint EKF with at
-    most ``max_loops`` loops and the relative tolerance ``tol``. ``beta``, ``model_options``,
+    ``max_iterations`` Gauss-Newton steps, ``"cyclic"``, the paper's cyclic joint EKF with at
+    most ``max_loops`` loops and the relative tolerance ``tol``, or ``"roukf"``, Moireau &
+    Chapelle's reduced-order UKF in the same cyclic driver (:mod:`sfem_filters.filtering.roukf`). ``beta``, ``model_options``,
     ``effect_rates``, ``drive_trend``, ``spring_scale``: see :func:`build_model`.
     """
     if estimator not in ESTIMATORS:
@@ -562,7 +564,8 @@ def run(setup: Setup, effects=(), drive: str = "penalty", parameterisation: str 
                                                                         description=name or "dense")
         else:
             result = cyclic_estimate(model, y, max_loops=max_loops, tol=tol, progress=progress,
-                                     description=name or "dense")
+                                     description=name or "dense",
+                                     engine="roukf" if estimator == "roukf" else "structured")
     U, metrics = evaluate(setup, model, result, time.perf_counter() - t0, y)
     return Run(name, model, result, U, metrics)
 

@@ -25,7 +25,9 @@ Modules: :mod:`~sfem_filters.filtering.protocol` (the model contract),
 :mod:`~sfem_filters.filtering.base` (the engine interface), one engine per module
 (:mod:`~sfem_filters.filtering.ekf`: filterpy's EKF, the reference;
 :mod:`~sfem_filters.filtering.structured`: block structure, Cholesky, Joseph form;
-:mod:`~sfem_filters.filtering.ud`: U-D factorised), :mod:`~sfem_filters.filtering.ljung`
+:mod:`~sfem_filters.filtering.ud`: U-D factorised; :mod:`~sfem_filters.filtering.unscented`:
+filterpy's UKF on the full state, ``make_ukf``; :mod:`~sfem_filters.filtering.roukf`: Moireau &
+Chapelle's reduced-order UKF, simplex sigma points on the parameters), :mod:`~sfem_filters.filtering.ljung`
 (Ljung's coupling, Eq. 40), :mod:`~sfem_filters.filtering.safeguards`,
 :mod:`~sfem_filters.filtering.cyclic` (the paper's cyclic driver),
 :mod:`~sfem_filters.filtering.linearised` and :mod:`~sfem_filters.filtering.smoother` (the model
@@ -48,14 +50,16 @@ from .linear import LinearGaussianModel, LinearObservation
 from .linearised import LinearisedModel, linearise, linearise_dense
 from .ljung import LJUNG_MAX_PARAMS, LjungCoupling
 from .marginal import MarginalCheck, laplace_check, log_likelihood, log_posterior
+from .roukf import ROUKFEngine, simplex_points
 from .protocol import (FilterModel, Fingerprinted, Linearisable, LoadResponse, OutputOperators, PerFrameNoise,
                        PhysicalParameters, TransitionDerivatives, check_model, measurement_cov)
 from .safeguards import FilterDivergence, Safeguards, nearest_psd
 from .smoother import ForwardPass, SmoothedPass, kalman_forward, rts_reference, smooth, smooth_backward
 from .structured import StructuredEngine, joseph_update
 from .ud import UDEngine, bierman_update, mwgs, psd_factor, ud_factor
+from .unscented import UKFEngine, make_ukf
 
-__all__ = ["diagnostics", "Engine", "CyclicEKF", "CyclicResult", "cyclic_estimate", "filter_loop", "check_observations",
+__all__ = ["ROUKFEngine", "simplex_points", "UKFEngine", "make_ukf", "diagnostics", "Engine", "CyclicEKF", "CyclicResult", "cyclic_estimate", "filter_loop", "check_observations",
            "FilterpyEngine", "SFEMExtendedKalmanFilter", "StructuredEngine", "UDEngine", "ENGINES", "make_engine",
            "History", "LinearGaussianModel", "LinearObservation", "LjungCoupling", "LJUNG_MAX_PARAMS",
            "FilterModel", "PerFrameNoise", "Fingerprinted", "PhysicalParameters", "TransitionDerivatives",

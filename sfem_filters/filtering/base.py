@@ -24,6 +24,9 @@ class Engine:
         :class:`sfem_filters.filtering.ljung.LjungCoupling`).
     """
 
+    #: Whether the engine has the tangent operator Ljung's term needs (the unscented ones do not).
+    supports_ljung = True
+
     def __init__(self, model, ljung: bool = False):
         self.model = model
         self.ljung = LjungCoupling(model) if ljung else None

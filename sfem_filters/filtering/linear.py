@@ -11,6 +11,7 @@ import scipy.linalg as sla
 
 from .._validate import as_float_array
 from .ekf import SFEMExtendedKalmanFilter
+from .unscented import make_ukf
 
 __all__ = ["LinearObservation", "LinearGaussianModel"]
 
@@ -20,7 +21,7 @@ class LinearObservation:
 
     Mixed into the model classes (they set ``self._H``, the dense (dim_obs, dim_state)
     matrix [D 0] of Eq. 22) so that filterpy's EKF and the engines see one ``hx``,
-    ``H_jacobian`` and ``make_ekf``.
+    ``H_jacobian``, ``make_ekf`` and ``make_ukf``.
     """
 
     def hx(self, z, t=None):
@@ -45,6 +46,18 @@ class LinearObservation:
                 ekf.update(y.reshape(-1, 1), model.H_jacobian, model.hx, args=t, hx_args=t)
         """
         return SFEMExtendedKalmanFilter(self)
+
+    def make_ukf(self, **points):
+        """filterpy's ``UnscentedKalmanFilter`` on this model (:func:`sfem_filters.filtering.unscented.make_ukf`;
+        ``points``: Merwe's ``alpha``, ``beta``, ``kappa``). Drive it as::
+
+            ukf = model.make_ukf()
+            for t, y in enumerate(observations):
+                if t > 0:
+                    ukf.predict(t=t - 1)
+                ukf.update(y, t=t)
+        """
+        return make_ukf(self, **points)
 
 
 class LinearGaussianModel(LinearObservation):

@@ -138,7 +138,9 @@ def test_local_cluster_gives_the_serial_bytes_and_failures_are_isolated(tmp_path
     bad.write_bytes(b"not a zip file")
     jobs = compare_jobs([0, 1], **CHEAP) + dense_jobs([str(bad)])
     serial = run_batch(jobs, tmp_path / "serial", scheduler="serial", progress=False)
+    environ = dict(os.environ)
     local = run_batch(jobs, tmp_path / "local", scheduler="local", workers=2, progress=False)
+    assert dict(os.environ) == environ     # Dask's worker settings (OPENBLAS_NUM_THREADS=1 ...) do not leak
     for rep in (serial, local):
         assert sorted(rep.ran) == ["seed0000", "seed0001"]
         assert list(rep.failed) == ["broken"] and "not a readable .npz" in rep.failed["broken"]
