@@ -56,15 +56,20 @@ def _estimate(method, model, y, limits):
 
 
 def _measure(fn):
+    """``(result or None, seconds, peak MB, error or None)``: a method that fails is a result."""
     tracemalloc.start()
     t0 = time.perf_counter()
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        out = fn()
+    out, err = None, None
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            out = fn()
+    except (ValueError, FloatingPointError, np.linalg.LinAlgError) as exc:
+        err = f"{type(exc).__name__}: {str(exc)[:160]}"
     sec = time.perf_counter() - t0
     peak = tracemalloc.get_traced_memory()[1] / 1e6
     tracemalloc.stop()
-    return out, sec, peak
+    return out, sec, peak, err
 
 
 def _nees(theta, theta_true, P):
@@ -85,7 +90,12 @@ def synthetic(seeds, methods, limits, ukf_max_dim):
                     rows.append({"seed": seed, "map": map_name, "method": method, "skipped":
                                  f"state of {model.dim_state} > --ukf-max-dim {ukf_max_dim}"})
                     continue
-                res, sec, peak = _measure(lambda: _estimate(method, model, bench.observations, limits))
+                res, sec, peak, err = _measure(lambda: _estimate(method, model, bench.observations, limits))
+                if err is not None:
+                    rows.append({"seed": seed, "map": map_name, "method": method, "skipped": f"failed after "
+                                 f"{sec:.0f} s: {err}"})
+                    print(_fmt_synthetic(rows[-1]), flush=True)
+                    continue
                 mat = model.material_of_theta(res.theta)
                 eE = np.abs(mat.E - bench.true_material.E) / bench.true_material.E
                 row = {"seed": seed, "map": map_name, "method": method, "p": model.dim_theta,
@@ -139,8 +149,12 @@ def dense(methods, dense_loops, ukf_max_dim):
                         print(f"{label:<18} {method:<11} skipped: {rows[-1]['skipped']}", flush=True)
                         continue
                 est = {"smoother": "smoother", "cyclic_ekf": "cyclic", "roukf": "roukf"}[method]
-                run, sec, peak = _measure(lambda: measured.run(setup, effects, "penalty", param, max_loops=dense_loops,
-                                                               estimator=est))
+                run, sec, peak, err = _measure(lambda: measured.run(setup, effects, "penalty", param,
+                                                                    max_loops=dense_loops, estimator=est))
+                if err is not None:
+                    rows.append({"case": label, "method": method, "skipped": f"failed after {sec:.0f} s: {err}"})
+                    print(f"{label:<18} {method:<11} {rows[-1]['skipped']}", flush=True)
+                    continue
                 m = run.metrics
                 res = run.result
                 row = {"case": label, "method": method, "heldout_rmse_px": m["heldout_rmse_px"],

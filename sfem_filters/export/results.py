@@ -66,6 +66,7 @@ def export_comparison(comp: Comparison, directory) -> list:
     ``<strategy>.pvd`` per strategy, and ``truth.pvd``: the mesh (m) with, per frame,
     ``displacement_m``, ``velocity_m_s`` and the nodal strain ``strain`` (e_xx, e_yy, gamma_xy);
     per element ``E_Pa`` and ``nu`` (with ``E_sd_log`` and ``nu_sd`` where estimated) and
+    ``strain_sd`` per node where the run is the smoother's (its smoothed sd of each strain);
     ``middle`` (1 in the stiffer middle part); the truth also has ``observed`` per node.
     Returns the ``.pvd`` paths.
     """
@@ -84,8 +85,10 @@ def export_comparison(comp: Comparison, directory) -> list:
     for name, r in comp.runs.items():
         model, result = r.model, r.result
         cd = {**_material_fields(model, result.theta, result.posterior_cov), "middle": middle}
-        out.append(write_series(directory, name, mesh.nodes, mesh.elements, times,
-                                {"displacement_m": r.U.reshape(F, n, 2),
-                                 "velocity_m_s": model.velocities(result.states).reshape(F, n, 2),
-                                 "strain": r.strain}, cd))
+        pd = {"displacement_m": r.U.reshape(F, n, 2), "velocity_m_s": model.velocities(result.states).reshape(F, n, 2),
+              "strain": r.strain}
+        strain_sd = getattr(result, "output_sd", {}).get("strain")
+        if strain_sd is not None:                      # the smoother's smoothed sd of each nodal strain
+            pd["strain_sd"] = np.asarray(strain_sd).reshape(F, n, 3)
+        out.append(write_series(directory, name, mesh.nodes, mesh.elements, times, pd, cd))
     return [os.path.abspath(p) for p in out]

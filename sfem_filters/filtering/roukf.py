@@ -36,6 +36,12 @@ covariance of rank p exactly. What the reduced order leaves out: process noise `
 uncertainty lives in the parameters only, as in the paper) and any part of the initial
 kinematic covariance not explained by the parameters; :meth:`ROUKFEngine.reset` keeps of a full
 ``P`` exactly its parameter block and the kinematics' regression on the parameters.
+
+Drivers: it is a filter, so it runs in the cyclic driver (``cyclic_estimate(model, y,
+engine="roukf")``, ``CyclicEKF(engine="roukf")``: loops, checkpoints, safeguards, progress bar
+and the one-cycle covariance as for the EKF), and so in ``sfem-filters dense --estimator roukf``.
+Not in the iterated smoother: its Gauss-Newton steps are built on the tangent operator (the
+linearised transition and M_t) that this filter exists to avoid.
 """
 from __future__ import annotations
 
@@ -58,11 +64,27 @@ def simplex_points(p: int) -> np.ndarray:
     return np.sqrt(p + 1) * (Qb.T @ E)
 
 
+def _cholesky_with_jitter(P, tries: int = 6) -> np.ndarray:
+    """Cholesky factor of a symmetric P, adding ``10^k * 1e-14 * mean(diag P)`` to its diagonal
+    (k = 0, 1, ...) when round-off has left it semi-definite: after many updates the rank-p
+    factor can carry singular values below the double-precision floor of its largest ones."""
+    scale = max(float(np.mean(np.diag(P))), 1e-300)
+    for k in range(tries + 1):
+        try:
+            return np.linalg.cholesky(P if k == 0 else P + (10.0 ** (k - 1) * 1e-14 * scale) * np.eye(len(P)))
+        except np.linalg.LinAlgError:
+            continue
+    raise ValueError("P: the parameter block must be positive definite for the reduced-order UKF "
+                     f"(still not with a jitter of {10.0 ** (tries - 1) * 1e-14:g} of its mean variance)")
+
+
 class ROUKFEngine(Engine):
     """The reduced-order UKF (module docstring) as an engine of the cyclic driver.
 
-    ``P`` is formed on demand as ``L U^-1 L^T`` (rank p, so not positive definite): the
-    safeguards' positive-definiteness check asks :meth:`cholesky`, which answers for ``U``.
+    The factor is stored normalised, ``U = I`` after every step (``L <- L R^-1`` with
+    ``U = R^T R``), which avoids inverting ``U``; ``P = L L^T`` is formed on demand (rank p, so
+    not positive definite): the safeguards' check asks :meth:`cholesky`, which answers for the
+    factor.
     Ljung's term needs a tangent operator, which this filter has none of.
     """
 
@@ -85,10 +107,9 @@ class ROUKFEngine(Engine):
         P = np.asarray(P, float)
         nx = self.nx
         Ptt = 0.5 * (P[nx:, nx:] + P[nx:, nx:].T)
+        C = _cholesky_with_jitter(Ptt)
         self._z = x.copy()
-        self._L = np.vstack([np.linalg.solve(Ptt, P[nx:, :nx]).T, np.eye(self.p)])
-        self._U = np.linalg.inv(Ptt)
-        self._U = 0.5 * (self._U + self._U.T)
+        self._L = np.vstack([np.linalg.solve(Ptt, P[nx:, :nx]).T, np.eye(self.p)]) @ C
 
     @property
     def x(self) -> np.ndarray:
@@ -96,35 +117,25 @@ class ROUKFEngine(Engine):
 
     @property
     def P(self) -> np.ndarray:
-        LC = self._sqrt()
-        return LC @ LC.T
+        return self._L @ self._L.T
 
     def cholesky(self):
-        """Cholesky factor of ``U`` (the reduced covariance's information), or None if ``U`` is
-        not positive definite."""
-        try:
-            return np.linalg.cholesky(self._U)
-        except np.linalg.LinAlgError:
+        """The square root ``S = L U^-1/2`` (n, p), ``P = S S^T``, while it is finite and of full
+        rank p (the reduced covariance is positive definite on its subspace); else None."""
+        S = self._L
+        if not np.all(np.isfinite(S)) or np.linalg.matrix_rank(S[self.nx:]) < self.p:
             return None
-
-    def _sqrt(self) -> np.ndarray:
-        """``L C`` with ``C C^T = U^-1``: a square root of P, (n, p)."""
-        C = np.linalg.cholesky(np.linalg.inv(self._U))
-        return self._L @ C
-
-    def _sigma(self) -> tuple:
-        LC = self._sqrt()
-        return self._z[:, None] + LC @ self.I, LC
+        return S
 
     def predict(self, t: int) -> None:
-        Z, _ = self._sigma()
+        Z = self._z[:, None] + self._L @ self.I
         Zf = np.column_stack([np.asarray(self.model.fx(Z[:, i], t), float).ravel() for i in range(self.p + 1)])
         self._z = Zf.mean(axis=1)
-        self._L = self.alpha * Zf @ self.I.T
-        self._U = np.eye(self.p)
+        self._L = self.alpha * Zf @ self.I.T            # U^- = I: L^- is a square root of P^-
 
     def update(self, y, t: int, mask) -> tuple:
-        Z, LC = self._sigma()
+        L = self._L                                     # sampled square root (U = I)
+        Z = self._z[:, None] + L @ self.I
         Y = np.column_stack([np.asarray(self.model.hx(Z[:, i], t), float).ravel()[mask]
                              for i in range(self.p + 1)])
         W = measurement_cov(self.model, t)[np.ix_(mask, mask)]
@@ -132,9 +143,10 @@ class ROUKFEngine(Engine):
         e = np.asarray(y, float)[mask] - Y.mean(axis=1)
         cW = sla.cho_factor(W)
         WiHL = sla.cho_solve(cW, HL)
-        U = np.eye(self.p) + HL.T @ WiHL
-        U = 0.5 * (U + U.T)
-        self._z = self._z + LC @ np.linalg.solve(U, WiHL.T @ e)
-        self._L, self._U = LC, U
+        U = np.eye(self.p) + HL.T @ WiHL                # U^+ = I + HL^T W^-1 HL
+        R = sla.cholesky(0.5 * (U + U.T))               # U^+ = R^T R, R upper
+        # z^+ = z + L U^-1 HL^T W^-1 e; the new square root L R^-1 keeps U = I (P = L U^-1 L^T)
+        self._z = self._z + L @ sla.cho_solve((R, False), WiHL.T @ e)
+        self._L = sla.solve_triangular(R, L.T, trans="T", lower=False).T
         S = HL @ HL.T + W
         return e, 0.5 * (S + S.T)

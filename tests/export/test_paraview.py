@@ -64,3 +64,11 @@ def test_export_comparison_has_every_strategy(tmp_path):
         s = read_series(path)
         np.testing.assert_allclose(s[-1][1].point_data["strain"], r.strain[-1])
         np.testing.assert_allclose(s[0][1].cell_data["E_Pa"][0], r.model.material_of_theta(r.result.theta).E)
+        sd = getattr(r.result, "output_sd", {}).get("strain")
+        if name == "joint_smoother":
+            assert sd is not None
+        if sd is not None:
+            np.testing.assert_allclose(s[4][1].point_data["strain_sd"], np.asarray(sd)[4].reshape(-1, 3))
+            assert np.all(s[4][1].point_data["strain_sd"] >= 0) and np.median(s[4][1].point_data["strain_sd"]) > 0
+        else:
+            assert "strain_sd" not in s[4][1].point_data
