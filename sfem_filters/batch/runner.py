@@ -96,7 +96,7 @@ def _failure(exc: BaseException, trace) -> tuple:
 
 #: Dask settings of the local cluster. The workers' statistical profiler samples every task's
 #: stack every 10 ms under the GIL, which slowed these Python-heavy jobs by about a tenth
-#: (``benchmarks/batch.py``: ratio 0.63-0.65 with it, 0.57-0.62 without); the batch does not use
+#: (``benchmarks/batch.py``: ratio 0.63-0.65 with it, 0.57-0.66 without); the batch does not use
 #: its output.
 LOCAL_CONFIG = {"distributed.worker.profile.enabled": False}
 
