@@ -188,24 +188,24 @@ def merge_timing(result: dict, timing: dict) -> dict:
     return out
 
 
-def _run_compare(job: Job) -> tuple:
-    comp = run_comparison(**job.config, progress=False, checkpoint_dir=job.outputs.get("checkpoint_dir"))
+def _outputs(job: Job, result, figures, export) -> list:
+    """Write the job's optional figures and ParaView files of ``result``; their paths."""
     written = []
     if "figures" in job.outputs:
-        written += comparison_figures(comp, job.outputs["figures"])
+        written += figures(result, job.outputs["figures"])
     if "export" in job.outputs:
-        written += export_comparison(comp, job.outputs["export"])
-    return comp.as_json(), written
+        written += export(result, job.outputs["export"])
+    return written
+
+
+def _run_compare(job: Job) -> tuple:
+    comp = run_comparison(**job.config, progress=False, checkpoint_dir=job.outputs.get("checkpoint_dir"))
+    return comp.as_json(), _outputs(job, comp, comparison_figures, export_comparison)
 
 
 def _run_dense(job: Job) -> tuple:
     out = closing_the_loop(load_sequence(job.inputs[0]), **job.config, progress=False)
-    written = []
-    if "figures" in job.outputs:
-        written += dense_figures(out, job.outputs["figures"])
-    if "export" in job.outputs:
-        written += export_dense(out, job.outputs["export"])
-    return out.as_json(), written
+    return out.as_json(), _outputs(job, out, dense_figures, export_dense)
 
 
 _RUNNERS = {"compare": _run_compare, "dense": _run_dense}

@@ -79,7 +79,7 @@ def _check(jobs, scheduler, workers) -> list:
         raise ValueError(f"jobs: names must be unique within a batch, repeated: {dup}")
     if not isinstance(scheduler, str) or not scheduler:
         raise ValueError(f"scheduler: expected 'serial', 'local' or a scheduler address, got {scheduler!r}")
-    if scheduler not in SCHEDULERS and "://" not in scheduler and ":" not in scheduler:
+    if scheduler not in SCHEDULERS and ":" not in scheduler:
         raise ValueError(f"scheduler: expected 'serial', 'local' or an address like tcp://host:8786, got {scheduler!r}")
     if workers is not None and (isinstance(workers, bool) or int(workers) != workers or workers < 1):
         raise ValueError(f"workers: expected an integer >= 1, got {workers!r}")
@@ -179,9 +179,9 @@ def run_batch(jobs, directory, *, scheduler: str = "local", workers=None, progre
                 _restore_environ(environ)
     finally:
         bar.close()
-    table = store.write_table(jobs)
     records = {j.name: rec for j in jobs if (rec := store.load(j)) is not None}
-    timings = {name: store.timing(j) for j in jobs if (name := j.name) in records}
+    timings = {j.name: store.timing(j) for j in jobs if j.name in records}
+    table = store.write_table(jobs, records, timings)
     return BatchReport(os.fspath(directory), ran, [j.name for j in skipped], failed, table, time.perf_counter() - t0, scheduler,
                        records, timings)
 

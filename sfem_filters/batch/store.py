@@ -117,13 +117,16 @@ class ResultStore:
             "fingerprint": self.fingerprint(job), "error": error, "traceback": traceback,
             "finished": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")})
 
-    def write_table(self, jobs, name: str = "table.csv") -> str:
-        """Rebuild the combined CSV from the stored results of ``jobs`` (in their order)."""
+    def write_table(self, jobs, records=None, timings=None, name: str = "table.csv") -> str:
+        """Rebuild the combined CSV from the stored results of ``jobs`` (in their order);
+        ``records`` and ``timings`` (name -> stored record / timing) when already loaded."""
+        if records is None:
+            records = {j.name: rec for j in jobs if (rec := self.load(j)) is not None}
+            timings = {j.name: self.timing(j) for j in jobs if j.name in records}
         rows = []
         for job in jobs:
-            rec = self.load(job)
-            if rec is not None:
-                rows.extend(table_rows(rec, self.timing(job)))
+            if job.name in records:
+                rows.extend(table_rows(records[job.name], timings[job.name]))
         columns = []
         for r in rows:
             columns.extend(k for k in r if k not in columns)
