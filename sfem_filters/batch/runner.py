@@ -94,11 +94,21 @@ def _failure(exc: BaseException, trace) -> tuple:
     return message, text
 
 
-#: Dask settings of the local cluster. The workers' statistical profiler samples every task's
-#: stack every 10 ms under the GIL, which slowed these Python-heavy jobs by about a tenth
-#: (``benchmarks/batch.py``: ratio 0.63-0.65 with it, 0.57-0.66 without); the batch does not use
-#: its output.
-LOCAL_CONFIG = {"distributed.worker.profile.enabled": False}
+#: Dask settings of the local cluster, both measured with ``benchmarks/batch.py``:
+#:
+#: - the workers' statistical profiler samples every task's stack every 10 ms under the GIL,
+#:   which slowed these Python-heavy jobs by about a tenth; the batch does not use its output;
+#: - the nanny starts workers with ``MALLOC_TRIM_THRESHOLD_=65536``, which makes glibc hand
+#:   freed memory back to the system after every large temporary array and fault it in again on
+#:   the next: the same jobs spent 1.0-1.5 s of system time per 12 seeds instead of 0.1 s and ran
+#:   5-15% slower than in the serial loop. The jobs hold little memory, so glibc's own threshold
+#:   is kept (``None`` removes the variable);
+#: - the scheduler hands a one-thread worker two tasks at a time (``worker-saturation`` 1.1,
+#:   rounded up), so at the end of a batch one worker can sit idle while the other still holds a
+#:   queued job; one task per free thread keeps the last jobs on both workers.
+LOCAL_CONFIG = {"distributed.worker.profile.enabled": False,
+                "distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None,
+                "distributed.scheduler.worker-saturation": 1.0}
 
 
 def _client(scheduler: str, workers):

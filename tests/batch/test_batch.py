@@ -10,6 +10,7 @@ import subprocess
 import sys
 import time
 
+import dask
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
@@ -17,6 +18,7 @@ from hypothesis import strategies as st
 
 from sfem_filters.batch import Job, ResultStore, compare_jobs, dense_jobs, describe_record, merge_timing, run_batch, \
     run_job, split_timing
+from sfem_filters.batch.runner import _client
 from sfem_filters.benchmark import format_summary, format_table, summarise, wilson_interval
 from sfem_filters.benchmark.comparison import ROWS
 from sfem_filters.cli import main
@@ -154,6 +156,23 @@ def test_local_cluster_gives_the_serial_bytes_and_failures_are_isolated(tmp_path
     # a rerun skips what exists and retries only the failure
     again = run_batch(jobs, tmp_path / "local", scheduler="serial", progress=False)
     assert sorted(again.skipped) == ["seed0000", "seed0001"] and again.ran == [] and list(again.failed) == ["broken"]
+
+
+def test_local_cluster_workers_keep_glibc_trimming_profiler_off_one_task_each():
+    """The settings that made the batch fast (benchmarks/batch.py; README): no aggressive heap
+    trimming in the workers, no statistical profiler, one task per free worker thread."""
+    environ = dict(os.environ)
+    client, cluster = _client("local", 1)
+    try:
+        env = client.run(lambda: (os.environ.get("MALLOC_TRIM_THRESHOLD_"), os.environ.get("OPENBLAS_NUM_THREADS")))
+        assert list(env.values()) == [(None, "1")]
+        assert list(client.run(lambda: dask.config.get("distributed.worker.profile.enabled")).values()) == [False]
+        assert cluster.scheduler.WORKER_SATURATION == 1.0
+    finally:
+        client.close()
+        cluster.close()
+        os.environ.clear()
+        os.environ.update(environ)
 
 
 def test_table_has_a_row_per_job_and_strategy_with_the_stored_values(tmp_path):
