@@ -1,7 +1,7 @@
 """Calibration of the material posterior (shared/specs/calibration.md): ANEES / p and coverage.
 
     OPENBLAS_NUM_THREADS=1 python benchmarks/calibration.py [--problems pinned pinned_process_noise annulus]
-        [--n 200] [--n-annulus 100] [--estimators cyclic_ekf cyclic_ekf_one_cycle iterated_smoother]
+        [--n 200] [--n-annulus 100] [--estimators cyclic_ekf cyclic_ekf_one_cycle iterated_smoother smoother_estimated_q]
         [--annulus-estimators iterated_smoother] [--json out/calibration.json]
 
 Per problem and estimator: N replicates whose material is drawn from the prior, the average

@@ -15,6 +15,7 @@ under the load ``loads[t + 1]``, held over that interval (zero-order hold).
 """
 from __future__ import annotations
 
+import copy
 import hashlib
 from collections import OrderedDict
 
@@ -358,6 +359,19 @@ class SFEMModel(LinearObservation):
     def R_at(self, t: int) -> np.ndarray:
         """Measurement noise covariance of frame ``t`` (m^2, m^2/s^2 for velocity rows)."""
         return self.R if self._R_frames is None else np.diag(self._R_frames[t])
+
+    def with_process_noise(self, scale: float) -> "SFEMModel":
+        """This model with every process noise covariance (kinematics, effect states, material
+        random walk) multiplied by ``scale`` (> 0, dimensionless): ``Q`` becomes ``scale * Q``.
+
+        Shares the mesh, matrices and the cache of discretised dynamics (which do not depend on
+        Q) with this model; the linearisation cache, which holds Q, is its own.
+        """
+        scale = positive("scale", scale)
+        out = copy.copy(self)
+        out.Q = self.Q * scale
+        out._modal_cache = OrderedDict()
+        return out
 
     def fingerprint(self) -> str:
         """Hash of everything that defines the model (for checkpoints)."""

@@ -21,7 +21,9 @@ normalised estimation error squared (NEES) averages to the number of parameters 
 Estimators (:data:`ESTIMATORS`): the paper's cyclic EKF with its carried covariance
 (``"cyclic_ekf"``), the same run with the covariance of one cycle
 (``"cyclic_ekf_one_cycle"``, :func:`sfem_filters.filtering.cyclic.one_cycle_covariance`), and
-the iterated smoother's Laplace posterior (``"iterated_smoother"``), and Moireau & Chapelle's
+the iterated smoother's Laplace posterior (``"iterated_smoother"``), the same with the process
+noise level estimated from the data by maximum evidence (``"smoother_estimated_q"``,
+``IteratedSmoother(process_noise="estimate")``), and Moireau & Chapelle's
 reduced-order UKF in the same cyclic driver (``"roukf"``, ``"roukf_one_cycle"``;
 :mod:`sfem_filters.filtering.roukf`).
 
@@ -54,7 +56,8 @@ __all__ = ["ESTIMATORS", "PROBLEMS", "Replicate", "Calibration", "pinned_problem
            "format_calibration", "wilson_interval"]
 
 #: Estimators compared, by name.
-ESTIMATORS = ("cyclic_ekf", "cyclic_ekf_one_cycle", "iterated_smoother", "roukf", "roukf_one_cycle")
+ESTIMATORS = ("cyclic_ekf", "cyclic_ekf_one_cycle", "iterated_smoother", "smoother_estimated_q", "roukf",
+              "roukf_one_cycle")
 #: Calibration problems, by name.
 PROBLEMS = ("pinned", "pinned_process_noise", "annulus")
 
@@ -136,6 +139,7 @@ class Replicate:
     converged: bool
     seconds: float
     strain_inside: float = np.nan     # fraction of (frame, node, component) strains inside their 95% interval
+    process_noise_scale: float = 1.0  # factor on the model's Q the estimate used
 
     @property
     def nees(self) -> float:
@@ -194,6 +198,7 @@ class Calibration:
                 "anees_over_p": self.anees_over_p, "anees_band": [lo, hi], "coverage": self.coverage,
                 "coverage_interval": [clo, chi], "strain_coverage": self.strain_coverage,
                 "converged": int(sum(r.converged for r in self.replicates)),
+                "process_noise_scale_median": float(np.median([r.process_noise_scale for r in self.replicates])),
                 "seconds_median": float(np.median([r.seconds for r in self.replicates]))}
 
 
@@ -245,24 +250,28 @@ def calibrate(problem: str = "pinned", estimators=ESTIMATORS, n: int = 200, star
                 for name, P in (("roukf", res.P_theta), ("roukf_one_cycle", res.P_theta_one_cycle)):
                     if name in out:
                         out[name].replicates.append(Replicate(i, theta_true, res.theta, P, res.converged, sec))
-            if "iterated_smoother" in estimators:
-                t0 = time.perf_counter()
-                res = IteratedSmoother().run(model, y)
-                out["iterated_smoother"].replicates.append(
-                    Replicate(i, theta_true, res.theta, res.P_theta, res.converged, time.perf_counter() - t0,
-                              _strain_inside(model, res, truth)))
+            for name, noise in (("iterated_smoother", "fixed"), ("smoother_estimated_q", "estimate")):
+                if name in estimators:
+                    t0 = time.perf_counter()
+                    res = IteratedSmoother(process_noise=noise).run(model, y)
+                    out[name].replicates.append(
+                        Replicate(i, theta_true, res.theta, res.P_theta, res.converged, time.perf_counter() - t0,
+                                  _strain_inside(model, res, truth), res.process_noise_scale))
     return out
 
 
 def format_calibration(results) -> str:
-    """Text table: ANEES / p with its band, coverage of the 95% intervals with its Wilson interval."""
+    """Text table: ANEES / p with its band, coverage of the 95% intervals with its Wilson interval
+    (and, when an estimator estimated the process noise level, the median factor on Q)."""
     rows = [c.summary() for c in (results.values() if isinstance(results, dict) else results)]
+    scaled = any(r["estimator"].endswith("estimated_q") for r in rows)
     lines = [f"{'problem':<22}{'estimator':<22}{'N':>5}{'p':>4}{'ANEES/p':>9}{'95% band':>14}{'coverage':>10}"
-             f"{'Wilson 95%':>15}{'strain cov.':>12}{'converged':>10}{'s/run':>8}"]
+             f"{'Wilson 95%':>15}{'strain cov.':>12}{'converged':>10}{'s/run':>8}" + (f"{'Q x, median':>13}" if scaled else "")]
     for r in rows:
         band = f"{r['anees_band'][0]:.2f}-{r['anees_band'][1]:.2f}"
         wil = f"{r['coverage_interval'][0]:.3f}-{r['coverage_interval'][1]:.3f}"
         sc = "" if not np.isfinite(r["strain_coverage"]) else f"{r['strain_coverage']:.3f}"
         lines.append(f"{r['problem']:<22}{r['estimator']:<22}{r['n']:>5}{r['p']:>4}{r['anees_over_p']:>9.3f}{band:>14}"
-                     f"{r['coverage']:>10.3f}{wil:>15}{sc:>12}{r['converged']:>6}/{r['n']:<3}{r['seconds_median']:>8.2f}")
+                     f"{r['coverage']:>10.3f}{wil:>15}{sc:>12}{r['converged']:>6}/{r['n']:<3}{r['seconds_median']:>8.2f}"
+                     + (f"{r['process_noise_scale_median']:>13.3g}" if scaled else ""))
     return "\n".join(lines)

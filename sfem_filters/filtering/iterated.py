@@ -32,13 +32,22 @@ cost stops falling (an accepted decrease below ``cost_tol``, or no damping makes
 approximation at the mode: the mode itself, and the covariance of an undamped pass linearised
 there (the inverse Gauss-Newton Hessian), with smoothed marginal variances of the kinematics
 and of the model's output operators (strains).
+
+The process noise Q is a modelling choice the data can judge. With ``process_noise="estimate"``
+its level (one factor on every process noise) is chosen by maximum evidence, log p(y | factor)
+with the trajectory and the material integrated out by the Laplace approximation at each
+factor's mode (type-II maximum likelihood, empirical Bayes); the posterior reported is the one
+at that factor. On the calibration spec's check, whose truth moves without process noise, this
+is what turns a conservative posterior (the configured Q is too large for the data) into a
+calibrated one (``benchmarks/calibration.py``).
 """
 from __future__ import annotations
 
+import math
 import os
 import time
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import scipy.linalg as sla
@@ -48,7 +57,7 @@ from .checkpoint import load_checkpoint, run_fingerprint, save_checkpoint
 from .cyclic import check_observations
 from .history import History
 from .linearised import check_static_parameters, linearise
-from .protocol import OutputOperators, check_model, measurement_cov, physical_parameters
+from .protocol import OutputOperators, check_model, measurement_cov, physical_parameters, scaled_process_noise
 from .safeguards import Safeguards
 from .smoother import kalman_forward, smooth, smooth_backward
 
@@ -212,6 +221,11 @@ class SmootherResult:
         Smoothed standard deviations of the model's output operators, name -> (n_frames, k).
     cost : float
         The MAP cost J at the mode.
+    process_noise_scale : float
+        The factor on the model's Q the result was computed with (1 unless estimated).
+    noise_search : list of dict
+        With ``process_noise="estimate"``: per scale tried, ``scale``, ``log_evidence`` (log p(y)
+        of the model linearised at that scale's mode), ``iterations``, ``converged``; by scale.
     """
 
     states: np.ndarray
@@ -227,6 +241,8 @@ class SmootherResult:
     output_sd: dict = field(default_factory=dict)
     cost: float = np.nan
     method: str = "iterated_smoother"
+    process_noise_scale: float = 1.0
+    noise_search: list = field(default_factory=list)
 
     @property
     def loops(self) -> int:
@@ -269,6 +285,21 @@ class IteratedSmoother:
         operators in the final pass (O(k n^2) a frame per output).
     safeguards : Safeguards, optional
         Covariance check and repair in every pass, NIS monitoring in the final one.
+    process_noise : {"fixed", "estimate"}
+        ``"fixed"``: the model's Q as given. ``"estimate"``: Q's level from the data, by type-II
+        maximum likelihood (empirical Bayes) of one factor ``s`` on every process noise: the MAP
+        of the trajectory and material is found for each ``s`` tried and scored by its evidence
+        log p(y | s), the prediction-error log-likelihood of the model linearised at that mode
+        (theta integrated out by the same linearisation, i.e. the Laplace evidence). ``s`` walks
+        from 1 in factors of 4 (down first, then up) while the evidence rises by more than
+        ``noise_tol``, then one parabolic step in log s between the best and its neighbours; each
+        run starts from the previous scale's mode. The reported posterior is the one at the best
+        ``s`` (plug-in: the uncertainty of ``s`` itself is not propagated). Needs a model with
+        ``with_process_noise`` (:class:`~sfem_filters.filtering.protocol.ScalableProcessNoise`).
+    noise_range : (float, float)
+        Smallest and largest factor on Q tried (0 < low <= 1 <= high).
+    noise_tol : float
+        Evidence gain (nats, > 0) below which the walk over scales stops.
 
     The damping follows Nielsen's rule: after an accepted full step lambda is multiplied by
     ``max(1/3, 1 - (2 rho - 1)^3)``, rho the ratio of the cost's actual to its predicted decrease;
@@ -287,6 +318,9 @@ class IteratedSmoother:
     max_damping: float = 1e8
     covariance: bool = True
     safeguards: Safeguards | None = None
+    process_noise: str = "fixed"
+    noise_range: tuple = (4.0 ** -8, 4.0 ** 3)
+    noise_tol: float = 0.05
 
     def __post_init__(self):
         integer("max_iterations", self.max_iterations, 1)
@@ -299,6 +333,15 @@ class IteratedSmoother:
             raise TypeError(f"covariance: expected True or False, got {self.covariance!r}")
         if self.safeguards is not None and not isinstance(self.safeguards, Safeguards):
             raise TypeError(f"safeguards: expected a Safeguards, got {type(self.safeguards).__name__}")
+        if self.process_noise not in ("fixed", "estimate"):
+            raise ValueError(f"process_noise: expected 'fixed' or 'estimate', got {self.process_noise!r}")
+        try:
+            low, high = (float(v) for v in self.noise_range)
+        except (TypeError, ValueError):
+            raise ValueError(f"noise_range: expected two factors (low, high), got {self.noise_range!r}") from None
+        if not (0.0 < low <= 1.0 <= high < np.inf):
+            raise ValueError(f"noise_range: expected 0 < low <= 1 <= high (factors on Q), got {self.noise_range!r}")
+        positive("noise_tol", self.noise_tol)
 
     def trajectory_settings(self) -> dict:
         guard = self.safeguards if self.safeguards is not None else Safeguards()
@@ -310,8 +353,74 @@ class IteratedSmoother:
         """Estimate from one cycle's ``observations`` (n_frames, dim_obs), NaN where missing.
 
         ``checkpoint``: a path saved after every accepted iteration; an existing checkpoint of
-        the same run is resumed and the run ends exactly as an uninterrupted one would.
+        the same run is resumed and the run ends exactly as an uninterrupted one would (with
+        ``process_noise="estimate"``, one checkpoint per scale tried, ``<checkpoint>.noise<k>``).
         """
+        if self.process_noise == "estimate":
+            return self._estimate_noise(model, observations, progress, checkpoint, description)
+        return self._fit(model, observations, progress=progress, checkpoint=checkpoint, description=description)
+
+    def _estimate_noise(self, model, observations, progress, checkpoint, description) -> SmootherResult:
+        """Type-II maximum likelihood of one factor on Q (``process_noise`` in the class docstring)."""
+        check_model(model)
+        y = check_observations(model, observations)
+        kmin = math.ceil(math.log(self.noise_range[0], 4.0) - 1e-9)
+        kmax = math.floor(math.log(self.noise_range[1], 4.0) + 1e-9)
+        inner = replace(self, process_noise="fixed", covariance=False)
+        fits, evidence = {}, {}
+        bar = None
+        if progress:
+            from tqdm import tqdm
+            bar = tqdm(desc=f"{description}: process noise level", unit="scale", leave=False)
+
+        def at(k, start):
+            cp = None if checkpoint is None else f"{checkpoint}.noise{k:+.4f}"
+            fits[k] = inner._fit(scaled_process_noise(model, 4.0 ** k), y, progress=progress, checkpoint=cp,
+                                 description=f"{description} (Q x {4.0 ** k:.3g})", start=start)
+            evidence[k] = fits[k].log_likelihood
+            if bar is not None:
+                bar.update(1)
+                bar.set_postfix(scale=f"{4.0 ** k:.3g}", log_evidence=f"{evidence[k]:.2f}")
+            return evidence[k]
+
+        try:
+            at(0.0, None)
+            for direction in (-1.0, 1.0):
+                k = 0.0
+                while kmin <= k + direction <= kmax:
+                    at(k + direction, fits[k].states)
+                    if not evidence[k + direction] > evidence[k] + self.noise_tol:
+                        break
+                    k += direction
+                if k != 0.0:
+                    break                       # the evidence rose downwards: no need to look up
+            best = max(evidence, key=evidence.get)
+            if best - 1.0 in evidence and best + 1.0 in evidence:
+                lo, mid, hi = evidence[best - 1.0], evidence[best], evidence[best + 1.0]
+                curvature = hi - 2.0 * mid + lo
+                if curvature < 0.0:
+                    vertex = best - 0.5 * (hi - lo) / curvature
+                    if abs(vertex - best) > 0.05:
+                        at(vertex, fits[best].states)
+                        best = max(evidence, key=evidence.get)
+        finally:
+            if bar is not None:
+                bar.close()
+        scale = 4.0 ** best
+        chosen, scaled = fits[best], scaled_process_noise(model, scale)
+        guard = self.safeguards if self.safeguards is not None else Safeguards()
+        result = self._final(scaled, y, chosen.states, chosen.cost, chosen.records, chosen.stop_reason,
+                             chosen.converged, guard) if self.covariance else chosen
+        result.process_noise_scale = scale
+        result.noise_search = [{"scale": 4.0 ** k, "log_evidence": float(evidence[k]),
+                                "iterations": int(fits[k].iterations), "converged": bool(fits[k].converged)}
+                               for k in sorted(evidence)]
+        return result
+
+    def _fit(self, model, observations, *, progress: bool = False, checkpoint=None,
+             description: str = "iterated smoother", start=None) -> SmootherResult:
+        """One run at the model's Q; ``start``: a trajectory (n_frames, dim_state) whose material
+        is the first iterate instead of the prior mean."""
         check_model(model)
         p = check_static_parameters(model)
         y = check_observations(model, observations)
@@ -351,7 +460,9 @@ class IteratedSmoother:
             cost, stop = float(state["cost"]), str(state["stop_reason"])
         else:
             lam, nu, stop = float(self.damping), 2.0, ""
-            cost, found = profile(theta0, open_loop(model))
+            cost, found = (np.inf, None) if start is None else profile(np.asarray(start, float)[0, nr:], start)
+            if found is None or not np.isfinite(cost):
+                cost, found = profile(theta0, open_loop(model))
             if found is None or not np.isfinite(cost):
                 raise FloatingPointError("the prior's material gives no finite MAP cost: the model cannot step its "
                                          "initial state")
@@ -416,8 +527,8 @@ class IteratedSmoother:
                 taken = alpha * step
                 secant.taken(taken, g)
                 before = physical_parameters(model, theta_bar)
-                rel = float(np.linalg.norm(physical_parameters(model, theta_bar + taken) - before)
-                            / np.linalg.norm(before))
+                moved, size = np.linalg.norm(physical_parameters(model, theta_bar + taken) - before), np.linalg.norm(before)
+                rel = float(moved / size) if size > 0 else np.inf    # no relative change from zero parameters
                 step_sd = float(np.max(np.abs(taken) / np.sqrt(np.diag(P_theta))))
                 records.append({"iteration": len(records) + 1, "cost": new_cost, "decrease": cost - new_cost,
                                 "damping": lam_used, "step_length": alpha, "gain_ratio": float(gain), "rejected": rejected,

@@ -6,10 +6,12 @@ dense ``_H``; :class:`LinearGaussianModel` is a complete small model of the cont
 """
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import scipy.linalg as sla
 
-from .._validate import as_float_array
+from .._validate import as_float_array, positive
 from .ekf import SFEMExtendedKalmanFilter
 from .unscented import make_ukf
 
@@ -131,6 +133,12 @@ class LinearGaussianModel(LinearObservation):
     @property
     def n_frames(self) -> int:
         return self._n_frames
+
+    def with_process_noise(self, scale: float) -> "LinearGaussianModel":
+        """This model with ``Q`` multiplied by ``scale`` (> 0)."""
+        out = copy.copy(self)
+        out.Q = self.Q * positive("scale", scale)
+        return out
 
     @property
     def estimates_material(self) -> bool:

@@ -28,8 +28,8 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 __all__ = ["FilterModel", "PerFrameNoise", "Fingerprinted", "PhysicalParameters", "TransitionDerivatives",
-           "LoadResponse", "Linearisable", "OutputOperators", "check_model", "measurement_cov", "model_fingerprint",
-           "physical_parameters", "n_parameters"]
+           "LoadResponse", "Linearisable", "OutputOperators", "ScalableProcessNoise", "check_model", "measurement_cov",
+           "model_fingerprint", "physical_parameters", "n_parameters", "scaled_process_noise"]
 
 
 @runtime_checkable
@@ -150,6 +150,16 @@ class OutputOperators(Protocol):
         """``{name: (k, n_restart) matrix}``, in model coordinates."""
 
 
+@runtime_checkable
+class ScalableProcessNoise(Protocol):
+    """Optional, needed to estimate the process noise level from the data
+    (``IteratedSmoother(process_noise="estimate")``): no fallback."""
+
+    def with_process_noise(self, scale: float) -> object:
+        """The same model with every process noise covariance multiplied by ``scale`` (> 0):
+        ``Q`` becomes ``scale * Q``; everything else, the fingerprint aside, is unchanged."""
+
+
 def check_model(model, name: str = "model"):
     """Raise ``TypeError`` naming ``name`` and the missing members unless ``model`` satisfies
     :class:`FilterModel`."""
@@ -182,6 +192,16 @@ def physical_parameters(model, theta) -> np.ndarray:
     if isinstance(model, PhysicalParameters):
         return np.asarray(model.physical_parameters(theta), float)
     return np.asarray(theta, float)
+
+
+def scaled_process_noise(model, scale: float):
+    """``model.with_process_noise(scale)`` of a :class:`ScalableProcessNoise` model; ``TypeError``
+    naming the model's type otherwise."""
+    if not isinstance(model, ScalableProcessNoise):
+        raise TypeError(f"model: estimating the process noise level needs a model with "
+                        f"with_process_noise(scale) (sfem_filters.filtering.ScalableProcessNoise), got a "
+                        f"{type(model).__name__} without it")
+    return model.with_process_noise(scale)
 
 
 def n_parameters(model) -> int:
