@@ -506,7 +506,9 @@ class IteratedSmoother:
                     new_cost, found = profile(theta_bar + step, z)
                     gain = (cost - new_cost) / max(predicted, 1e-300)
                     if new_cost < cost:
-                        lam *= max(1.0 / 3.0, 1.0 - (2.0 * gain - 1.0) ** 3)
+                        # Nielsen's factor; a gain ratio >= 1 (also a vanishing predicted decrease,
+                        # where the ratio overflows) gives its floor 1/3
+                        lam *= 1.0 / 3.0 if gain >= 1.0 else max(1.0 / 3.0, 1.0 - (2.0 * gain - 1.0) ** 3)
                         nu = 2.0
                         break
                     # line search: the minimum of the quadratic through J(0), J'(0) and J(1), in [0.1, 0.5]
