@@ -322,6 +322,12 @@ CASES = [
      r"load_matrix: expected shape \(18, any\), got shape \(5, 1\)"),
     ("effect_score one frame", lambda: diagnostics.effect_score(good_model(), one_frame_history(), np.zeros((18, 1))), V,
      r"history: expected at least 2 frames in the loop, got 1"),
+    ("effect_score time courses shape", lambda: diagnostics.effect_score(good_model(), history(), np.zeros((18, 1)),
+                                                                         time_courses=np.ones(3)), V,
+     r"time_courses: expected shape \(n_frames >= \d+, m >= 1\), got \(3,\)"),
+    ("effect_score time courses NaN", lambda: diagnostics.effect_score(
+        good_model(), history(), np.zeros((18, 1)), time_courses=np.full((50, 1), NAN)), V,
+     r"time_courses: expected finite values, got NaN or inf"),
     ("chi2_logsf q", lambda: diagnostics.chi2_logsf(-1.0, 3), V, r"q: expected a non-negative finite number, got -1.0"),
     ("chi2_z df", lambda: diagnostics.chi2_z(3.0, 2.5), V, r"df: expected an integer >= 0, got 2.5"),
 ]

@@ -106,15 +106,25 @@ def whiteness(history, loop: int | None = None, max_lag: int = 5) -> dict:
             "p_value": float(stats.chi2.sf(Q, max_lag)), "lag1": float(rho[0]) if len(rho) else np.nan}
 
 
-def effect_score(model, history, load_matrix, loop: int | None = None) -> dict:
-    """Score (Lagrange-multiplier) test of a missing load term ``G a_t`` with free amplitudes.
+def effect_score(model, history, load_matrix, loop: int | None = None, time_courses=None) -> dict:
+    """Score (Lagrange-multiplier) test of a missing load term ``G a_t``.
 
     Under the fitted model, an undeclared load ``G a_t`` held over the interval into frame t
-    adds ``J_t a_t`` to the innovation, ``J_t = H_t B G``. The LM statistic for ``a_t = 0``
-    is ``sum_t e_t^T S_t^-1 J_t (J_t^T S_t^-1 J_t)^-1 J_t^T S_t^-1 e_t ~ chi2(k T)`` (k
-    amplitudes, T frames); the score is ``-log10 p`` (so candidates with different numbers
-    of amplitudes compare by their evidence, more amplitudes costing more), and ``explained``
-    the share of the total NIS the term can absorb.
+    adds ``J_t a_t`` to the innovation, ``J_t = H_t B G``. With free amplitudes (the default),
+    the LM statistic for ``a_t = 0`` is ``sum_t e_t^T S_t^-1 J_t (J_t^T S_t^-1 J_t)^-1 J_t^T
+    S_t^-1 e_t ~ chi2(k T)`` (k amplitudes, T frames).
+
+    With ``time_courses`` (frames, m) the amplitudes are tied to given shapes in time,
+    ``a_t = C s_t`` with the k x m coefficients C unknown: the term is ``(J_t kron s_t^T)
+    vec C``, its score ``g = sum_t (J_t kron s_t)^T S_t^-1 e_t``, its information ``I = sum_t
+    (J_t kron s_t)^T S_t^-1 (J_t kron s_t)``, and ``LM = g^T I^+ g ~ chi2(rank I)`` (at most k m
+    dof instead of k T). The alternative is narrower, so the test is far more powerful against
+    a missing term that follows one of the shapes, for example a regional variation of an effect
+    already in the model, which moves with that effect's time course.
+
+    The score is ``-log10 p`` (so candidates with different numbers of amplitudes compare by
+    their evidence, more amplitudes costing more), and ``explained`` the share of the total NIS
+    the term can absorb.
 
     Parameters
     ----------
@@ -123,16 +133,27 @@ def effect_score(model, history, load_matrix, loop: int | None = None) -> dict:
     load_matrix : array
         The candidate's load per unit amplitude, in the model's load representation (for the
         SFEM model: global nodal loads in N, (n_dofs, k)).
+    time_courses : array (n_frames, m), optional
+        Shapes in time of the amplitudes (dimensionless), indexed by frame number; finite.
     """
     rows = _rows(history, loop, min_frames=2)
     if not isinstance(model, LoadResponse):
         raise TypeError(f"model: expected a model with load_response(load_matrix, z) (the score test needs the "
                         f"observation's response to a load), got a {type(model).__name__} without it")
+    frames = np.asarray(history.frame)[rows]
+    if time_courses is not None:
+        time_courses = np.asarray(time_courses, float)
+        if time_courses.ndim != 2 or time_courses.shape[0] <= frames.max() or time_courses.shape[1] == 0:
+            raise ValueError(f"time_courses: expected shape (n_frames >= {frames.max() + 1}, m >= 1), got "
+                             f"{time_courses.shape}")
+        if not np.all(np.isfinite(time_courses)):
+            raise ValueError("time_courses: expected finite values, got NaN or inf")
     last = history.x[rows[-1]]
     J_all = np.asarray(model.load_response(load_matrix, last), float)
     lm, df, total = 0.0, 0, 0.0
-    for r in rows:
-        if history.frame[r] == 0:
+    g_sum = info_sum = None
+    for r, t in zip(rows, frames):
+        if t == 0:
             continue  # the first frame follows no interval
         e = np.asarray(history.innovation[r], float)
         mask = ~np.isnan(e)
@@ -141,13 +162,20 @@ def effect_score(model, history, load_matrix, loop: int | None = None) -> dict:
         S = np.asarray(history.S[r], float)[np.ix_(mask, mask)]
         cho = sla.cho_factor(S)
         Sie = sla.cho_solve(cho, e[mask])
-        J = J_all[mask]
+        J = J_all[mask] if time_courses is None else np.kron(J_all[mask], time_courses[t][None, :])
         g = J.T @ Sie
         info = J.T @ sla.cho_solve(cho, J)
-        lm += float(g @ np.linalg.lstsq(info, g, rcond=None)[0])
-        df += np.linalg.matrix_rank(info)
         total += float(e[mask] @ Sie)
-    logp = chi2_logsf(lm, df)
+        if time_courses is None:
+            lm += float(g @ np.linalg.lstsq(info, g, rcond=None)[0])
+            df += np.linalg.matrix_rank(info)
+        else:
+            g_sum = g if g_sum is None else g_sum + g
+            info_sum = info if info_sum is None else info_sum + info
+    if g_sum is not None:
+        lm = float(g_sum @ np.linalg.lstsq(info_sum, g_sum, rcond=None)[0])
+        df = int(np.linalg.matrix_rank(info_sum))
+    logp = chi2_logsf(max(lm, 0.0), df)
     return {"lm": lm, "df": int(df), "score": float(-logp / np.log(10.0)), "p_value": float(np.exp(logp)),
             "explained": lm / total if total else 0.0}
 
@@ -186,12 +214,25 @@ def chi2_z(q: float, df: int) -> float:
     return float(((q / df) ** (1.0 / 3.0) - (1.0 - a)) / np.sqrt(a))
 
 
-def rank_effects(model, history, candidates, loop: int | None = None) -> list:
-    """Score each candidate ``(name, load_matrix)`` and sort, best explanation first."""
+def rank_effects(model, history, candidates, loop: int | None = None, time_courses=None) -> list:
+    """Score each candidate ``(name, load_matrix)`` and sort, best explanation first.
+
+    Each candidate gets the free-amplitude test of :func:`effect_score`; with ``time_courses``
+    also the test of amplitudes tied to those shapes, and its score is the larger of the two
+    (``test``: ``"per frame"`` or ``"time courses"``; both in ``score_per_frame`` and
+    ``score_time_courses``). ``n_tests`` is the number of tests made for the candidate (1 or 2),
+    for a multiplicity correction.
+    """
     out = []
     for name, G in candidates:
         s = effect_score(model, history, G, loop)
-        out.append({"effect": name, **s})
+        entry = {"effect": name, **s, "test": "per frame", "score_per_frame": s["score"], "n_tests": 1}
+        if time_courses is not None:
+            c = effect_score(model, history, G, loop, time_courses)
+            entry.update(score_time_courses=c["score"], n_tests=2)
+            if c["score"] > s["score"]:
+                entry.update(c, test="time courses")
+        out.append(entry)
     return sorted(out, key=lambda d: -d["score"])
 
 

@@ -26,9 +26,12 @@ exactly a Gauss-Newton step on J. Two things make the steps robust:
 
 Each iteration relinearises at the optimal trajectory of the last accepted theta and restarts
 from the prior. The run stops when an accepted step moves the material by less than ``tol``
-(relative, physical units) and by less than ``sd_tol`` posterior standard deviations, when the
-cost stops falling (an accepted decrease below ``cost_tol``, or no damping makes it fall), or at
-``max_iterations``. The reported posterior is the Laplace
+(relative, physical units) and by less than ``sd_tol`` posterior standard deviations (the step
+taken and the undamped one alike), when the cost stops falling (an accepted decrease below
+``cost_tol`` with a Newton decrement below it too, or no damping makes it fall), or at
+``max_iterations``. No damping lowering the cost while the model still predicts a decrease is
+reported as stuck (``"damping"``), not converged. A secant correction that makes the quadratic
+model indefinite is dropped instead of being covered by a larger damping. The reported posterior is the Laplace
 approximation at the mode: the mode itself, and the covariance of an undamped pass linearised
 there (the inverse Gauss-Newton Hessian), with smoothed marginal variances of the kinematics
 and of the model's output operators (strains).
@@ -207,11 +210,15 @@ class SmootherResult:
         Accepted Gauss-Newton steps.
     converged : bool
     stop_reason : str
-        ``"step"`` (the material step met the stop rule), ``"cost"`` (no damping made the cost
-        fall any more), ``"max_iterations"`` or ``"no parameters"``.
+        ``"step"`` (the material step met the stop rule), ``"cost"`` (the cost stopped falling
+        and the model predicts no more), ``"damping"`` (no damping made the cost fall while the
+        model still predicted a decrease: stuck, not converged), ``"max_iterations"`` or
+        ``"no parameters"``.
     records : list of dict
         Per accepted iteration: ``cost``, ``damping``, ``rejected`` (damped retries),
-        ``rel_change``, ``step_sd`` (max over parameters of |step| / posterior sd), ``seconds``.
+        ``rel_change``, ``step_sd`` (max over parameters of |step| / posterior sd),
+        ``full_step_sd`` (the same for the undamped step), ``newton_decrement`` (nats),
+        ``seconds``.
     history : History
         One row per frame (loop 0): the smoothed mean of the final pass, its marginal variances,
         and the forward pass's innovations, S and NIS (for the diagnostics).
@@ -270,16 +277,21 @@ class IteratedSmoother:
     tol : float
         Relative change of the physical parameters below which a step may end the run (> 0).
     sd_tol : float
-        ... and its largest component in posterior standard deviations (> 0).
+        ... and its largest component in posterior standard deviations (> 0), for the step taken
+        and for the undamped step of the quadratic model from the same point (a step shortened by
+        a large damping says nothing about the distance to the mode).
     cost_tol : float
-        An accepted step that lowers the MAP cost by less than this (nats, > 0) ends the run: the
-        cost has stopped falling. The default is ``sd_tol^2 / 2``, what a move of ``sd_tol``
-        posterior sd along one parameter changes the cost by near the mode.
+        An accepted step that lowers the MAP cost by less than this (nats, > 0), when the undamped
+        quadratic model also predicts less (its Newton decrement ``g^T H^-1 g / 2``), ends the
+        run: the cost has stopped falling. The default is ``sd_tol^2 / 2``, what a move of
+        ``sd_tol`` posterior sd along one parameter changes the cost by near the mode.
     damping : float
         Initial Levenberg-Marquardt lambda, in units of the prior precision of theta (>= 0;
         0 starts with an undamped Gauss-Newton step).
     max_damping : float
-        A step rejected at this damping ends the run: the cost no longer falls.
+        A step rejected at this damping ends the run: converged (``"cost"``) if the undamped
+        quadratic model predicts a decrease below ``cost_tol`` too, else stuck (``"damping"``,
+        reported as not converged).
     covariance : bool
         Compute the smoothed marginal variances of the kinematics and of the model's output
         operators in the final pass (O(k n^2) a frame per output).
@@ -494,6 +506,19 @@ class IteratedSmoother:
                 del fwd, lin                        # n^2 floats a frame: not needed for the trials
                 S = secant.update(H, g)
                 H_model = H + S
+                try:
+                    cho_model = sla.cho_factor(H_model, lower=True)
+                except np.linalg.LinAlgError:
+                    # the secant correction made the model indefinite: drop it rather than let the
+                    # damping grow to cover it (a large lambda shortens the steps, not the distance)
+                    secant.S[:] = 0.0
+                    H_model = H
+                    cho_model = sla.cho_factor(H, lower=True)
+                # the undamped step of the quadratic model and its predicted decrease (the Newton
+                # decrement): how far the mode still is, whatever the damping does to the step taken
+                full = -sla.cho_solve(cho_model, g)
+                full_sd = float(np.max(np.abs(full) / np.sqrt(np.diag(P_theta))))
+                newton_decrement = float(-0.5 * g @ full)
                 rejected = 0
                 while True:
                     try:
@@ -521,7 +546,9 @@ class IteratedSmoother:
                         break
                     rejected += 1
                     if lam >= self.max_damping:
-                        stop = "cost"
+                        # no damping lowers the cost: the end, converged only if the model also
+                        # predicts no worthwhile decrease (else the run is stuck, and says so)
+                        stop = "cost" if newton_decrement < self.cost_tol else "damping"
                         break
                     lam, nu = max(lam, 1e-3) * nu, 2.0 * nu
                 if stop:
@@ -535,12 +562,14 @@ class IteratedSmoother:
                 records.append({"iteration": len(records) + 1, "cost": new_cost, "decrease": cost - new_cost,
                                 "damping": lam_used, "step_length": alpha, "gain_ratio": float(gain), "rejected": rejected,
                                 "rel_change": rel, "step_sd": step_sd, "max_abs_step": float(np.max(np.abs(taken))),
-                                "seconds": 0.0})
+                                "full_step_sd": full_sd, "newton_decrement": newton_decrement, "seconds": 0.0})
                 z, cost = trajectory(found), new_cost
                 records[-1]["seconds"] = time.perf_counter() - t0
-                if rel < self.tol and step_sd < self.sd_tol:
+                # the rules judge the undamped step too: a step shortened by a large lambda says
+                # nothing about the distance to the mode
+                if rel < self.tol and step_sd < self.sd_tol and full_sd < self.sd_tol:
                     stop = "step"
-                elif records[-1]["decrease"] < self.cost_tol:
+                elif records[-1]["decrease"] < self.cost_tol and newton_decrement < self.cost_tol:
                     stop = "cost"
                 if checkpoint is not None:
                     keys = list(records[0])

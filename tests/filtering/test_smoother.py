@@ -161,6 +161,19 @@ def test_pinned_smoother_converges_with_falling_cost_and_matches_the_exact_margi
     assert check.kl < 0.01
 
 
+def test_a_step_shortened_by_damping_does_not_end_the_run(pinned):
+    """Started with a huge damping (1e8 prior precisions), the first step is tiny (below 0.1 sd)
+    while the undamped step of the model is tens of sd: the run goes on to the default run's mode
+    instead of stopping at the prior and calling it converged."""
+    m = benchmark_model(pinned, "joint_ekf", parameterisation=Parameterisation.per_region(pinned.middle))
+    ref = IteratedSmoother().run(m, pinned.observations)
+    res = IteratedSmoother(damping=1e8, max_damping=1e12, max_iterations=60).run(m, pinned.observations)
+    first = res.records[0]
+    assert first["step_sd"] < 0.1 and first["rel_change"] < 1e-3 and first["full_step_sd"] > 10
+    assert res.converged and res.iterations > 1
+    assert np.max(np.abs(res.theta - ref.theta) / np.sqrt(np.diag(ref.P_theta))) < 0.01
+
+
 def test_damped_smoother_converges_where_undamped_gauss_newton_does_not():
     """A region map on an annulus whose motion holds an undeclared active stress (the misspecified
     baseline of the measured slice, in small): undamped Gauss-Newton (relinearise at each pass's
