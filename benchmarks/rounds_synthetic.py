@@ -75,6 +75,11 @@ def main(argv=None):
             k = names.index("active_segments[4]")
             extra = (f"segment 2 at peak: a_c {st[peak, k]:+.3f} +- {sd[peak, k]:.3f}, a_r {st[peak, k + 1]:+.3f} +- "
                      f"{sd[peak, k + 1]:.3f} (truth 0); segment 0: a_r {st[peak, 1]:+.3f} (truth -0.3)")
+        for r in out.rounds[1:]:
+            entry = next((e for e in (r.ranking or []) if e["effect"] == "active_segments"), None)
+            if r.added == "active_segments" and entry is not None:
+                extra += (f"; active_segments in round {r.number}: per frame {entry['score_per_frame']:.2f}, "
+                          f"tied {entry.get('score_time_courses', float('nan')):.2f} (-log10 p)")
         _row("akinetic segment 2", out, extra)
     if "clean" in args.cases:
         for seed in range(4):

@@ -136,6 +136,14 @@ def effect_score(model, history, load_matrix, loop: int | None = None, time_cour
     time_courses : array (n_frames, m), optional
         Shapes in time of the amplitudes (dimensionless), indexed by frame number; finite.
     """
+    tests = _score_tests(model, history, load_matrix, loop, time_courses)
+    return tests["free"] if time_courses is None else tests["tied"]
+
+
+def _score_tests(model, history, load_matrix, loop, time_courses) -> dict:
+    """The free test (``"free"``) and, with ``time_courses``, the tied one (``"tied"``) of
+    :func:`effect_score` from one pass over the frames: the tied score and information are the
+    free ones per frame times ``s_t`` and ``s_t s_t^T`` (Kronecker products)."""
     rows = _rows(history, loop, min_frames=2)
     if not isinstance(model, LoadResponse):
         raise TypeError(f"model: expected a model with load_response(load_matrix, z) (the score test needs the "
@@ -148,10 +156,9 @@ def effect_score(model, history, load_matrix, loop: int | None = None, time_cour
                              f"{time_courses.shape}")
         if not np.all(np.isfinite(time_courses)):
             raise ValueError("time_courses: expected finite values, got NaN or inf")
-    last = history.x[rows[-1]]
-    J_all = np.asarray(model.load_response(load_matrix, last), float)
+    J_all = np.asarray(model.load_response(load_matrix, history.x[rows[-1]]), float)
     lm, df, total = 0.0, 0, 0.0
-    g_sum = info_sum = None
+    g_tied = info_tied = 0.0
     for r, t in zip(rows, frames):
         if t == 0:
             continue  # the first frame follows no interval
@@ -162,22 +169,30 @@ def effect_score(model, history, load_matrix, loop: int | None = None, time_cour
         S = np.asarray(history.S[r], float)[np.ix_(mask, mask)]
         cho = sla.cho_factor(S)
         Sie = sla.cho_solve(cho, e[mask])
-        J = J_all[mask] if time_courses is None else np.kron(J_all[mask], time_courses[t][None, :])
+        J = J_all[mask]
         g = J.T @ Sie
         info = J.T @ sla.cho_solve(cho, J)
+        lm += float(g @ np.linalg.lstsq(info, g, rcond=None)[0])
+        df += np.linalg.matrix_rank(info)
         total += float(e[mask] @ Sie)
-        if time_courses is None:
-            lm += float(g @ np.linalg.lstsq(info, g, rcond=None)[0])
-            df += np.linalg.matrix_rank(info)
+        if time_courses is not None:
+            s_t = time_courses[t]
+            g_tied = g_tied + np.kron(g, s_t)
+            info_tied = info_tied + np.kron(info, np.outer(s_t, s_t))
+
+    def result(lm, df):
+        logp = chi2_logsf(max(lm, 0.0), df)
+        return {"lm": lm, "df": int(df), "score": float(-logp / np.log(10.0)), "p_value": float(np.exp(logp)),
+                "explained": lm / total if total else 0.0}
+
+    out = {"free": result(lm, df)}
+    if time_courses is not None:
+        if np.ndim(info_tied) == 2:
+            out["tied"] = result(float(g_tied @ np.linalg.lstsq(info_tied, g_tied, rcond=None)[0]),
+                                 np.linalg.matrix_rank(info_tied))
         else:
-            g_sum = g if g_sum is None else g_sum + g
-            info_sum = info if info_sum is None else info_sum + info
-    if g_sum is not None:
-        lm = float(g_sum @ np.linalg.lstsq(info_sum, g_sum, rcond=None)[0])
-        df = int(np.linalg.matrix_rank(info_sum))
-    logp = chi2_logsf(max(lm, 0.0), df)
-    return {"lm": lm, "df": int(df), "score": float(-logp / np.log(10.0)), "p_value": float(np.exp(logp)),
-            "explained": lm / total if total else 0.0}
+            out["tied"] = result(0.0, 0)
+    return out
 
 
 def chi2_logsf(q: float, df: int) -> float:
@@ -225,10 +240,11 @@ def rank_effects(model, history, candidates, loop: int | None = None, time_cours
     """
     out = []
     for name, G in candidates:
-        s = effect_score(model, history, G, loop)
+        tests = _score_tests(model, history, G, loop, time_courses)
+        s = tests["free"]
         entry = {"effect": name, **s, "test": "per frame", "score_per_frame": s["score"], "n_tests": 1}
         if time_courses is not None:
-            c = effect_score(model, history, G, loop, time_courses)
+            c = tests["tied"]
             entry.update(score_time_courses=c["score"], n_tests=2)
             if c["score"] > s["score"]:
                 entry.update(c, test="time courses")
