@@ -118,6 +118,13 @@ def build_parser() -> argparse.ArgumentParser:
                    help="most rounds (effects or corrections added) of --effects auto (default 5)")
     d.add_argument("--alpha", type=_positive_float, default=0.01,
                    help="family-wise level of the candidates' score tests, Bonferroni-corrected (default 0.01)")
+    d.add_argument("--criterion", choices=("evidence", "cv"), default="evidence",
+                   help="what a candidate must improve to be kept: evidence, log p(y) of the observed points "
+                        "(default); cv, the K-fold cross-validation error over the observed points (each fold "
+                        "neither drives nor is observed)")
+    d.add_argument("--folds", type=_positive_int, default=4,
+                   help="folds of the cross-validation over the observed points, reported for every round "
+                        "(default 4, at least 2)")
     d.add_argument("--json", metavar="PATH", help="write the report as JSON")
     d.add_argument("--figures", metavar="DIR", help="write the figures (PNG) into DIR")
     d.add_argument("--export", metavar="DIR", help="write ParaView time series (.pvd + .vtu) into DIR")
@@ -212,7 +219,7 @@ def cmd_dense(args) -> int:
     config = dict(effects=args.effects, drive=args.drive, landmarks=args.landmarks, observe=args.observe,
                   holdout_seed=args.holdout_seed, parameterisation=args.parameterisation, max_loops=args.max_loops,
                   estimator=args.estimator, max_iterations=args.max_iterations, max_rounds=args.max_rounds,
-                  alpha=args.alpha)
+                  alpha=args.alpha, criterion=args.criterion, folds=args.folds)
     if _batch_mode(args, len(args.path)):
         from .batch import dense_jobs, describe_record, merge_timing
         jobs = dense_jobs(args.path, figures=args.figures, export=args.export, **config)

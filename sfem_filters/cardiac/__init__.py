@@ -22,6 +22,7 @@ directions, landmarks), :mod:`~sfem_filters.cardiac.effects` (the catalogue of m
 effects), :mod:`~sfem_filters.cardiac.measured` (set-up, model, runs, evaluation),
 :mod:`~sfem_filters.cardiac.closing` (residual diagnosis, effects and corrections added in rounds),
 :mod:`~sfem_filters.cardiac.reference` (the thin-plate-spline yardstick),
+:mod:`~sfem_filters.cardiac.crossval` (cross-validation over the observed points),
 :mod:`~sfem_filters.cardiac.frontend` (images to a sequence, fusion),
 :mod:`~sfem_filters.cardiac.annulus` (synthetic sequences with a known answer).
 """
@@ -35,6 +36,7 @@ from .closing import (
                        format_report,
                        log_evidence,
 )
+from .crossval import cross_validate, observation_folds, spline_cross_validation
 from .effects import CATALOGUE, Effect, build_effects
 from .frontend import compare_fusion, fusion_setup, observe
 from .measured import (
@@ -73,5 +75,6 @@ __all__ = ["Sequence", "make_sequence", "load_sequence", "save_sequence", "examp
            "build_effects", "NOMINAL", "PARAMETERISATIONS", "DRIVES", "OBSERVE", "Setup", "Run", "prepare",
            "build_model", "run", "evaluate", "noise_floor", "strain_maps", "measured_wall_kinematics",
            "LoopResult", "Round", "Variant", "closing_the_loop", "candidate_loads", "format_report", "log_evidence",
-           "spline_reference", "contour_interpolant", "observe", "fusion_setup",
+           "spline_reference", "contour_interpolant", "cross_validate", "observation_folds",
+           "spline_cross_validation", "observe", "fusion_setup",
            "compare_fusion", "annulus_mask", "annulus_sequence", "deformed_masks"]

@@ -13,13 +13,17 @@ one only if
     likelihood, which the iterated smoother's final pass gives by the prediction-error
     decomposition).
 
-The evidence is the criterion rather than cross-validation over the observed points because the
-observed points are few (16 landmarks on the shipped slice: leaving some out changes the drive
-itself) and because it already carries its own Occam penalty: an effect's amplitudes are random
-walks with a prior, integrated out, so a term that does not explain the data lowers ``log p(y)``
-(Laplace's approximation is the origin of BIC, without BIC's count of "free parameters" that
-random-walk states do not have). A significant candidate that fails (b) is set aside and the
-next significant one is fitted (at most ``max_tries`` fits per round).
+The evidence is the default criterion because it carries its own Occam penalty: an effect's
+amplitudes are random walks with a prior, integrated out, so a term that does not explain the
+data lowers ``log p(y)`` (Laplace's approximation is the origin of BIC, without BIC's count of
+"free parameters" that random-walk states do not have). It scores the one-frame-ahead prediction
+of the observed points, not the interpolation between them that held-out points measure; with
+``criterion="cv"`` (b) is instead a fall of the K-fold cross-validation error over the observed
+points by more than ``min_cv_gain`` of it (:mod:`sfem_filters.cardiac.crossval`: each fold's
+points neither drive nor are observed, and are predicted by the smoothed kinematics of the
+rest). Every round's model is cross-validated either way, beside the spline's cross-validation
+on the same folds, so a report shows both criteria. A significant candidate that fails (b) is
+set aside and the next significant one is fitted (at most ``max_tries`` fits per round).
 
 Once the model has effects, every candidate gets two score tests, both counted in m: one with a
 free amplitude in every frame, and one with its amplitudes tied to a constant and the current
@@ -62,13 +66,19 @@ import numpy as np
 
 from .._validate import integer, non_negative
 from ..filtering import diagnostics
+from .crossval import DEFAULT_FOLDS, cross_validate, spline_cross_validation
 from .effects import CATALOGUE, build_effects
 from .measured import (NOMINAL, Run, Setup, equivalent_eigenstrain, measured_wall_kinematics, prepare, run)
 from .reference import spline_reference
 from .sequence import Sequence
 
 __all__ = ["LoopResult", "Round", "Variant", "closing_the_loop", "candidate_loads", "spans", "log_evidence", "format_report",
-           "DRIVE_CORRECTIONS", "time_courses"]
+           "DRIVE_CORRECTIONS", "time_courses", "CRITERIA", "round_cross_validation"]
+
+#: What decides whether a candidate is kept (``criterion=``, ``--criterion``): the evidence
+#: ``log p(y)`` of the observed points, or K-fold cross-validation over them
+#: (:mod:`sfem_filters.cardiac.crossval`).
+CRITERIA = ("evidence", "cv")
 
 _SPAN_TOL = 1e-6
 
@@ -167,6 +177,9 @@ class Round:
         evidence gain (nats), accepted.
     log_evidence : float
         The round's model's ``log p(y)`` (nats).
+    cv : dict or None
+        The round's model's cross-validation over the observed points
+        (:func:`round_cross_validation`).
     """
 
     number: int
@@ -178,6 +191,7 @@ class Round:
     threshold: float = np.nan
     tried: list = field(default_factory=list)
     log_evidence: float = np.nan
+    cv: dict | None = None
 
     @property
     def effects(self) -> tuple:
@@ -188,7 +202,7 @@ class Round:
         return {"round": self.number, **self.variant.as_json(), "added": self.added,
                 "replaced": list(self.replaced), "log_evidence": self.log_evidence,
                 "threshold": None if not np.isfinite(self.threshold) else float(self.threshold),
-                "tried": list(self.tried),
+                "tried": list(self.tried), "cross_validation": self.cv,
                 "ranking": _ranking_json(self.ranking),
                 **{k: m[k] for k in _ROUND_KEYS}}
 
@@ -215,8 +229,8 @@ class LoopResult:
     rounds : list of Round
         The baseline (round 0) and every round that added an effect, in order.
     stop_reason : str
-        Why the rounds ended: ``"no significant candidate"``, ``"evidence"`` (significant
-        candidates did not raise the evidence), ``"max_rounds"``, ``"given"`` (effects named by
+        Why the rounds ended: ``"no significant candidate"``, ``"evidence"`` or ``"cv"`` (significant
+        candidates did not improve the criterion), ``"max_rounds"``, ``"given"`` (effects named by
         the user) or ``"none"``.
     ranking : list of dict
         Score test of every candidate on the baseline innovations, best first.
@@ -312,6 +326,16 @@ def log_evidence(r: Run) -> float:
     return float(r.metrics["log_evidence"])
 
 
+def round_cross_validation(setup: Setup, variant: Variant, r: Run, folds: int = DEFAULT_FOLDS) -> dict:
+    """Cross-validation over the observed points of a round's model (:func:`sfem_filters.cardiac.crossval.cross_validate`)
+    with its material at the run's estimate; plain values (no predictions), data units."""
+    mat = r.model.material_of_theta(r.result.theta) if r.model.estimates_material else r.model.material
+    cv = cross_validate(setup, mat, variant.effects, variant.drive, folds, drive_trend=variant.drive_trend,
+                        effect_rates=variant.effect_rates, process_scale=variant.process_scale,
+                        spring_scale=variant.spring_scale)
+    return {k: cv[k] for k in ("rmse_px", "rmse_radial_px", "rmse_circumferential_px", "per_fold_px")}
+
+
 def _fit(setup, variant: Variant, opts) -> Run:
     return run(setup, variant.effects, variant.drive, name=variant.label(variant.drive), effect_rates=variant.effect_rates,
                drive_trend=variant.drive_trend, process_scale=variant.process_scale,
@@ -369,7 +393,8 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
                      max_loops: int = 5, progress: bool = False, estimator: str = "smoother",
                      max_iterations: int = 20, max_rounds: int = 5, alpha: float = 0.01,
                      min_evidence: float = 0.0, max_tries: int = 2, candidates=None,
-                     corrections: bool = True) -> LoopResult:
+                     corrections: bool = True, criterion: str = "evidence", folds: int = DEFAULT_FOLDS,
+                     min_cv_gain: float = 0.01) -> LoopResult:
     """Baseline run, then rounds of ranking and adding effects (module docstring), with the spline
     reference.
 
@@ -398,7 +423,20 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
     corrections : bool
         Also try corrections of the drive and of the effects' dynamics (:func:`_corrections`)
         when no effect passes a round.
+    criterion : {"evidence", "cv"}
+        What a candidate must improve to be kept (:data:`CRITERIA`): ``log p(y)`` by more than
+        ``min_evidence`` nats, or the ``folds``-fold cross-validation RMSE over the observed
+        points by more than the fraction ``min_cv_gain`` of its current value. Either way every
+        round's model is also cross-validated, and the report gives both.
+    folds : int
+        Folds of the cross-validation (>= 2, :func:`sfem_filters.cardiac.crossval.observation_folds`).
+    min_cv_gain : float
+        Least relative fall of the cross-validation RMSE (>= 0) with ``criterion="cv"``.
     """
+    if criterion not in CRITERIA:
+        raise ValueError(f"criterion: expected one of {CRITERIA}, got {criterion!r}")
+    min_cv_gain = non_negative("min_cv_gain", min_cv_gain)
+    folds = integer("folds", folds, 2)
     max_rounds = integer("max_rounds", max_rounds, 1)
     max_tries = integer("max_tries", max_tries, 1)
     min_evidence = non_negative("min_evidence", min_evidence)
@@ -414,7 +452,25 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
     start = Variant(drive=drive)
     base = _fit(setup, start, opts)
     last = {}
-    rounds = [Round(0, start, None, (), base, log_evidence=log_evidence(base))]
+    rounds = [Round(0, start, None, (), base, log_evidence=log_evidence(base),
+                    cv=round_cross_validation(setup, start, base, folds))]
+
+    def judged(cur: Round, variant: Variant, trial: Run) -> tuple:
+        """(gain, kept?, entry, cv) of a fitted candidate under the criterion."""
+        gain = log_evidence(trial) - cur.log_evidence
+        cv = round_cross_validation(setup, variant, trial, folds) if criterion == "cv" else None
+        entry = {"evidence_gain": float(gain)}
+        if criterion == "cv":
+            cv_gain = cur.cv["rmse_px"] - cv["rmse_px"]
+            entry.update({"cv_rmse_px": cv["rmse_px"], "cv_gain_px": float(cv_gain)})
+            gain, ok = cv_gain, bool(np.isfinite(cv_gain) and cv_gain > min_cv_gain * cur.cv["rmse_px"])
+        else:
+            ok = bool(np.isfinite(gain) and gain > min_evidence)
+        return float(gain), ok, entry, cv
+
+    def kept(number, variant, added, replaced, trial, ranking, threshold, tried, cv) -> Round:
+        return Round(number, variant, added, replaced, trial, ranking, threshold, tried, log_evidence(trial),
+                     cv if cv is not None else round_cross_validation(setup, variant, trial, folds))
     loads = dict(candidate_loads(setup, names))
     if isinstance(effects, str) and effects not in ("auto", "none"):
         effects = [e.strip() for e in effects.split(",") if e.strip()]
@@ -424,10 +480,9 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
     elif effects != "auto":
         chosen = start.with_(effects=tuple(effects))
         ext = _fit(setup, chosen, opts)
-        rounds.append(Round(1, chosen, ",".join(chosen.effects), (), ext, first, np.nan,
-                            [{"effect": ",".join(chosen.effects), "score": None,
-                              "evidence_gain": log_evidence(ext) - rounds[0].log_evidence, "accepted": True}],
-                            log_evidence(ext)))
+        rounds.append(kept(1, chosen, ",".join(chosen.effects), (), ext, first, np.nan,
+                           [{"effect": ",".join(chosen.effects), "score": None,
+                             "evidence_gain": log_evidence(ext) - rounds[0].log_evidence, "accepted": True}], None))
         stop = "given"
     else:
         stop, tests, rejected = "max_rounds", 0, set()
@@ -448,34 +503,33 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
                     break
                 replaced = tuple(e for e in cur.effects if spans(loads[cand["effect"]], loads[e]))
                 new = tuple(e for e in cur.effects if e not in replaced) + (cand["effect"],)
-                trial = _fit(setup, cur.variant.with_(effects=new), opts)
-                gain = log_evidence(trial) - cur.log_evidence
-                ok = bool(np.isfinite(gain) and gain > min_evidence)
+                variant = cur.variant.with_(effects=new)
+                trial = _fit(setup, variant, opts)
+                gain, ok, entry, cv = judged(cur, variant, trial)
                 tried.append({"effect": cand["effect"], "score": cand["score"], "test": cand.get("test", "per frame"),
-                              "evidence_gain": float(gain), "accepted": ok})
+                              **entry, "accepted": ok})
                 if ok:
-                    accepted = Round(number, cur.variant.with_(effects=new), cand["effect"], replaced, trial, ranking,
-                                     threshold, tried, log_evidence(trial))
+                    accepted = kept(number, variant, cand["effect"], replaced, trial, ranking, threshold, tried, cv)
                     break
                 rejected.add(cand["effect"])
             if corrections and accepted is None:
                 # no effect passes: every correction of the model's own drive and priors that the
-                # residual points to is fitted, and the one with the largest evidence gain is kept
-                # if the evidence rises
+                # residual points to is fitted, and the one with the largest gain of the criterion
+                # is kept if the criterion improves
                 # (a correction that fails here is tried again on a later round's model)
                 best = None
                 for name, variant in _corrections(cur):
                     trial = _fit(setup, variant, opts)
-                    gain = log_evidence(trial) - cur.log_evidence
-                    tried.append({"effect": name, "score": None, "evidence_gain": float(gain), "accepted": False})
-                    if np.isfinite(gain) and gain > min_evidence and (best is None or gain > best[0]):
-                        best = (gain, name, variant, trial, len(tried) - 1)
+                    gain, ok, entry, cv = judged(cur, variant, trial)
+                    tried.append({"effect": name, "score": None, **entry, "accepted": False})
+                    if ok and (best is None or gain > best[0]):
+                        best = (gain, name, variant, trial, len(tried) - 1, cv)
                 if best is not None:
-                    gain, name, variant, trial, k = best
+                    gain, name, variant, trial, k, cv = best
                     tried[k]["accepted"] = True
-                    accepted = Round(number, variant, name, (), trial, ranking, threshold, tried, log_evidence(trial))
+                    accepted = kept(number, variant, name, (), trial, ranking, threshold, tried, cv)
             if accepted is None:
-                stop = ("evidence" if any(t["score"] is not None for t in tried)
+                stop = (criterion if any(t["score"] is not None for t in tried)
                         else "no significant candidate")
                 last = {"ranking": ranking, "threshold": float(threshold), "tried": tried}
                 break
@@ -488,11 +542,16 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
               "n_heldout": int(len(setup.heldout)), "mesh_nodes": int(setup.mesh.n_nodes),
               "mesh_elements": int(setup.mesh.n_elements), "max_rounds": max_rounds, "alpha": float(alpha),
               "min_evidence": min_evidence, "max_tries": max_tries, "candidates": names,
-              "corrections": bool(corrections), "final": rounds[-1].variant.as_json()}
+              "corrections": bool(corrections), "criterion": criterion, "folds": folds,
+              "min_cv_gain": min_cv_gain, "final": rounds[-1].variant.as_json()}
     g = setup.geometry
     held = setup.node_of_point[setup.heldout]
     reference = spline_reference(seq.points, seq.displacement, setup.observed, setup.heldout,
                                  g.radial[held], g.circumferential[held])
+    spline_cv = spline_cross_validation(setup, folds)
+    reference["cross_validation"] = {k: spline_cv[k] for k in ("rmse_px", "rmse_radial_px", "rmse_circumferential_px",
+                                                               "per_fold_px")}
+    reference["cv_folds"] = spline_cv["folds"]
     return LoopResult(setup=setup, rounds=rounds, stop_reason=stop, ranking=first, last_attempt=last,
                       measured=measured_wall_kinematics(setup), reference=reference, config=config)
 
@@ -526,10 +585,13 @@ def format_report(result: "LoopResult") -> str:
     for r in report["ranking"]:
         lines.append(f"  {r['effect']:<24} {r['score']:9.1f}   LM = {r['lm']:9.1f} on {r['df']:3d} dof, "
                      f"explains {100 * r['explained']:5.1f}% of the NIS")
-    lines += ["", "rounds (each adds the best significant candidate while log p(y) rises; held-out points "
+    crit = ("log p(y) rises" if cfg.get("criterion", "evidence") == "evidence"
+            else f"the {cfg['folds']}-fold cross-validation error over the observed points falls")
+    lines += ["", f"rounds (each adds the best significant candidate while {crit}; CV: {cfg.get('folds')}-fold "
+              "cross-validation over the observed points, material at the full fit's mode; held-out points "
               "untouched until here):",
               f"  {'round':<6}{'model':<44}{'score':>8}{'need':>7}{'dlogp(y)':>10}{'NIS/dof':>9}{'lag-1':>7}"
-              f"{'held-out':>9}{'radial':>8}{'circ.':>8}"]
+              f"{'CV':>7}{'held-out':>9}{'radial':>8}{'circ.':>8}"]
     for r in report["rounds"]:
         tried = {t["effect"]: t for t in r["tried"]}
         t = tried.get(r["added"], {})
@@ -538,18 +600,22 @@ def format_report(result: "LoopResult") -> str:
         need = f"{r['threshold']:.1f}" if r["threshold"] is not None else "-"
         gain = f"{t['evidence_gain']:+.1f}" if "evidence_gain" in t else "-"
         label = _variant(r).label(cfg["drive"])
+        cv = f"{r['cross_validation']['rmse_px']:.3f}" if r.get("cross_validation") else "-"
         lines.append(f"  {r['round']:<6}{label:<44}{score:>8}{need:>7}{gain:>10}"
-                     f"{r['nis_mean_over_dof']:>9.3f}{r['innovation_lag1_autocorrelation']:>7.3f}"
+                     f"{r['nis_mean_over_dof']:>9.3f}{r['innovation_lag1_autocorrelation']:>7.3f}{cv:>7}"
                      f"{r['heldout_rmse_px']:>9.3f}{r['heldout_rmse_radial_px']:>8.3f}"
                      f"{r['heldout_rmse_circumferential_px']:>8.3f}")
     ref = report["spline_reference"]
-    lines.append(f"  {'-':<6}{'thin-plate spline, no physics':<44}{'':>8}{'':>7}{'':>10}{'':>9}{'':>7}"
+    cv = f"{ref['cross_validation']['rmse_px']:.3f}" if ref.get("cross_validation") else "-"
+    lines.append(f"  {'-':<6}{'thin-plate spline, no physics':<44}{'':>8}{'':>7}{'':>10}{'':>9}{'':>7}{cv:>7}"
                  f"{ref['heldout_rmse_px']:>9.3f}{ref['heldout_rmse_radial_px']:>8.3f}"
                  f"{ref['heldout_rmse_circumferential_px']:>8.3f}")
     if any(t.get("test") == "time courses" for r in report["rounds"] for t in r["tried"]):
         lines.append("  (t: score of the test with amplitudes tied to the current effects' time courses)")
     att = report["last_attempt"]
-    rejected = [f"{t['effect']} ({t['evidence_gain']:+.1f} nats)" for t in att["tried"] if not t["accepted"]]
+    rejected = [f"{t['effect']} ({t['evidence_gain']:+.1f} nats" + (f", CV {t['cv_gain_px']:+.3f} px)" if "cv_gain_px" in t
+                                                                  else ")")
+                for t in att["tried"] if not t["accepted"]]
     lines.append(f"  stopped: {report['stop_reason']}" + (
         f" (needed score > {att['threshold']:.1f}; best left "
         f"{att['ranking'][0]['effect']} {att['ranking'][0]['score']:.1f})" if att["ranking"] else "")

@@ -105,6 +105,9 @@ def noise_floor(displacement) -> float:
     """
     u = np.asarray(displacement, float)
     d2 = u[1:-1] - 0.5 * (u[:-2] + u[2:])
+    if not np.any(np.isfinite(d2)):
+        raise ValueError(f"displacement: the noise floor needs a point with data in 3 consecutive frames; got shape "
+                         f"{u.shape} with none")
     sigma = np.sqrt(np.nanmean(d2 ** 2) / 1.5)
     return float(np.sqrt(2.0) * sigma)
 
@@ -123,7 +126,7 @@ class Setup:
     landmarks: np.ndarray           # observed boundary landmark points (endo then epi)
     observed: np.ndarray            # all observed points
     heldout: np.ndarray             # points held out for validation
-    noise_px: float                 # per-point noise floor (data units)
+    noise_px: float                 # per-point noise floor (data units), from the observed points only
     n_landmarks: int
     observe: str
     holdout_seed: int
@@ -192,7 +195,7 @@ def prepare(seq: Sequence, landmarks: int = 8, observe: str = "boundary", holdou
     layer = (transmural_depth(mesh, geometry) > 0.5).astype(int)
     return Setup(seq=seq, spacing=spacing, frame_interval=T, nominal=nominal, mesh=mesh, geometry=geometry,
                  node_of_point=node_of_point, landmarks=lm, observed=observed, heldout=heldout,
-                 noise_px=noise_floor(seq.displacement), n_landmarks=landmarks, observe=observe,
+                 noise_px=noise_floor(seq.displacement[:, observed]), n_landmarks=landmarks, observe=observe,
                  holdout_seed=holdout_seed, regions=2 * sector + layer)
 
 

@@ -1,0 +1,139 @@
+"""Cross-validation over the observed points (issue 14): folds that partition and interleave, a
+fold predicted without any of its own data, the spline's exactness on affine motion, and the
+rounds' criterion."""
+import functools
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from hypothesis import given, settings, strategies as st
+
+from sfem_filters.cardiac import annulus_sequence, closing, measured
+from sfem_filters.cardiac.crossval import cross_validate, observation_folds, spline_cross_validation
+from sfem_filters.fem import Material
+
+
+@pytest.fixture(scope="module")
+def setup():
+    return measured.prepare(annulus_sequence(None, n_frames=6, seed=0), 8)
+
+
+@pytest.fixture(scope="module")
+def nominal(setup):
+    return Material.uniform(setup.mesh.n_elements, measured.NOMINAL["E"], measured.NOMINAL["nu"])
+
+
+@pytest.mark.parametrize("folds", [2, 3, 4, 5])
+def test_folds_partition_the_observed_points_and_interleave_along_each_contour(setup, folds):
+    parts = observation_folds(setup, folds)
+    assert len(parts) == folds
+    allp = np.concatenate(parts)
+    assert len(allp) == len(setup.observed) and set(allp) == set(setup.observed)
+    fold_of = {p: f for f, part in enumerate(parts) for p in part}
+    n = setup.n_landmarks
+    for contour in (setup.landmarks[:n], setup.landmarks[n:]):
+        # neighbours along a contour (angle order) are never in the same fold
+        for a, b in zip(contour, np.roll(contour, -1)):
+            if n % folds == 0 or b != contour[0]:
+                assert fold_of[a] != fold_of[b]
+        assert all(np.sum(~np.isin(contour, part)) >= 3 for part in parts)
+
+
+def test_midwall_points_are_dealt_to_the_folds():
+    su = measured.prepare(annulus_sequence(None, n_frames=6, seed=0), 8, observe="boundary+midwall")
+    parts = observation_folds(su, 4)
+    other = np.setdiff1d(su.observed, su.landmarks)
+    counts = [np.isin(part, other).sum() for part in parts]
+    assert sum(counts) == len(other) and max(counts) - min(counts) <= 1
+
+
+def test_bad_folds_are_rejected(setup, nominal):
+    with pytest.raises(ValueError, match="folds"):
+        observation_folds(setup, 1)
+    su4 = measured.prepare(annulus_sequence(None, n_frames=6, seed=0), 4)
+    with pytest.raises(ValueError, match="folds"):
+        observation_folds(su4, 2)                       # 2 of 4 landmarks left per contour
+    with pytest.raises(ValueError, match="material"):
+        cross_validate(setup, nominal, parameterisation="region")
+    seq = annulus_sequence(None, n_frames=4, seed=0)
+    for kw, match in (({"criterion": "aic"}, "criterion"), ({"folds": 1}, "folds"), ({"min_cv_gain": -0.1}, "min_cv_gain")):
+        with pytest.raises(ValueError, match=match):
+            closing.closing_the_loop(seq, **kw)
+
+
+@pytest.mark.parametrize("drive", ["penalty", "contour"])
+def test_a_fold_is_predicted_without_any_of_its_own_data(setup, nominal, drive):
+    """Changing the data of a fold's points leaves the fold's predictions exactly as they were
+    (its points neither drive nor are observed, nor set a noise level); changing another
+    observed point's data moves them."""
+    data = np.array(setup.seq.displacement)
+    base = cross_validate(setup, nominal, drive=drive, folds=2, drive_trend=True)
+    fold0 = np.asarray(base["folds"][0])
+    k = len(fold0)
+    rng = np.random.default_rng(3)
+    moved = data.copy()
+    moved[:, fold0] += rng.standard_normal(moved[:, fold0].shape) * 0.5
+    again = cross_validate(replace(setup, obs_displacement=moved), nominal, drive=drive, folds=2, drive_trend=True)
+    np.testing.assert_allclose(again["U"][:, :k], base["U"][:, :k], rtol=1e-9, atol=1e-12)
+    other = np.asarray(base["folds"][1])[0]
+    moved = data.copy()
+    moved[:, other] += 0.5
+    again = cross_validate(replace(setup, obs_displacement=moved), nominal, drive=drive, folds=2, drive_trend=True)
+    assert np.max(np.abs(again["U"][:, :k] - base["U"][:, :k])) > 1e-3
+    # and the error is that of the predictions against the data, over every fold's points
+    r = data[:, base["points"]] - base["U"]
+    assert np.isclose(base["rmse_px"], np.sqrt(np.nanmean(np.sum(r ** 2, axis=2))))
+    assert np.isclose(base["rmse_px"] ** 2, base["rmse_radial_px"] ** 2 + base["rmse_circumferential_px"] ** 2)
+
+
+@functools.lru_cache(maxsize=1)
+def _three_frames():
+    return measured.prepare(annulus_sequence(None, n_frames=3, seed=0), 8)
+
+
+@settings(max_examples=6, deadline=None)
+@given(st.integers(0, 2 ** 31 - 1), st.integers(2, 4))
+def test_spline_cross_validation_is_exact_on_affine_motion(seed, folds):
+    """A thin-plate spline reproduces an affine field exactly, so its cross-validation error is
+    round-off; the folds are those of :func:`observation_folds`."""
+    su = _three_frames()
+    rng = np.random.default_rng(seed)
+    A = rng.standard_normal((3, 2, 2)) * 0.05
+    c = rng.standard_normal((3, 2))
+    disp = np.einsum("fij,pj->fpi", A, su.seq.points) + c[:, None]
+    cv = spline_cross_validation(replace(su, obs_displacement=disp), folds)
+    assert cv["rmse_px"] < 1e-8
+    assert [sorted(f) for f in cv["folds"]] == [sorted(f) for f in
+                                                (p.tolist() for p in observation_folds(su, folds))]
+
+
+def test_the_model_cross_validates_better_than_the_wrong_drive(setup, nominal):
+    """On a sequence drawn from the penalty-driven model, the model it was drawn from predicts the
+    left-out landmarks better than the same model with no drive at all."""
+    right = cross_validate(setup, nominal, drive="penalty", folds=2)
+    wrong = cross_validate(setup, nominal, drive="none", folds=2)
+    assert right["rmse_px"] < 0.75 * wrong["rmse_px"]
+
+
+def test_rounds_judged_by_cross_validation_keep_what_lowers_it():
+    """With ``criterion="cv"`` a candidate is kept exactly when it lowers the cross-validation
+    error by more than ``min_cv_gain`` of it; every round and the spline carry their CV, and the
+    report prints it."""
+    seq = annulus_sequence("active_polar", n_frames=8, seed=1)
+    out = closing.closing_the_loop(seq, criterion="cv", folds=2, candidates=["active_polar", "cavity_pressure"],
+                                   parameterisation="none",
+                                   max_rounds=1, max_iterations=3, corrections=False, min_cv_gain=0.01)
+    js = out.as_json()
+    assert js["config"]["criterion"] == "cv"
+    assert all(r["cross_validation"]["rmse_px"] > 0 for r in js["rounds"])
+    assert js["spline_reference"]["cross_validation"]["rmse_px"] > 0
+    tried = js["rounds"][-1]["tried"] if len(js["rounds"]) > 1 else js["last_attempt"]["tried"]
+    assert tried, "the uniform active stress is significant on its own sequence"
+    cv0 = js["rounds"][0]["cross_validation"]["rmse_px"]
+    for t in tried:
+        assert np.isclose(t["cv_gain_px"], cv0 - t["cv_rmse_px"])
+        assert t["accepted"] == (t["cv_gain_px"] > 0.01 * cv0)
+    if len(js["rounds"]) > 1:
+        assert np.isclose(js["rounds"][1]["cross_validation"]["rmse_px"], tried[-1]["cv_rmse_px"])
+    report = closing.format_report(out)
+    assert "cross-validation" in report and "CV" in report
