@@ -613,7 +613,7 @@ def format_report(result: "LoopResult") -> str:
     if any(t.get("test") == "time courses" for r in report["rounds"] for t in r["tried"]):
         lines.append("  (t: score of the test with amplitudes tied to the current effects' time courses)")
     att = report["last_attempt"]
-    rejected = [f"{t['effect']} ({t['evidence_gain']:+.1f} nats" + (f", CV {t['cv_gain_px']:+.3f} px)" if "cv_gain_px" in t
+    rejected = [f"{t['effect']} ({t['evidence_gain']:+.1f} nats" + (f", CV {t['cv_rmse_px']:.3f} px)" if "cv_rmse_px" in t
                                                                   else ")")
                 for t in att["tried"] if not t["accepted"]]
     lines.append(f"  stopped: {report['stop_reason']}" + (
