@@ -43,6 +43,13 @@ def _positive_int(text: str) -> int:
     return v
 
 
+def _folds(text: str) -> int:
+    v = int(text)
+    if v < 2:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 2, got {text!r}")
+    return v
+
+
 def _batch_options(p, unit: str) -> None:
     p.add_argument("--scheduler", metavar="local|serial|ADDRESS",
                    help=f"run the {unit}s as a batch: 'local' (default with more than one {unit}: a Dask LocalCluster, "
@@ -122,7 +129,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="what a candidate must improve to be kept: evidence, log p(y) of the observed points "
                         "(default); cv, the K-fold cross-validation error over the observed points (each fold "
                         "neither drives nor is observed)")
-    d.add_argument("--folds", type=_positive_int, default=4,
+    d.add_argument("--folds", type=_folds, default=4,
                    help="folds of the cross-validation over the observed points, reported for every round "
                         "(default 4, at least 2)")
     d.add_argument("--json", metavar="PATH", help="write the report as JSON")

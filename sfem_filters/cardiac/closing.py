@@ -66,7 +66,7 @@ import numpy as np
 
 from .._validate import integer, non_negative
 from ..filtering import diagnostics
-from .crossval import DEFAULT_FOLDS, cross_validate, spline_cross_validation
+from .crossval import DEFAULT_FOLDS, cross_validate, observation_folds, spline_cross_validation
 from .effects import CATALOGUE, build_effects
 from .measured import (NOMINAL, Run, Setup, equivalent_eigenstrain, measured_wall_kinematics, prepare, run)
 from .reference import spline_reference
@@ -240,7 +240,9 @@ class LoopResult:
     measured : dict
         What the data say about the wall (:func:`sfem_filters.cardiac.measured.measured_wall_kinematics`).
     reference : dict
-        The thin-plate spline's held-out errors (:func:`sfem_filters.cardiac.reference.spline_reference`).
+        The thin-plate spline's held-out errors (:func:`sfem_filters.cardiac.reference.spline_reference`),
+        and, when the observed points can be split into folds, its ``cross_validation`` on the
+        rounds' folds, whose point indices are ``cv_folds``.
     config : dict
         The settings of the workflow.
     """
@@ -415,7 +417,7 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
     alpha : float
         Family-wise level of the score tests, in (0, 1).
     min_evidence : float
-        Least rise of ``log p(y)`` (nats, >= 0) for an effect to be kept.
+        Least rise of ``log p(y)`` (nats, >= 0) for an effect to be kept (``criterion="evidence"``).
     max_tries : int
         Most significant candidates fitted per round (>= 1).
     candidates : sequence of str, optional
@@ -427,7 +429,9 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
         What a candidate must improve to be kept (:data:`CRITERIA`): ``log p(y)`` by more than
         ``min_evidence`` nats, or the ``folds``-fold cross-validation RMSE over the observed
         points by more than the fraction ``min_cv_gain`` of its current value. Either way every
-        round's model is also cross-validated, and the report gives both.
+        round's model is also cross-validated, and the report gives both (with the evidence,
+        only when the landmarks can be split into ``folds`` folds: at most the landmarks per
+        contour, leaving at least 3 per contour outside each).
     folds : int
         Folds of the cross-validation (>= 2, :func:`sfem_filters.cardiac.crossval.observation_folds`).
     min_cv_gain : float
@@ -447,13 +451,20 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
     if unknown:
         raise ValueError(f"candidates: unknown effects {unknown}; expected names from {sorted(CATALOGUE)}")
     setup = prepare(seq, landmarks, observe, holdout_seed)
+    try:                                # before any fit: can the observed points be cross-validated?
+        observation_folds(setup, folds)
+        cv_possible = True
+    except ValueError:
+        if criterion == "cv":
+            raise
+        cv_possible = False             # the evidence decides; rounds then report no CV
     opts = {"parameterisation": parameterisation, "max_loops": max_loops, "progress": progress,
             "estimator": estimator, "max_iterations": max_iterations}
     start = Variant(drive=drive)
     base = _fit(setup, start, opts)
     last = {}
     rounds = [Round(0, start, None, (), base, log_evidence=log_evidence(base),
-                    cv=round_cross_validation(setup, start, base, folds))]
+                    cv=round_cross_validation(setup, start, base, folds) if cv_possible else None)]
 
     def judged(cur: Round, variant: Variant, trial: Run) -> tuple:
         """(gain, kept?, entry, cv) of a fitted candidate under the criterion."""
@@ -470,7 +481,7 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
 
     def kept(number, variant, added, replaced, trial, ranking, threshold, tried, cv) -> Round:
         return Round(number, variant, added, replaced, trial, ranking, threshold, tried, log_evidence(trial),
-                     cv if cv is not None else round_cross_validation(setup, variant, trial, folds))
+                     cv if cv is not None or not cv_possible else round_cross_validation(setup, variant, trial, folds))
     loads = dict(candidate_loads(setup, names))
     if isinstance(effects, str) and effects not in ("auto", "none"):
         effects = [e.strip() for e in effects.split(",") if e.strip()]
@@ -548,10 +559,11 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
     held = setup.node_of_point[setup.heldout]
     reference = spline_reference(seq.points, seq.displacement, setup.observed, setup.heldout,
                                  g.radial[held], g.circumferential[held])
-    spline_cv = spline_cross_validation(setup, folds)
-    reference["cross_validation"] = {k: spline_cv[k] for k in ("rmse_px", "rmse_radial_px", "rmse_circumferential_px",
-                                                               "per_fold_px")}
-    reference["cv_folds"] = spline_cv["folds"]
+    if cv_possible:
+        spline_cv = spline_cross_validation(setup, folds)
+        reference["cross_validation"] = {k: spline_cv[k] for k in ("rmse_px", "rmse_radial_px",
+                                                                   "rmse_circumferential_px", "per_fold_px")}
+        reference["cv_folds"] = spline_cv["folds"]
     return LoopResult(setup=setup, rounds=rounds, stop_reason=stop, ranking=first, last_attempt=last,
                       measured=measured_wall_kinematics(setup), reference=reference, config=config)
 
@@ -588,7 +600,7 @@ def format_report(result: "LoopResult") -> str:
     crit = ("log p(y) rises" if cfg.get("criterion", "evidence") == "evidence"
             else f"the {cfg['folds']}-fold cross-validation error over the observed points falls")
     lines += ["", f"rounds (each adds the best significant candidate while {crit}; CV: {cfg.get('folds')}-fold "
-              "cross-validation over the observed points, material at the full fit's mode; held-out points "
+              "cross-validation over the observed points, material at the fit's estimate; held-out points "
               "untouched until here):",
               f"  {'round':<6}{'model':<44}{'score':>8}{'need':>7}{'dlogp(y)':>10}{'NIS/dof':>9}{'lag-1':>7}"
               f"{'CV':>7}{'held-out':>9}{'radial':>8}{'circ.':>8}"]

@@ -18,8 +18,8 @@ observed points only. K-fold cross-validation over them is that criterion:
    :func:`sfem_filters.cardiac.reference.spline_reference`: the like-for-like yardstick, also
    from observed data alone.
 
-The material and the stiffness level are held at the full fit's posterior mode in each fold (so
-a fold costs one linear Kalman smoother pass, not an iterated fit); the kinematics and the
+The material and the stiffness level are held at the full fit's estimate in each fold (so a fold
+costs a model build and one linear Kalman smoother pass, not an iterated fit); the kinematics and the
 effects' amplitudes, which the data of a fold inform most, are re-estimated. The material has
 seen the fold's points: a small leak (a few to a few tens of parameters against thousands of
 data), the same for every model compared, and named in every report.
@@ -41,6 +41,7 @@ import numpy as np
 
 from .._validate import integer
 from ..fem.dofs import node_dofs
+from ..fem.material import Material
 from ..filtering.iterated import open_loop
 from ..filtering.smoother import smooth
 from .measured import Setup, build_model, noise_floor
@@ -58,14 +59,19 @@ def observation_folds(setup: Setup, folds: int = DEFAULT_FOLDS, seed: int = 0) -
 
     Landmark ``k`` of each contour (``setup.landmarks``: the endocardial ones, then the
     epicardial ones, each in angle order) goes to fold ``k mod folds``; other observed points
-    (mid-wall) are dealt in a random order drawn with ``seed``. Every fold keeps at least 3
-    landmarks per contour outside it, so the contour drive still has a periodic spline.
+    (mid-wall) are dealt in a random order drawn with ``seed``. Every fold holds at least one
+    landmark per contour (``folds`` at most the landmarks per contour) and keeps at least 3
+    outside it, so the contour drive still has a periodic spline; otherwise a ``ValueError``.
     """
     folds = integer("folds", folds, 2)
     n = int(setup.n_landmarks)
+    if folds > n:
+        raise ValueError(f"folds: {folds} folds of {n} landmarks per contour would leave folds without a landmark; "
+                         f"expected at most {n}")
     if n - int(np.ceil(n / folds)) < 3:
+        least = "no number of folds does" if n <= 3 else f"expected at least {int(np.ceil(n / (n - 3)))} folds"
         raise ValueError(f"folds: {folds} folds of {n} landmarks per contour leave fewer than 3 landmarks per "
-                         "contour outside a fold; use fewer folds")
+                         f"contour outside a fold ({least}; more landmarks help)")
     lm = np.asarray(setup.landmarks)
     which = np.concatenate([np.arange(n) % folds, np.arange(len(lm) - n) % folds])
     other = np.setdiff1d(setup.observed, lm)
@@ -76,12 +82,17 @@ def observation_folds(setup: Setup, folds: int = DEFAULT_FOLDS, seed: int = 0) -
 
 
 def _without(setup: Setup, data, fold) -> Setup:
-    """The set-up with the fold's points neither driving nor observed, and held out: the noise
-    floor and the spring targets' uncertainty come from the other observed points too, so the
-    fold's data enter nothing that predicts them."""
+    """The set-up with the fold's points neither driving nor observed (displacement or velocity),
+    and held out: the noise floor and the spring targets' uncertainty come from the other
+    observed points too, so the fold's data enter nothing that predicts them."""
     keep = setup.observed[~np.isin(setup.observed, fold)]
+    change = {}
+    if setup.velocity_points is not None:            # the fold's own velocities are left out too
+        v = ~np.isin(setup.velocity_points, fold)
+        change = {"velocity_points": setup.velocity_points[v], "velocity": setup.velocity[:, v],
+                  "velocity_sigma": None if setup.velocity_sigma is None else setup.velocity_sigma[:, v]}
     return replace(setup, landmarks=setup.landmarks[~np.isin(setup.landmarks, fold)], observed=keep,
-                   heldout=np.asarray(fold), noise_px=noise_floor(data[:, keep]))
+                   heldout=np.asarray(fold), noise_px=noise_floor(data[:, keep]), **change)
 
 
 def _directions(setup: Setup, points):
@@ -133,6 +144,9 @@ def cross_validate(setup: Setup, material, effects=(), drive: str = "penalty", f
     """
     if "parameterisation" in options or "material" in options:
         raise ValueError("options: the material is fixed in cross-validation; pass it as 'material'")
+    if not (isinstance(material, Material) and len(material.E) == setup.mesh.n_elements):
+        raise ValueError(f"material: expected a Material of the set-up's {setup.mesh.n_elements} elements, "
+                         f"got {material!r:.80}")
     parts = observation_folds(setup, folds, seed)
     data = setup.seq.displacement if setup.obs_displacement is None else setup.obs_displacement
     F = setup.seq.n_frames

@@ -51,12 +51,18 @@ def test_bad_folds_are_rejected(setup, nominal):
     with pytest.raises(ValueError, match="folds"):
         observation_folds(setup, 1)
     su4 = measured.prepare(annulus_sequence(None, n_frames=6, seed=0), 4)
-    with pytest.raises(ValueError, match="folds"):
+    with pytest.raises(ValueError, match="at least 4 folds"):
         observation_folds(su4, 2)                       # 2 of 4 landmarks left per contour
+    assert len(observation_folds(su4, 4)) == 4          # one left out of 4: 3 stay
+    with pytest.raises(ValueError, match="at most 8"):
+        observation_folds(setup, 10)                    # folds without a landmark
+    with pytest.raises(ValueError, match="material"):
+        cross_validate(setup, None)
     with pytest.raises(ValueError, match="material"):
         cross_validate(setup, nominal, parameterisation="region")
     seq = annulus_sequence(None, n_frames=4, seed=0)
-    for kw, match in (({"criterion": "aic"}, "criterion"), ({"folds": 1}, "folds"), ({"min_cv_gain": -0.1}, "min_cv_gain")):
+    for kw, match in (({"criterion": "aic"}, "criterion"), ({"folds": 1}, "folds"), ({"min_cv_gain": -0.1}, "min_cv_gain"),
+                      ({"criterion": "cv", "landmarks": 4, "folds": 2}, "at least 4 folds")):
         with pytest.raises(ValueError, match=match):
             closing.closing_the_loop(seq, **kw)
 
@@ -137,3 +143,37 @@ def test_rounds_judged_by_cross_validation_keep_what_lowers_it():
         assert np.isclose(js["rounds"][1]["cross_validation"]["rmse_px"], tried[-1]["cv_rmse_px"])
     report = closing.format_report(out)
     assert "cross-validation" in report and "CV" in report
+
+
+def test_a_folds_own_velocities_are_left_out_too(setup, nominal):
+    """Velocity data at observed points (image-derived fusion) leave a fold with its
+    displacements: changing a fold's velocities does not move its predictions."""
+    F = setup.seq.n_frames
+    rng = np.random.default_rng(5)
+    vel = rng.standard_normal((F, len(setup.landmarks), 2)) * 2.0
+    su = replace(setup, velocity_points=setup.landmarks, velocity=vel, velocity_sigma=np.full((F, len(setup.landmarks)), 1.0))
+    base = cross_validate(su, nominal, folds=2)
+    fold0 = np.asarray(base["folds"][0])
+    k = len(fold0)
+    moved = vel.copy()
+    moved[:, np.isin(setup.landmarks, fold0)] += 5.0
+    again = cross_validate(replace(su, velocity=moved), nominal, folds=2)
+    np.testing.assert_allclose(again["U"][:, :k], base["U"][:, :k], rtol=1e-9, atol=1e-12)
+
+
+def test_a_candidate_that_raises_the_cv_error_is_rejected(monkeypatch):
+    """Under ``criterion="cv"`` the decision is the CV error's, not the evidence's: a significant
+    effect whose model cross-validates worse is fitted, rejected, and the rounds stop with "cv"."""
+    real = closing.round_cross_validation
+
+    def worse_with_effects(setup, variant, r, folds=4):
+        cv = real(setup, variant, r, folds)
+        return {**cv, "rmse_px": cv["rmse_px"] * (10.0 if variant.effects else 1.0)}
+
+    monkeypatch.setattr(closing, "round_cross_validation", worse_with_effects)
+    seq = annulus_sequence("active_polar", n_frames=8, seed=1)
+    out = closing.closing_the_loop(seq, criterion="cv", folds=2, candidates=["active_polar"], parameterisation="none",
+                                   max_rounds=1, max_iterations=3, corrections=False)
+    assert out.effects == [] and out.stop_reason == "cv"
+    (t,) = out.last_attempt["tried"]
+    assert t["effect"] == "active_polar" and not t["accepted"] and t["evidence_gain"] > 0 and t["cv_gain_px"] < 0
