@@ -67,18 +67,22 @@ import numpy as np
 from .._validate import integer, non_negative
 from ..filtering import diagnostics
 from .crossval import DEFAULT_FOLDS, cross_validate, observation_folds, spline_cross_validation
-from .effects import CATALOGUE, build_effects
+from .effects import CATALOGUE, EXPLICIT_ONLY, build_effects
 from .measured import (NOMINAL, Run, Setup, equivalent_eigenstrain, measured_wall_kinematics, prepare, run)
 from .reference import spline_reference
 from .sequence import Sequence
 
 __all__ = ["LoopResult", "Round", "Variant", "closing_the_loop", "candidate_loads", "spans", "log_evidence", "format_report",
-           "DRIVE_CORRECTIONS", "time_courses", "CRITERIA", "round_cross_validation"]
+           "DRIVE_CORRECTIONS", "time_courses", "CRITERIA", "round_cross_validation", "DEFAULT_CANDIDATES"]
 
 #: What decides whether a candidate is kept (``criterion=``, ``--criterion``): the evidence
 #: ``log p(y)`` of the observed points, or K-fold cross-validation over them
 #: (:mod:`sfem_filters.cardiac.crossval`).
 CRITERIA = ("evidence", "cv")
+
+#: The candidates of the rounds when none are given: the catalogue without the effects that are
+#: tried only by name (:data:`~sfem_filters.cardiac.effects.EXPLICIT_ONLY`).
+DEFAULT_CANDIDATES = tuple(sorted(n for n in CATALOGUE if n not in EXPLICIT_ONLY))
 
 _SPAN_TOL = 1e-6
 
@@ -421,7 +425,8 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
     max_tries : int
         Most significant candidates fitted per round (>= 1).
     candidates : sequence of str, optional
-        The catalogue names to consider (default: all of :data:`~sfem_filters.cardiac.effects.CATALOGUE`).
+        The catalogue names to consider (default: :data:`DEFAULT_CANDIDATES`, the catalogue
+        without :data:`~sfem_filters.cardiac.effects.EXPLICIT_ONLY`).
     corrections : bool
         Also try corrections of the drive and of the effects' dynamics (:func:`_corrections`)
         when no effect passes a round.
@@ -446,7 +451,7 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
     min_evidence = non_negative("min_evidence", min_evidence)
     if not (isinstance(alpha, (int, float)) and 0.0 < float(alpha) < 1.0):
         raise ValueError(f"alpha: expected a level in (0, 1), got {alpha!r}")
-    names = sorted(CATALOGUE) if candidates is None else list(candidates)
+    names = list(DEFAULT_CANDIDATES) if candidates is None else list(candidates)
     unknown = [n for n in names if n not in CATALOGUE]
     if unknown:
         raise ValueError(f"candidates: unknown effects {unknown}; expected names from {sorted(CATALOGUE)}")

@@ -129,7 +129,8 @@ def test_stress_loads_match_hand_formula_for_one_triangle():
 
 
 @pytest.mark.parametrize("effects,n_eta", [(("active_polar", "cavity_pressure"), 3),
-                                           (("active_segments",), 12), (("active_helical", "dilatation"), 3)])
+                                           (("active_segments",), 12), (("active_helical", "dilatation"), 3),
+                                           (("active_harmonic",), 20)])
 def test_effect_states_enter_F_exactly(effects, n_eta):
     """fx is linear in the effect states: F's eta block is its exact derivative."""
     seq = annulus_sequence(None, n_frames=4, seed=0)

@@ -8,7 +8,10 @@ from scipy import sparse
 from scipy.sparse.linalg import spsolve
 
 from sfem_filters.cardiac import annulus_sequence, closing, measured
-from sfem_filters.cardiac.effects import CATALOGUE, build_effects, segment_labels
+from hypothesis import given, settings, strategies as st
+
+from sfem_filters.cardiac.effects import (CATALOGUE, EXPLICIT_ONLY, angular_basis, build_effects,
+                                          harmonic_active_stress, segment_labels)
 from sfem_filters.cardiac.myocardium import lv_geometry, mesh_from_mask, polar_strain_operator
 from sfem_filters.cardiac.annulus import annulus_mask
 from sfem_filters.cardiac.reference import contour_interpolant, spline_reference
@@ -115,6 +118,49 @@ def test_segmental_effect_moves_only_its_segment_and_helical_makes_transmural_sh
     endo, epi = eps[g.endo, 2].mean(), eps[g.epi, 2].mean()
     assert endo * epi < 0 and min(abs(endo), abs(epi)) > 0.1 * np.abs(eps[:, 2]).max()
 
+
+
+def test_harmonic_active_stress_contains_the_uniform_and_transmural_fields(annulus):
+    """Order 0 without a transmural profile is ``active_polar`` column by column; with the profile
+    and the shear it spans the transmural and helical effects, and the segments do not fit in it."""
+    mesh, g = annulus
+    G = {n: build_effects([n], mesh, g)[0].loads for n in CATALOGUE}
+    h0 = harmonic_active_stress(mesh, g, order=0, transmural=False)
+    np.testing.assert_allclose(h0.loads, G["active_polar"], rtol=0, atol=1e-12 * np.abs(G["active_polar"]).max())
+    h = G["active_harmonic"]
+    assert h.shape[1] == 2 * 5 * 2                      # (cc, rr) x (1, cos, sin, cos 2, sin 2) x (endo, epi)
+    assert closing.spans(h, G["active_polar"]) and closing.spans(h, G["active_transmural"])
+    assert not closing.spans(h, G["active_helical"])    # no shear component by default
+    hs = harmonic_active_stress(mesh, g, order=1, components=("cc", "rr", "rc")).loads
+    assert hs.shape[1] == 3 * 3 * 2 and closing.spans(hs, G["active_helical"])
+    assert not closing.spans(h, G["active_segments"])
+
+
+@given(order=st.integers(0, 6), n=st.integers(1, 4), phase=st.floats(0.0, 2 * np.pi))
+@settings(max_examples=30, deadline=None)
+def test_angular_basis_is_orthogonal_on_equally_spaced_angles(order, n, phase):
+    """Real Fourier columns on M > 2 order equally spaced angles: orthogonal, with squared norms
+    M (constant) and M / 2 (the cosines and sines)."""
+    M = 2 * order + n
+    a = phase + 2 * np.pi * np.arange(M) / M
+    Phi = angular_basis(a, order)
+    assert Phi.shape == (M, 2 * order + 1)
+    expected = np.diag([M] + [M / 2] * (2 * order))
+    np.testing.assert_allclose(Phi.T @ Phi, expected, atol=1e-9 * M)
+
+
+def test_harmonic_active_stress_rejects_bad_settings(annulus):
+    mesh, g = annulus
+    for kw, match in (({"order": -1}, "order"), ({"order": 1.5}, "order"), ({"components": ()}, "components"),
+                      ({"components": ("cc", "cc")}, "components"), ({"components": ("zz",)}, "components"),
+                      ({"scale": 0.0}, "scale")):
+        with pytest.raises(ValueError, match=match):
+            harmonic_active_stress(mesh, g, **kw)
+
+
+def test_rounds_default_candidates_leave_out_the_explicit_only_effects():
+    assert "active_harmonic" in CATALOGUE and "active_harmonic" not in closing.DEFAULT_CANDIDATES
+    assert set(closing.DEFAULT_CANDIDATES) | set(EXPLICIT_ONLY) == set(CATALOGUE)
 
 # ------------------------------------------------------------------ rounds: arguments
 def test_rounds_reject_bad_settings():
