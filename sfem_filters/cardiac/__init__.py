@@ -21,7 +21,8 @@ Modules: :mod:`~sfem_filters.cardiac.sequence` (the file format, loader, example
 directions, landmarks), :mod:`~sfem_filters.cardiac.effects` (the catalogue of missing
 effects), :mod:`~sfem_filters.cardiac.measured` (set-up, model, runs, evaluation),
 :mod:`~sfem_filters.cardiac.closing` (residual diagnosis, effects and corrections added in rounds),
-:mod:`~sfem_filters.cardiac.reference` (the thin-plate-spline yardstick),
+:mod:`~sfem_filters.cardiac.reference` (the thin-plate-spline yardstick, and the model plus
+the spline of its residual),
 :mod:`~sfem_filters.cardiac.crossval` (cross-validation over the observed points),
 :mod:`~sfem_filters.cardiac.frontend` (images to a sequence, fusion),
 :mod:`~sfem_filters.cardiac.annulus` (synthetic sequences with a known answer).
@@ -61,7 +62,7 @@ from .myocardium import (
                        mesh_from_mask,
                        mesh_from_points,
 )
-from .reference import contour_interpolant, spline_reference
+from .reference import contour_interpolant, residual_spline, spline_reference
 from .sequence import (
                        Sequence,
                        example_path,
@@ -75,6 +76,6 @@ __all__ = ["Sequence", "make_sequence", "load_sequence", "save_sequence", "examp
            "build_effects", "NOMINAL", "PARAMETERISATIONS", "DRIVES", "OBSERVE", "Setup", "Run", "prepare",
            "build_model", "run", "evaluate", "noise_floor", "strain_maps", "measured_wall_kinematics",
            "LoopResult", "Round", "Variant", "closing_the_loop", "candidate_loads", "format_report", "log_evidence",
-           "spline_reference", "contour_interpolant", "cross_validate", "observation_folds",
+           "spline_reference", "residual_spline", "contour_interpolant", "cross_validate", "observation_folds",
            "spline_cross_validation", "observe", "fusion_setup",
            "compare_fusion", "annulus_mask", "annulus_sequence", "deformed_masks"]

@@ -40,12 +40,11 @@ from dataclasses import replace
 import numpy as np
 
 from .._validate import integer
-from ..fem.dofs import node_dofs
 from ..fem.material import Material
 from ..filtering.iterated import open_loop
 from ..filtering.smoother import smooth
 from .measured import Setup, build_model, noise_floor
-from .reference import heldout_errors, spline_reference
+from .reference import heldout_errors, residual_spline, spline_reference
 
 __all__ = ["observation_folds", "cross_validate", "spline_cross_validation", "DEFAULT_FOLDS"]
 
@@ -140,7 +139,10 @@ def cross_validate(setup: Setup, material, effects=(), drive: str = "penalty", f
     dict
         ``rmse_px`` (all folds' points and frames), ``rmse_radial_px``, ``rmse_circumferential_px``,
         ``per_fold_px``, ``folds`` (the point indices of each fold) and ``points`` with the
-        predictions ``U`` (F, n_observed, 2) in the order of ``points``.
+        predictions ``U`` (F, n_observed, 2) in the order of ``points``; ``residual_spline``, the
+        same errors of each fold's model plus the thin-plate spline of that model's residual at
+        the points it observed (:func:`sfem_filters.cardiac.reference.residual_spline`), with
+        those predictions in ``U_residual_spline``.
     """
     if "parameterisation" in options or "material" in options:
         raise ValueError("options: the material is fixed in cross-validation; pass it as 'material'")
@@ -152,6 +154,7 @@ def cross_validate(setup: Setup, material, effects=(), drive: str = "penalty", f
     F = setup.seq.n_frames
     points = np.concatenate(parts)
     U = np.full((F, len(points), 2), np.nan)
+    K = np.full_like(U, np.nan)
     start = 0
     for fold in parts:
         sub = _without(setup, data, fold)
@@ -159,10 +162,25 @@ def cross_validate(setup: Setup, material, effects=(), drive: str = "penalty", f
         lin = model.linearise(open_loop(model), sensitivity=False)
         nr = model.n_restart
         states = lin.to_model(smooth(lin, y).smoothed[:, :nr])
-        u = model.displacements(states)[:, node_dofs(setup.node_of_point[fold])] / setup.spacing
-        U[:, start:start + len(fold)] = u.reshape(F, len(fold), 2)
+        u = (model.displacements(states).reshape(F, -1, 2) / setup.spacing)[:, setup.node_of_point]
+        U[:, start:start + len(fold)] = u[:, fold]
+        # plus the spline of the residual at the points the fold's model observed
+        K[:, start:start + len(fold)] = residual_spline(setup.seq.points, np.where(_mask(u, fold), np.nan, data), u,
+                                                        sub.observed, fold, *_directions(setup, fold))["U"]
         start += len(fold)
-    return _scores(setup, data, parts, U)
+    out = _scores(setup, data, parts, U)
+    kriged = _scores(setup, data, parts, K)
+    out["residual_spline"] = {k: kriged[k] for k in ("rmse_px", "rmse_radial_px", "rmse_circumferential_px",
+                                                     "per_fold_px")}
+    out["U_residual_spline"] = K
+    return out
+
+
+def _mask(u, fold) -> np.ndarray:
+    """True at the fold's points (to blank their data out of a residual), broadcast like ``u``."""
+    m = np.zeros(u.shape[1], bool)
+    m[fold] = True
+    return np.broadcast_to(m[None, :, None], u.shape)
 
 
 def spline_cross_validation(setup: Setup, folds: int = DEFAULT_FOLDS, seed: int = 0) -> dict:

@@ -611,7 +611,10 @@ class IteratedSmoother:
         P_diag[:, nr:] = np.diag(sm.P_theta)
         smoothed = np.empty_like(z)
         smoothed[:, :nr] = lin.to_model(sm.smoothed[:, :nr])
-        smoothed[:, nr:] = sm.theta
+        # the history's material is the reported estimate, the point the pass was linearised at (its
+        # innovations and S belong to it), not the pass's own undamped Gauss-Newton step: stopped
+        # short of the mode, that step was never checked against the cost and can be anywhere
+        smoothed[:, nr:] = z[:, nr:]
         history = History()
         for t in range(T):
             history.append(0, t, smoothed[t], P_diag[t], sm.innovation[t], sm.S[t], sm.nis[t],

@@ -11,6 +11,7 @@ from hypothesis import given, settings, strategies as st
 from sfem_filters.cardiac import annulus_sequence, closing, measured
 from sfem_filters.cardiac.crossval import cross_validate, observation_folds, spline_cross_validation
 from sfem_filters.fem import Material
+from sfem_filters.cardiac.reference import spline_reference
 
 
 @pytest.fixture(scope="module")
@@ -81,11 +82,14 @@ def test_a_fold_is_predicted_without_any_of_its_own_data(setup, nominal, drive):
     moved[:, fold0] += rng.standard_normal(moved[:, fold0].shape) * 0.5
     again = cross_validate(replace(setup, obs_displacement=moved), nominal, drive=drive, folds=2, drive_trend=True)
     np.testing.assert_allclose(again["U"][:, :k], base["U"][:, :k], rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(again["U_residual_spline"][:, :k], base["U_residual_spline"][:, :k], rtol=1e-9,
+                               atol=1e-12)                                 # the residual's spline does not see it
     other = np.asarray(base["folds"][1])[0]
     moved = data.copy()
     moved[:, other] += 0.5
     again = cross_validate(replace(setup, obs_displacement=moved), nominal, drive=drive, folds=2, drive_trend=True)
     assert np.max(np.abs(again["U"][:, :k] - base["U"][:, :k])) > 1e-3
+    assert np.max(np.abs(again["U_residual_spline"][:, :k] - base["U_residual_spline"][:, :k])) > 1e-3
     # and the error is that of the predictions against the data, over every fold's points
     r = data[:, base["points"]] - base["U"]
     assert np.isclose(base["rmse_px"], np.sqrt(np.nanmean(np.sum(r ** 2, axis=2))))
@@ -143,6 +147,10 @@ def test_rounds_judged_by_cross_validation_keep_what_lowers_it():
         assert np.isclose(js["rounds"][1]["cross_validation"]["rmse_px"], tried[-1]["cv_rmse_px"])
     report = closing.format_report(out)
     assert "cross-validation" in report and "CV" in report
+    # every round's model plus the spline of its residual, held out and cross-validated
+    for r in js["rounds"]:
+        assert r["residual_spline"]["heldout_rmse_px"] > 0 and r["cross_validation"]["residual_spline"]["rmse_px"] > 0
+    assert "+spline" in report and f"{js['rounds'][-1]['residual_spline']['heldout_rmse_px']:.3f}" in report
 
 
 def test_a_folds_own_velocities_are_left_out_too(setup, nominal):
@@ -177,3 +185,20 @@ def test_a_candidate_that_raises_the_cv_error_is_rejected(monkeypatch):
     assert out.effects == [] and out.stop_reason == "cv"
     (t,) = out.last_attempt["tried"]
     assert t["effect"] == "active_polar" and not t["accepted"] and t["evidence_gain"] > 0 and t["cv_gain_px"] < 0
+
+
+def test_a_runs_report_gives_the_model_plus_the_spline_of_its_residual(setup):
+    """The run's ``residual_spline`` is the spline of its observed residual added to its held-out
+    prediction, scored like the model; and the cross-validation reports the same for every fold."""
+    r = measured.run(setup, (), "contour", "none", drive_trend=True)
+    seq, h = setup.seq, setup.heldout
+    nodes = setup.node_of_point[h]
+    res = spline_reference(seq.points, seq.displacement - r.U, setup.observed, h, setup.geometry.radial[nodes],
+                           setup.geometry.circumferential[nodes])
+    pred = r.U[:, h] + res["U"]
+    expected = np.sqrt(np.nanmean(np.sum((seq.displacement[:, h] - pred) ** 2, axis=2)))
+    assert r.metrics["residual_spline"]["heldout_rmse_px"] == pytest.approx(expected, rel=1e-10)
+    assert r.metrics["residual_spline"]["heldout_rmse_px"] != pytest.approx(r.metrics["heldout_rmse_px"], rel=1e-3)
+    cv = closing.round_cross_validation(setup, closing.Variant(drive="contour", drive_trend=True), r, 2)
+    assert set(cv["residual_spline"]) == {"rmse_px", "rmse_radial_px", "rmse_circumferential_px", "per_fold_px"}
+    assert np.isfinite(cv["residual_spline"]["rmse_px"]) and cv["residual_spline"]["rmse_px"] != cv["rmse_px"]

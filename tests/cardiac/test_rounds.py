@@ -14,7 +14,7 @@ from sfem_filters.cardiac.effects import (CATALOGUE, EXPLICIT_ONLY, angular_basi
                                           harmonic_active_stress, segment_labels)
 from sfem_filters.cardiac.myocardium import lv_geometry, mesh_from_mask, polar_strain_operator
 from sfem_filters.cardiac.annulus import annulus_mask
-from sfem_filters.cardiac.reference import contour_interpolant, spline_reference
+from sfem_filters.cardiac.reference import contour_interpolant, residual_spline, spline_reference
 from sfem_filters.cardiac.sequence import make_sequence
 from sfem_filters.fem import Material
 from sfem_filters.filtering import History
@@ -41,6 +41,33 @@ def test_spline_reference_reproduces_affine_motion_exactly():
     ref = spline_reference(pts, disp, obs, held, u, u[:, ::-1] * [1, -1])
     assert ref["heldout_rmse_px"] < 1e-9
     assert ref["U"].shape == (4, 48, 2)
+
+
+@settings(max_examples=20, deadline=None)
+@given(seed=st.integers(0, 2 ** 31 - 1), n_obs=st.integers(6, 30))
+def test_residual_spline_is_the_spline_for_a_null_model_and_exact_for_an_affine_error(seed, n_obs):
+    """The model plus the spline of its residual: with a model that predicts zero it is the spline
+    itself; with a model whose error is affine (which the spline reproduces) it is the truth, however
+    rough the field; at the observed points it passes through the data."""
+    rng = np.random.default_rng(seed)
+    pts = rng.uniform(0, 20, (n_obs + 25, 2))
+    F = 3
+    disp = np.sin(pts[None, :, :1] * rng.uniform(0.2, 1.0, (F, 1, 2)) + rng.uniform(0, 6, (F, 1, 2)))  # rough
+    obs, held = np.arange(n_obs), np.arange(n_obs, n_obs + 25)
+    ang = rng.uniform(0, 2 * np.pi, 25)
+    er = np.column_stack([np.cos(ang), np.sin(ang)])
+    ec = np.column_stack([-np.sin(ang), np.cos(ang)])
+    null = residual_spline(pts, disp, np.zeros_like(disp), obs, held, er, ec)
+    ref = spline_reference(pts, disp, obs, held, er, ec)
+    np.testing.assert_allclose(null["U"], ref["U"], atol=1e-12)
+    assert null["heldout_rmse_px"] == pytest.approx(ref["heldout_rmse_px"], rel=1e-12)
+    A = rng.standard_normal((F, 2, 2)) * 0.05
+    err = np.einsum("fij,pj->fpi", A, pts) + rng.standard_normal((F, 1, 2))
+    exact = residual_spline(pts, disp, disp + err, obs, held, er, ec)
+    assert exact["heldout_rmse_px"] < 1e-8
+    e1 = np.tile([1.0, 0.0], (n_obs, 1))
+    through = residual_spline(pts, disp, disp + rng.standard_normal(disp.shape), obs, obs, e1, e1[:, ::-1])
+    np.testing.assert_allclose(through["U"], disp[:, obs], atol=1e-7)
 
 
 def test_spline_reference_errors_split_and_missing_data():

@@ -161,6 +161,19 @@ def test_pinned_smoother_converges_with_falling_cost_and_matches_the_exact_margi
     assert check.kl < 0.01
 
 
+def test_a_run_stopped_short_reports_its_estimate_in_the_history_too(pinned):
+    """Stopped by the iteration limit far from the mode, the history (which the score tests read)
+    carries the reported material, the point the final pass was linearised at, not that pass's
+    unchecked Gauss-Newton step (which differs from it by many sd here)."""
+    m = benchmark_model(pinned, "joint_ekf", parameterisation=Parameterisation.per_region(pinned.middle))
+    res = IteratedSmoother(damping=1e8, max_damping=1e12, max_iterations=1).run(m, pinned.observations)
+    assert not res.converged and res.stop_reason == "max_iterations"
+    nr = m.n_restart
+    x = np.asarray(res.history.x, float)
+    np.testing.assert_array_equal(x[:, nr:], np.broadcast_to(res.theta, x[:, nr:].shape))
+    assert res.records[-1]["full_step_sd"] > 10
+
+
 def test_a_step_shortened_by_damping_does_not_end_the_run(pinned):
     """Started with a huge damping (1e8 prior precisions), the first step is tiny (below 0.1 sd)
     while the undamped step of the model is tens of sd: the run goes on to the default run's mode
