@@ -84,6 +84,9 @@ def main(argv=None) -> int:
     for L in args.landmarks:
         su = prepare(seq, L)
         mesh, g, s = su.mesh, su.geometry, su.spacing
+        # below, point indices are node indices (``prepare`` meshes the points themselves)
+        assert np.array_equal(su.node_of_point, np.arange(mesh.n_nodes)), "points must be the mesh's nodes"
+        assert not np.isnan(meas).any(), "the static solves need every point in every frame"
         border_nodes = np.union1d(g.endo, g.epi)
         bd = node_dofs(border_nodes)
         mid = np.setdiff1d(su.heldout, border_nodes)          # held-out mid-wall points (node = point)

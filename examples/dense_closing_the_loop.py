@@ -26,7 +26,9 @@ iterations = 2 if quick else 20
 
 seq = load_sequence(example_path("subject_a"))
 if quick:
-    seq = make_sequence(seq.points, seq.displacement[:12])
+    seq = make_sequence(seq.points, seq.displacement[:12], reference_mask=seq.reference_mask,
+                        frame_masks=None if seq.frame_masks is None else seq.frame_masks[:12],
+                        provenance=f"{seq.provenance} (first 12 frames)")
 
 # 1. Sparse landmarks (8 per contour) drive the elastic model and are observed; every other
 #    point is held out. The baseline's residual is scored against candidate missing effects,

@@ -10,7 +10,7 @@ import os
 import sys
 
 from ._io import write_json
-from .cardiac.effects import CATALOGUE
+from .cardiac.effects import CATALOGUE, EXPLICIT_ONLY
 from .cardiac.measured import DRIVES, ESTIMATORS, OBSERVE, PARAMETERISATIONS
 from .filtering.engines import ENGINES
 
@@ -48,6 +48,15 @@ def _folds(text: str) -> int:
     if v < 2:
         raise argparse.ArgumentTypeError(f"expected an integer >= 2, got {text!r}")
     return v
+
+
+def _names(text: str) -> list:
+    """A comma list of catalogue effects."""
+    names = [n.strip() for n in text.split(",") if n.strip()]
+    unknown = [n for n in names if n not in CATALOGUE]
+    if not names or unknown:
+        raise argparse.ArgumentTypeError(f"expected a comma list of effects from {sorted(CATALOGUE)}, got {text!r}")
+    return names
 
 
 def _batch_options(p, unit: str) -> None:
@@ -104,6 +113,9 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--effects", default="auto",
                    help="none, auto (rounds of ranking and adding effects) or a comma list of: "
                         + ", ".join(sorted(CATALOGUE)) + " (default auto)")
+    d.add_argument("--candidates", type=_names, default=None, metavar="NAME,...",
+                   help="the catalogue effects the rounds of --effects auto may add (default: all but "
+                        + ", ".join(EXPLICIT_ONLY) + ", which are tried only when named here)")
     d.add_argument("--drive", choices=DRIVES, default="penalty",
                    help="what drives the model besides its effects (default penalty)")
     d.add_argument("--landmarks", type=_positive_int, default=8, help="observed landmarks per contour (default 8)")
@@ -227,6 +239,8 @@ def cmd_dense(args) -> int:
                   holdout_seed=args.holdout_seed, parameterisation=args.parameterisation, max_loops=args.max_loops,
                   estimator=args.estimator, max_iterations=args.max_iterations, max_rounds=args.max_rounds,
                   alpha=args.alpha, criterion=args.criterion, folds=args.folds)
+    if args.candidates is not None:
+        config["candidates"] = args.candidates
     if _batch_mode(args, len(args.path)):
         from .batch import dense_jobs, describe_record, merge_timing
         jobs = dense_jobs(args.path, figures=args.figures, export=args.export, **config)

@@ -247,6 +247,7 @@ def table_rows(record: dict, timing: dict) -> list:
                "label": r["added"] or "baseline", "effects": "+".join(r["effects"]), "drive": r["drive"]}
         row.update({k: v for k, v in r.items() if not isinstance(v, (list, dict)) and k not in row
                     and k not in ("added", "round")})
+        row.update({f"residual_spline_{k}": v for k, v in (r.get("residual_spline") or {}).items()})
         rows.append(row)
     ref = res["spline_reference"]
     rows.append({"job": job["name"], "input": job["inputs"][0], "strategy": "spline", "label": "thin-plate spline",

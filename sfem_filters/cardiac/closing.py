@@ -91,8 +91,8 @@ _SPAN_TOL = 1e-6
 
 
 def candidate_loads(setup: Setup, names=None) -> list:
-    """(name, load matrix) of every catalogue effect, for scoring."""
-    names = sorted(CATALOGUE) if names is None else names
+    """(name, load matrix) of the named catalogue effects (default :data:`DEFAULT_CANDIDATES`), for scoring."""
+    names = DEFAULT_CANDIDATES if names is None else names
     effs = build_effects(names, setup.mesh, setup.geometry, scale=NOMINAL["E"])
     return [(e.name, e.loads) for e in effs]
 

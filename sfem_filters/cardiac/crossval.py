@@ -164,9 +164,10 @@ def cross_validate(setup: Setup, material, effects=(), drive: str = "penalty", f
         states = lin.to_model(smooth(lin, y).smoothed[:, :nr])
         u = (model.displacements(states).reshape(F, -1, 2) / setup.spacing)[:, setup.node_of_point]
         U[:, start:start + len(fold)] = u[:, fold]
-        # plus the spline of the residual at the points the fold's model observed
-        K[:, start:start + len(fold)] = residual_spline(setup.seq.points, np.where(_mask(u, fold), np.nan, data), u,
-                                                        sub.observed, fold, *_directions(setup, fold))["U"]
+        # plus the spline of its residual at the points the fold's model observed (sub.observed
+        # leaves the fold out; the fold's data only score the prediction, discarded here)
+        K[:, start:start + len(fold)] = residual_spline(setup.seq.points, data, u, sub.observed, fold,
+                                                        *_directions(setup, fold))["U"]
         start += len(fold)
     out = _scores(setup, data, parts, U)
     kriged = _scores(setup, data, parts, K)
@@ -174,13 +175,6 @@ def cross_validate(setup: Setup, material, effects=(), drive: str = "penalty", f
                                                      "per_fold_px")}
     out["U_residual_spline"] = K
     return out
-
-
-def _mask(u, fold) -> np.ndarray:
-    """True at the fold's points (to blank their data out of a residual), broadcast like ``u``."""
-    m = np.zeros(u.shape[1], bool)
-    m[fold] = True
-    return np.broadcast_to(m[None, :, None], u.shape)
 
 
 def spline_cross_validation(setup: Setup, folds: int = DEFAULT_FOLDS, seed: int = 0) -> dict:

@@ -254,11 +254,30 @@ def harmonic_active_stress(mesh: TriMesh, geometry: LVGeometry, order: int = 2, 
     ``transmural`` is false) and ``S_c`` the unit stress of component ``c`` in the local polar
     frame (``cc``: circumferential tension, ``rr``: radial tension, ``rc``: the symmetric shear
     ``e_c e_r + e_r e_c``). States are ordered component, then angular function, then depth
-    function: ``len(components) (2 order + 1) (2 if transmural else 1)`` amplitudes (Pa / scale).
+    function: ``len(components) (2 order + 1) (2 if transmural else 1)`` amplitudes, one unit of
+    each being ``scale`` Pa.
 
     Between the uniform stresses (``active_polar`` is ``order=0, transmural=False``) and six
     independent segments, this is regional contraction that varies smoothly around and through
     the wall, as strain in a real ventricle does, without the segments' jumps at their borders.
+
+    Parameters
+    ----------
+    mesh, geometry : TriMesh, LVGeometry
+        The wall (m) and its cavity centre, contours and local directions.
+    order : int
+        Highest angular harmonic (waves per turn, >= 0).
+    components : sequence of {"cc", "rr", "rc"}
+        Stress components (:data:`HARMONIC_COMPONENTS`), distinct.
+    transmural : bool
+        Each angular function times ``(1 - depth, depth)`` (True) or uniform through the wall.
+    scale : float
+        Stress of one unit of each amplitude (Pa).
+    thickness : float
+        Out-of-plane thickness of the slice (m).
+    **noise
+        ``process_std``, ``initial_std``, ``initial``, ``rate_std`` of :class:`Effect` (units of
+        the amplitudes).
     """
     integer("order", order, 0)
     comps = tuple(components)

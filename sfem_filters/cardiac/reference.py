@@ -14,10 +14,10 @@ from sparse points (the contour drive of :func:`sfem_filters.cardiac.measured.bu
 
 :func:`residual_spline` joins the two kinds of prediction (regression kriging): the model's
 prediction plus the same spline through the model's own residual at the observed points. If the
-model knew nothing (predicted zero), this is the spline; if its error is smooth (an affine error
-the spline reproduces exactly), the sum is exact. It beats the spline only where the physics
-captures structure the spline's interpolation misses, which makes it the fairest test of whether
-the physics earns its keep, and the best predictor the two give together.
+model knew nothing (predicted zero), this is the spline; if its error is affine (which the spline
+reproduces exactly), the sum is exact. It beats the spline only where the physics captures
+structure the spline's interpolation misses, which makes it the fairest test of whether the
+physics earns its keep.
 """
 from __future__ import annotations
 
@@ -97,11 +97,18 @@ def residual_spline(points, displacement, model_displacement, observed, heldout,
     -------
     dict
         As :func:`spline_reference`, with ``U`` the corrected prediction at the held-out points.
+        In a frame where fewer than 3 observed points have a residual the correction is zero (the
+        model's prediction stands); NaN in the model's prediction stays NaN.
     """
     disp = as_float_array("displacement", displacement, shape=(None, None, 2), allow_nan=True)
-    model = as_float_array("model_displacement", model_displacement, shape=disp.shape)
-    out = spline_reference(points, disp - model, observed, heldout, radial, circumferential)
-    out["U"] = model[:, np.asarray(heldout, int)] + out["U"]
+    model = as_float_array("model_displacement", model_displacement, shape=disp.shape, allow_nan=True)
+    held = np.asarray(heldout, int)
+    corr = spline_reference(points, disp - model, observed, held, radial, circumferential)["U"]
+    # where the residual has fewer than 3 observed points in a frame the spline is undefined: the
+    # model's own prediction stands there, so that both errors are over the same frames
+    pred = model[:, held] + np.nan_to_num(corr, nan=0.0)
+    out = heldout_errors(disp[:, held] - pred, radial, circumferential)
+    out["U"] = pred
     return out
 
 

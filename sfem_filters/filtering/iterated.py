@@ -220,8 +220,9 @@ class SmootherResult:
         ``full_step_sd`` (the same for the undamped step), ``newton_decrement`` (nats),
         ``seconds``.
     history : History
-        One row per frame (loop 0): the smoothed mean of the final pass, its marginal variances,
-        and the forward pass's innovations, S and NIS (for the diagnostics).
+        One row per frame (loop 0): the reported states (``states``, the trajectory the final pass
+        was linearised at), the final pass's marginal variances, and its forward innovations, S
+        and NIS (for the diagnostics).
     log_likelihood : float
         log p(y) of the model linearised at the mode (prediction-error decomposition).
     output_sd : dict
@@ -609,16 +610,13 @@ class IteratedSmoother:
         if self.covariance:
             P_diag[:, :nr] = sm.variances.pop("state")
         P_diag[:, nr:] = np.diag(sm.P_theta)
-        smoothed = np.empty_like(z)
-        smoothed[:, :nr] = lin.to_model(sm.smoothed[:, :nr])
-        # the history's material is the reported estimate, the point the pass was linearised at (its
-        # innovations and S belong to it), not the pass's own undamped Gauss-Newton step: stopped
-        # short of the mode, that step was never checked against the cost and can be anywhere
-        smoothed[:, nr:] = z[:, nr:]
+        # The history's states are the reported estimate z, the trajectory the pass was linearised
+        # at (its innovations and S belong to it), not the pass's own smoothed mean: that is one
+        # more undamped Gauss-Newton step, never checked against the cost, and stopped short of the
+        # mode it can be anywhere (a material that makes K singular). At the mode the two agree.
         history = History()
         for t in range(T):
-            history.append(0, t, smoothed[t], P_diag[t], sm.innovation[t], sm.S[t], sm.nis[t],
-                           int(sm.n_obs[t]))
+            history.append(0, t, z[t], P_diag[t], sm.innovation[t], sm.S[t], sm.nis[t], int(sm.n_obs[t]))
         return SmootherResult(states=z, theta=z[0, nr:].copy(), P_theta=sm.P_theta, P_diag=P_diag,
                               iterations=len(records), converged=converged, stop_reason=stop, records=records,
                               history=history, log_likelihood=sm.log_likelihood,

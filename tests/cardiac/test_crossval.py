@@ -202,3 +202,26 @@ def test_a_runs_report_gives_the_model_plus_the_spline_of_its_residual(setup):
     cv = closing.round_cross_validation(setup, closing.Variant(drive="contour", drive_trend=True), r, 2)
     assert set(cv["residual_spline"]) == {"rmse_px", "rmse_radial_px", "rmse_circumferential_px", "per_fold_px"}
     assert np.isfinite(cv["residual_spline"]["rmse_px"]) and cv["residual_spline"]["rmse_px"] != cv["rmse_px"]
+
+
+def test_the_residual_spline_uses_the_data_the_model_saw_and_scores_against_the_measured(setup):
+    """With observations that differ from the measured displacement (tracked borders, say), the
+    residual's spline is fitted to what the model observed, and the held-out points are scored
+    against the measured displacement: moving the observed data moves the corrected prediction,
+    moving the held-out points' observation data does not."""
+    seq, h, o = setup.seq, setup.heldout, setup.observed
+    rng = np.random.default_rng(7)
+    seen = np.array(seq.displacement)
+    seen[:, o] += rng.standard_normal(seen[:, o].shape) * 0.2
+    r = measured.run(replace(setup, obs_displacement=seen), (), "contour", "none", drive_trend=True)
+    nodes = setup.node_of_point[h]
+    dirs = setup.geometry.radial[nodes], setup.geometry.circumferential[nodes]
+    corr = spline_reference(seq.points, seen - r.U, o, h, *dirs)["U"]
+    expected = np.sqrt(np.nanmean(np.sum((seq.displacement[:, h] - r.U[:, h] - corr) ** 2, axis=2)))
+    assert r.metrics["residual_spline"]["heldout_rmse_px"] == pytest.approx(expected, rel=1e-10)
+    wrong = spline_reference(seq.points, seq.displacement - r.U, o, h, *dirs)["U"]
+    assert not np.allclose(corr, wrong)
+    junk = np.array(seen)
+    junk[:, h] += 5.0                                   # the held-out points' observation data: unused
+    again = measured.run(replace(setup, obs_displacement=junk), (), "contour", "none", drive_trend=True)
+    assert again.metrics["residual_spline"]["heldout_rmse_px"] == pytest.approx(expected, rel=1e-9)

@@ -16,6 +16,7 @@ from sfem_filters.cardiac.myocardium import lv_geometry, mesh_from_mask, polar_s
 from sfem_filters.cardiac.annulus import annulus_mask
 from sfem_filters.cardiac.reference import contour_interpolant, residual_spline, spline_reference
 from sfem_filters.cardiac.sequence import make_sequence
+from sfem_filters.cli import main
 from sfem_filters.fem import Material
 from sfem_filters.filtering import History
 from sfem_filters.fem.elasticity import stiffness_matrix
@@ -68,6 +69,22 @@ def test_residual_spline_is_the_spline_for_a_null_model_and_exact_for_an_affine_
     e1 = np.tile([1.0, 0.0], (n_obs, 1))
     through = residual_spline(pts, disp, disp + rng.standard_normal(disp.shape), obs, obs, e1, e1[:, ::-1])
     np.testing.assert_allclose(through["U"], disp[:, obs], atol=1e-7)
+
+
+def test_residual_spline_keeps_the_model_where_the_spline_is_undefined():
+    """A frame with fewer than 3 observed residuals gets no correction (the model's prediction
+    stands, so the two errors cover the same frames); NaN in the model stays NaN."""
+    rng = np.random.default_rng(4)
+    pts = rng.uniform(0, 20, (30, 2))
+    disp = rng.standard_normal((3, 30, 2)) * 0.1
+    model = disp + rng.standard_normal(disp.shape) * 0.05
+    disp[1, 2:10] = np.nan                               # frame 1: two observed points left
+    model[2, 20] = np.nan                                # a diverged prediction at one held-out point
+    e = np.tile([1.0, 0.0], (20, 1))
+    out = residual_spline(pts, disp, model, np.arange(10), np.arange(10, 30), e, e[:, ::-1])
+    np.testing.assert_array_equal(out["U"][1], model[1, 10:])
+    assert np.isnan(out["U"][2, 10]).all() and np.isfinite(out["U"][2, 11:]).all()
+    assert np.all(np.isfinite(out["heldout_rmse_per_frame_px"]))
 
 
 def test_spline_reference_errors_split_and_missing_data():
@@ -185,9 +202,15 @@ def test_harmonic_active_stress_rejects_bad_settings(annulus):
             harmonic_active_stress(mesh, g, **kw)
 
 
-def test_rounds_default_candidates_leave_out_the_explicit_only_effects():
+def test_rounds_default_candidates_leave_out_the_explicit_only_effects(capsys):
     assert "active_harmonic" in CATALOGUE and "active_harmonic" not in closing.DEFAULT_CANDIDATES
     assert set(closing.DEFAULT_CANDIDATES) | set(EXPLICIT_ONLY) == set(CATALOGUE)
+    seq = annulus_sequence(None, n_frames=4, seed=0)
+    assert [n for n, _ in closing.candidate_loads(measured.prepare(seq, 8))] == list(closing.DEFAULT_CANDIDATES)
+    # the command line names them with --candidates, and rejects a name not in the catalogue
+    with pytest.raises(SystemExit) as err:
+        main(["dense", "example", "--candidates", "active_harmonic,nope"])
+    assert err.value.code == 2 and "--candidates" in capsys.readouterr().err
 
 # ------------------------------------------------------------------ rounds: arguments
 def test_rounds_reject_bad_settings():

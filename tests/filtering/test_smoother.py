@@ -162,14 +162,15 @@ def test_pinned_smoother_converges_with_falling_cost_and_matches_the_exact_margi
 
 
 def test_a_run_stopped_short_reports_its_estimate_in_the_history_too(pinned):
-    """Stopped by the iteration limit far from the mode, the history (which the score tests read)
-    carries the reported material, the point the final pass was linearised at, not that pass's
-    unchecked Gauss-Newton step (which differs from it by many sd here)."""
+    """Stopped by the iteration limit far from the mode, the history (which the score tests and the
+    effects' time courses read) carries the reported states and material, the point the final pass
+    was linearised at, not that pass's unchecked Gauss-Newton step (many sd away here)."""
     m = benchmark_model(pinned, "joint_ekf", parameterisation=Parameterisation.per_region(pinned.middle))
     res = IteratedSmoother(damping=1e8, max_damping=1e12, max_iterations=1).run(m, pinned.observations)
     assert not res.converged and res.stop_reason == "max_iterations"
     nr = m.n_restart
     x = np.asarray(res.history.x, float)
+    np.testing.assert_array_equal(x, res.states)                    # kinematics too, not only the material
     np.testing.assert_array_equal(x[:, nr:], np.broadcast_to(res.theta, x[:, nr:].shape))
     assert res.records[-1]["full_step_sd"] > 10
 
