@@ -15,7 +15,11 @@ With ``--observe boundary+midwall`` a seeded half of the mid-wall points is obse
 dealt to the folds), so that both the model and its cross-validation see the inside of the wall.
 The last two columns (``+spline``) are the same held-out and CV errors of the model plus a
 thin-plate spline of its residual at the observed points
-(:func:`sfem_filters.cardiac.reference.residual_spline`). ``--only`` runs the named rows alone (the rank correlation then needs at least 3 of them).
+(:func:`sfem_filters.cardiac.reference.residual_spline`). The last column gives the held-out RMSE of
+the model plus the spline minus the spline's, with its 95% interval (delete-one-sector jackknife
+over as many angular sectors of the held-out points as landmarks per contour,
+:func:`sfem_filters.cardiac.closing.versus_spline`; negative: the physics adds to the spline).
+``--only`` runs the named rows alone (the rank correlation then needs at least 3 of them).
 """
 from __future__ import annotations
 
@@ -28,7 +32,7 @@ from scipy.stats import spearmanr
 
 from sfem_filters.cardiac import (OBSERVE, example_path, load_sequence, prepare, run, spline_cross_validation,
                                   spline_reference)
-from sfem_filters.cardiac.closing import Variant, round_cross_validation
+from sfem_filters.cardiac.closing import Variant, round_cross_validation, versus_spline
 
 VARIANTS = (
     ("penalty", Variant()),
@@ -56,12 +60,13 @@ def main(argv=None) -> int:
     seq = load_sequence(example_path())
     print(f"observe {args.observe}, {args.folds} folds")
     print(f"{'landmarks':>9}  {'model (material fixed: uniform nominal)':<48}{'held-out':>9}{'CV':>8}{'NIS/dof':>9}"
-          f"{'s':>6}{'+spline':>9}{'CV':>8}")
+          f"{'s':>6}{'+spline':>9}{'CV':>8}  {'+spline - spline (95%)':<24}")
     for L in args.landmarks:
         setup = prepare(seq, L, observe=args.observe)
         g, held = setup.geometry, setup.node_of_point[setup.heldout]
-        spline = spline_reference(seq.points, seq.displacement, setup.observed, setup.heldout, g.radial[held],
-                                  g.circumferential[held])["heldout_rmse_px"]
+        reference = spline_reference(seq.points, seq.displacement, setup.observed, setup.heldout, g.radial[held],
+                                     g.circumferential[held])
+        spline = reference["heldout_rmse_px"]
         spline_cv = spline_cross_validation(setup, args.folds)["rmse_px"]
         rows = []
         for name, v in variants:
@@ -72,10 +77,12 @@ def main(argv=None) -> int:
                         effect_rates=v.effect_rates, process_scale=v.process_scale)
                 cvs = round_cross_validation(setup, v, r, args.folds)
             cv = cvs["rmse_px"]
+            vs = versus_spline(setup, r.U, reference["U"])
+            gap = ("-" if vs is None else "{difference:+.3f} ({low:+.3f}, {high:+.3f})".format(**vs["model_plus_spline"]))
             rows.append((r.metrics["heldout_rmse_px"], cv))
             print(f"{L:>9}  {name:<48}{rows[-1][0]:>9.3f}{cv:>8.3f}{r.metrics['nis_mean_over_dof']:>9.3f}"
                   f"{time.perf_counter() - t0:>6.0f}{r.metrics['residual_spline']['heldout_rmse_px']:>9.3f}"
-                  f"{cvs['residual_spline']['rmse_px']:>8.3f}", flush=True)
+                  f"{cvs['residual_spline']['rmse_px']:>8.3f}  {gap:<24}", flush=True)
         print(f"{L:>9}  {'thin-plate spline, no physics':<48}{spline:>9.3f}{spline_cv:>8.3f}")
         h, c = np.array(rows).T
         if len(rows) < 3:

@@ -15,14 +15,17 @@ on the points, observes sparse landmarks, holds the rest out and closes the loop
 ['active_polar']
 >>> result.extended.metrics["heldout_rmse_px"] < result.reference["heldout_rmse_px"]   # beats the spline
 True
+>>> gap = result.extended.metrics["versus_spline"]["model"]      # by how much, with a 95% interval
+>>> bool(gap["high"] < 0)                                         # ... that excludes no difference
+True
 
 Modules: :mod:`~sfem_filters.cardiac.sequence` (the file format, loader, example data),
 :mod:`~sfem_filters.cardiac.myocardium` (mesh from points or masks, endo/epicardium,
 directions, landmarks), :mod:`~sfem_filters.cardiac.effects` (the catalogue of missing
 effects), :mod:`~sfem_filters.cardiac.measured` (set-up, model, runs, evaluation),
 :mod:`~sfem_filters.cardiac.closing` (residual diagnosis, effects and corrections added in rounds),
-:mod:`~sfem_filters.cardiac.reference` (the thin-plate-spline yardstick, and the model plus
-the spline of its residual),
+:mod:`~sfem_filters.cardiac.reference` (the thin-plate-spline yardstick, the model plus
+the spline of its residual, and intervals for a difference of held-out errors),
 :mod:`~sfem_filters.cardiac.crossval` (cross-validation over the observed points),
 :mod:`~sfem_filters.cardiac.frontend` (images to a sequence, fusion),
 :mod:`~sfem_filters.cardiac.annulus` (synthetic sequences with a known answer).
@@ -49,6 +52,7 @@ from .measured import (
                        Setup,
                        build_model,
                        evaluate,
+                       kriged_heldout,
                        measured_wall_kinematics,
                        noise_floor,
                        prepare,
@@ -62,7 +66,7 @@ from .myocardium import (
                        mesh_from_mask,
                        mesh_from_points,
 )
-from .reference import contour_interpolant, residual_spline, spline_reference
+from .reference import angular_sectors, contour_interpolant, residual_spline, rmse_difference, spline_reference
 from .sequence import (
                        Sequence,
                        example_path,
@@ -76,6 +80,7 @@ __all__ = ["Sequence", "make_sequence", "load_sequence", "save_sequence", "examp
            "build_effects", "NOMINAL", "PARAMETERISATIONS", "DRIVES", "OBSERVE", "Setup", "Run", "prepare",
            "build_model", "run", "evaluate", "noise_floor", "strain_maps", "measured_wall_kinematics",
            "LoopResult", "Round", "Variant", "closing_the_loop", "candidate_loads", "format_report", "log_evidence",
-           "spline_reference", "residual_spline", "contour_interpolant", "cross_validate", "observation_folds",
+           "spline_reference", "residual_spline", "rmse_difference", "angular_sectors", "kriged_heldout",
+           "contour_interpolant", "cross_validate", "observation_folds",
            "spline_cross_validation", "observe", "fusion_setup",
            "compare_fusion", "annulus_mask", "annulus_sequence", "deformed_masks"]

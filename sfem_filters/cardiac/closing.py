@@ -58,7 +58,10 @@ Every report carries the physics-free yardstick (:func:`sfem_filters.cardiac.ref
 a thin-plate spline through the same observed points, scored on the same held-out points; and
 for every round the model plus the same spline of the model's own residual at the observed
 points (:func:`sfem_filters.cardiac.reference.residual_spline`), held out and cross-validated:
-below the spline's error only where the physics captures what interpolation misses.
+below the spline's error only where the physics captures what interpolation misses. Both
+differences from the spline come with a 95% interval (:func:`versus_spline`: a jackknife over
+angular sectors of the held-out points, whose errors are alike within a gap between landmarks),
+so that a report says whether a difference is more than the luck of which points were held out.
 :func:`closing_the_loop` returns all rounds as a :class:`LoopResult`.
 """
 from __future__ import annotations
@@ -71,11 +74,13 @@ from .._validate import integer, non_negative
 from ..filtering import diagnostics
 from .crossval import DEFAULT_FOLDS, cross_validate, observation_folds, spline_cross_validation
 from .effects import CATALOGUE, EXPLICIT_ONLY, build_effects
-from .measured import (NOMINAL, Run, Setup, equivalent_eigenstrain, measured_wall_kinematics, prepare, run)
-from .reference import spline_reference
+from .measured import (NOMINAL, Run, Setup, equivalent_eigenstrain, kriged_heldout, measured_wall_kinematics,
+                       prepare, run)
+from .reference import angular_sectors, rmse_difference, spline_reference
 from .sequence import Sequence
 
 __all__ = ["LoopResult", "Round", "Variant", "closing_the_loop", "candidate_loads", "spans", "log_evidence", "format_report",
+           "versus_spline",
            "DRIVE_CORRECTIONS", "time_courses", "CRITERIA", "round_cross_validation", "DEFAULT_CANDIDATES"]
 
 #: What decides whether a candidate is kept (``criterion=``, ``--criterion``): the evidence
@@ -211,7 +216,7 @@ class Round:
                 "threshold": None if not np.isfinite(self.threshold) else float(self.threshold),
                 "tried": list(self.tried), "cross_validation": self.cv,
                 "ranking": _ranking_json(self.ranking),
-                **{k: m[k] for k in _ROUND_KEYS}}
+                **{k: m[k] for k in _ROUND_KEYS}, "versus_spline": m.get("versus_spline")}
 
 
 def _ranking_json(ranking) -> list:
@@ -574,8 +579,48 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
         reference["cross_validation"] = {k: spline_cv[k] for k in ("rmse_px", "rmse_radial_px",
                                                                    "rmse_circumferential_px", "per_fold_px")}
         reference["cv_folds"] = spline_cv["folds"]
+    for r in rounds:
+        r.run.metrics["versus_spline"] = versus_spline(setup, r.run.U, reference["U"])
     return LoopResult(setup=setup, rounds=rounds, stop_reason=stop, ranking=first, last_attempt=last,
                       measured=measured_wall_kinematics(setup), reference=reference, config=config)
+
+
+def versus_spline(setup: Setup, U, spline_U, level: float = 0.95) -> dict | None:
+    """The held-out RMSE of a model, and of the model plus the spline of its residual, minus the
+    thin-plate spline's, each with a cluster interval (:func:`sfem_filters.cardiac.reference.rmse_difference`).
+
+    The clusters are angular sectors of the held-out points, as many as landmarks per contour,
+    so that a cluster spans about one gap between landmarks, the scale over which an
+    interpolant's errors are alike. ``None`` when fewer than two sectors hold held-out points.
+
+    Parameters
+    ----------
+    setup : Setup
+    U : (F, n_points, 2) array
+        The model's prediction of every point (data units).
+    spline_U : (F, H, 2) array
+        The spline's prediction at the held-out points (``spline_reference(...)["U"]``).
+    level : float
+        Confidence level of the intervals.
+
+    Returns
+    -------
+    dict or None
+        ``model`` and ``model_plus_spline``: each a :func:`~sfem_filters.cardiac.reference.rmse_difference`
+        (data units; negative: better than the spline); ``sectors``: the number of sectors.
+    """
+    h = setup.heldout
+    meas = setup.seq.displacement[:, h]
+    angles = setup.geometry.angle(setup.mesh.nodes[setup.node_of_point[h]])
+    n = max(int(setup.n_landmarks), 2)
+    sectors = angular_sectors(angles, n)
+    if len(np.unique(sectors)) < 2:
+        return None
+    spline_res = meas - np.asarray(spline_U, float)
+    out = {"sectors": n}
+    for key, pred in (("model", np.asarray(U, float)[:, h]), ("model_plus_spline", kriged_heldout(setup, U)["U"])):
+        out[key] = rmse_difference(meas - pred, spline_res, sectors, level)
+    return out
 
 
 def _variant(js: dict) -> Variant:
@@ -634,6 +679,15 @@ def format_report(result: "LoopResult") -> str:
                  f"{ref['heldout_rmse_circumferential_px']:>8.3f}")
     lines.append("  (+spline: held-out RMSE of the model plus a thin-plate spline of its residual at the observed "
                  "points; below the spline's only where the physics adds what interpolation misses)")
+    vs = [(r["round"], r.get("versus_spline")) for r in report["rounds"] if r.get("versus_spline")]
+    if vs:
+        first = vs[0][1]
+        lines.append(f"  held-out RMSE minus the spline's [px], {100 * first['model']['level']:.0f}% interval (jackknife over "
+                     f"{first['sectors']} angular sectors of the held-out points; negative: better than the spline):")
+        for k, v in vs:
+            m, p = v["model"], v["model_plus_spline"]
+            lines.append(f"    round {k}: model {m['difference']:+.3f} ({m['low']:+.3f} to {m['high']:+.3f}), "
+                         f"+spline {p['difference']:+.3f} ({p['low']:+.3f} to {p['high']:+.3f})")
     if any(t.get("test") == "time courses" for r in report["rounds"] for t in r["tried"]):
         lines.append("  (t: score of the test with amplitudes tied to the current effects' time courses)")
     att = report["last_attempt"]

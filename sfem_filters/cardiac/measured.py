@@ -436,6 +436,33 @@ class Run:
     metrics: dict
 
 
+def kriged_heldout(setup: Setup, U) -> dict:
+    """The model plus a thin-plate spline of its residual at the observed points (regression
+    kriging, :func:`sfem_filters.cardiac.reference.residual_spline`), at the held-out points.
+
+    The spline is fitted to what the model observed (the image-derived displacement where the
+    set-up has one) and the sum is scored against the measured held-out displacement.
+
+    Parameters
+    ----------
+    setup : Setup
+    U : (F, n_points, 2) array
+        The model's prediction of every point (data units).
+
+    Returns
+    -------
+    dict
+        As :func:`~sfem_filters.cardiac.reference.residual_spline` (``U``: the prediction at the
+        held-out points, (F, H, 2)).
+    """
+    seen = np.array(setup.seq.displacement)
+    if setup.obs_displacement is not None:
+        seen[:, setup.observed] = setup.obs_displacement[:, setup.observed]
+    held = setup.node_of_point[setup.heldout]
+    return residual_spline(setup.seq.points, seen, U, setup.observed, setup.heldout,
+                           setup.geometry.radial[held], setup.geometry.circumferential[held])
+
+
 def evaluate(setup: Setup, model: SFEMModel, result, seconds: float = 0.0, observations=None) -> tuple:
     """Held-out error, innovations, NIS, material and strain of a run, in data units (pixels).
 
@@ -463,12 +490,7 @@ def evaluate(setup: Setup, model: SFEMModel, result, seconds: float = 0.0, obser
     cons = diagnostics.consistency(result.history)
     mat = model.material_of_theta(result.theta)
     smoother = getattr(result, "method", "") == "iterated_smoother"
-    # the model plus a thin-plate spline of its residual at the observed points (regression
-    # kriging): fitted to what the model observed, scored against the measured held-out points
-    seen = np.array(meas)
-    if setup.obs_displacement is not None:
-        seen[:, setup.observed] = setup.obs_displacement[:, setup.observed]
-    kriged = residual_spline(setup.seq.points, seen, U, setup.observed, h, er, ec)
+    kriged = kriged_heldout(setup, U)
     metrics = {
         "estimator": "smoother" if smoother else "cyclic",
         "heldout_rmse_px": float(np.sqrt(np.nanmean(norm2))),

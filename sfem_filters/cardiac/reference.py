@@ -18,15 +18,24 @@ model knew nothing (predicted zero), this is the spline; if its error is affine 
 reproduces exactly), the sum is exact. It beats the spline only where the physics captures
 structure the spline's interpolation misses, which makes it the fairest test of whether the
 physics earns its keep.
+
+:func:`rmse_difference` says how sure a difference of two held-out RMSEs is (a model against
+the spline, say): the held-out points' errors are correlated in space (between two landmarks an
+interpolant errs the same way at every point) and in time, so the points are grouped into
+clusters, contiguous angular sectors of the wall (:func:`angular_sectors`), and the difference
+gets a delete-one-cluster jackknife standard error and a Student-t interval with one degree of
+freedom fewer than clusters. Both predictions are scored on the same points and frames (paired).
 """
 from __future__ import annotations
 
 import numpy as np
 from scipy.interpolate import CubicSpline, RBFInterpolator
+from scipy.stats import t as student_t
 
 from .._validate import as_float_array
 
-__all__ = ["spline_reference", "heldout_errors", "contour_interpolant", "residual_spline"]
+__all__ = ["spline_reference", "heldout_errors", "contour_interpolant", "residual_spline", "rmse_difference",
+           "angular_sectors"]
 
 
 def heldout_errors(residual, radial, circumferential) -> dict:
@@ -139,3 +148,79 @@ def contour_interpolant(angles_landmarks, values, angles_query) -> np.ndarray:
     spline = CubicSpline(x, y, axis=-2, bc_type="periodic")
     q = np.mod(np.asarray(angles_query, float) - a[0], 2 * np.pi) + a[0]
     return spline(q)
+
+
+def angular_sectors(angles, n: int) -> np.ndarray:
+    """Label of each point's sector when the circle is cut into ``n`` equal sectors from angle 0.
+
+    Parameters
+    ----------
+    angles : (H,) array
+        Angles (rad) about the cavity centre.
+    n : int
+        Number of sectors (>= 2).
+
+    Returns
+    -------
+    (H,) int array in ``0..n-1``
+    """
+    a = as_float_array("angles", angles, shape=(None,))
+    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 2:
+        raise ValueError(f"n: expected an integer number of sectors >= 2, got {n!r}")
+    return np.minimum((np.mod(a, 2 * np.pi) / (2 * np.pi / n)).astype(int), n - 1)
+
+
+def rmse_difference(residual_a, residual_b, clusters, level: float = 0.95) -> dict:
+    """``RMSE(a) - RMSE(b)`` of two predictions' residuals at the same points, with a cluster interval.
+
+    The RMSE pools every (frame, point) where both residuals are finite. Its uncertainty treats
+    clusters of points as the independent units: the delete-one-cluster jackknife gives the
+    standard error, ``se^2 = (G - 1) / G sum_g (d_(g) - mean d_(.))^2`` over the G clusters with
+    data, and the interval is ``d +- t_{G-1} se`` (a cluster-robust interval with a small-sample
+    correction; Efron & Tibshirani 1993, ch. 11). Negative means ``a`` predicts better.
+
+    Parameters
+    ----------
+    residual_a, residual_b : (F, H, 2) arrays
+        Measured minus predicted displacement at H points over F frames (any one unit, for
+        example pixels), NaN where there is no datum or no prediction.
+    clusters : (H,) array
+        Cluster label of each point (for example :func:`angular_sectors`).
+    level : float
+        Confidence level of the interval, in (0, 1).
+
+    Returns
+    -------
+    dict
+        ``difference`` (same unit as the residuals), ``low``, ``high``, ``se``, ``rmse_a``,
+        ``rmse_b``, ``n_clusters``, ``level``, ``method``.
+    """
+    a = as_float_array("residual_a", residual_a, shape=(None, None, 2), allow_nan=True)
+    b = as_float_array("residual_b", residual_b, shape=a.shape, allow_nan=True)
+    labels = np.asarray(clusters)
+    if labels.shape != (a.shape[1],):
+        raise ValueError(f"clusters: expected one label per point, shape ({a.shape[1]},), got shape {labels.shape}")
+    if not (0.0 < float(level) < 1.0):
+        raise ValueError(f"level: expected a confidence level in (0, 1), got {level!r}")
+    sa, sb = np.sum(a ** 2, axis=2), np.sum(b ** 2, axis=2)
+    both = np.isfinite(sa) & np.isfinite(sb)
+    sa, sb = np.where(both, sa, 0.0), np.where(both, sb, 0.0)
+    groups = [g for g in np.unique(labels) if both[:, labels == g].any()]
+    if len(groups) < 2:
+        raise ValueError(f"clusters: expected data in at least 2 clusters for an interval, got {len(groups)}")
+    A = np.array([sa[:, labels == g].sum() for g in groups])
+    B = np.array([sb[:, labels == g].sum() for g in groups])
+    N = np.array([both[:, labels == g].sum() for g in groups], float)
+
+    def diff(A, B, N):
+        return np.sqrt(A.sum() / N.sum()) - np.sqrt(B.sum() / N.sum())
+
+    d = float(diff(A, B, N))
+    G = len(groups)
+    keep = ~np.eye(G, dtype=bool)
+    loo = np.array([diff(A[k], B[k], N[k]) for k in keep])
+    se = float(np.sqrt((G - 1) / G * np.sum((loo - loo.mean()) ** 2)))
+    half = float(student_t.ppf(0.5 + 0.5 * float(level), G - 1)) * se
+    return {"difference": d, "low": d - half, "high": d + half, "se": se,
+            "rmse_a": float(np.sqrt(A.sum() / N.sum())), "rmse_b": float(np.sqrt(B.sum() / N.sum())),
+            "n_clusters": G, "level": float(level), "method": "delete-one-cluster jackknife, Student t"}
