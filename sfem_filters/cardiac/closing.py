@@ -23,7 +23,11 @@ points by more than ``min_cv_gain`` of it (:mod:`sfem_filters.cardiac.crossval`:
 points neither drive nor are observed, and are predicted by the smoothed kinematics of the
 rest). Every round's model is cross-validated either way, beside the spline's cross-validation
 on the same folds, so a report shows both criteria. A significant candidate that fails (b) is
-set aside and the next significant one is fitted (at most ``max_tries`` fits per round).
+set aside and the next significant one is fitted (at most ``max_tries`` fits per round). With
+``selection="best"`` the significant candidates (again at most ``max_tries``) are all fitted and
+the one that improves the criterion most is kept: where candidates overlap (six segments and a
+smooth harmonic field both explain a regional stress) the score test's order, which favours the
+candidate with fewer free amplitudes per frame, does not decide which of them enters.
 
 Once the model has effects, every candidate gets two score tests, both counted in m: one with a
 free amplitude in every frame, and one with its amplitudes tied to a constant and the current
@@ -80,8 +84,12 @@ from .reference import angular_sectors, rmse_difference, spline_reference
 from .sequence import Sequence
 
 __all__ = ["LoopResult", "Round", "Variant", "closing_the_loop", "candidate_loads", "spans", "log_evidence", "format_report",
-           "versus_spline",
+           "versus_spline", "SELECTIONS",
            "DRIVE_CORRECTIONS", "time_courses", "CRITERIA", "round_cross_validation", "DEFAULT_CANDIDATES"]
+
+#: How a round picks among significant candidates (``selection=``, ``--selection``): the first by
+#: score that improves the criterion, or the one of the fitted that improves it most.
+SELECTIONS = ("first", "best")
 
 #: What decides whether a candidate is kept (``criterion=``, ``--criterion``): the evidence
 #: ``log p(y)`` of the observed points, or K-fold cross-validation over them
@@ -410,7 +418,7 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
                      max_iterations: int = 20, max_rounds: int = 5, alpha: float = 0.01,
                      min_evidence: float = 0.0, max_tries: int = 2, candidates=None,
                      corrections: bool = True, criterion: str = "evidence", folds: int = DEFAULT_FOLDS,
-                     min_cv_gain: float = 0.01) -> LoopResult:
+                     min_cv_gain: float = 0.01, selection: str = "first") -> LoopResult:
     """Baseline run, then rounds of ranking and adding effects (module docstring), with the spline
     reference.
 
@@ -434,6 +442,10 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
         Least rise of ``log p(y)`` (nats, >= 0) for an effect to be kept (``criterion="evidence"``).
     max_tries : int
         Most significant candidates fitted per round (>= 1).
+    selection : {"first", "best"}
+        :data:`SELECTIONS`: keep the first significant candidate (by score) that improves the
+        criterion, or fit the significant candidates (at most ``max_tries``) and keep the one
+        that improves it most (module docstring).
     candidates : sequence of str, optional
         The catalogue names to consider (default: :data:`DEFAULT_CANDIDATES`, the catalogue
         without :data:`~sfem_filters.cardiac.effects.EXPLICIT_ONLY`).
@@ -454,6 +466,8 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
     """
     if criterion not in CRITERIA:
         raise ValueError(f"criterion: expected one of {CRITERIA}, got {criterion!r}")
+    if selection not in SELECTIONS:
+        raise ValueError(f"selection: expected one of {SELECTIONS}, got {selection!r}")
     min_cv_gain = non_negative("min_cv_gain", min_cv_gain)
     folds = integer("folds", folds, 2)
     max_rounds = integer("max_rounds", max_rounds, 1)
@@ -523,7 +537,7 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
             ranking = [r for r in ranking if r["effect"] in dict(pool)]
             tests += sum(r.get("n_tests", 1) for r in ranking)
             threshold = -np.log10(alpha / max(tests, 1))
-            tried, accepted = [], None
+            tried, accepted, best = [], None, None
             for cand in ranking:
                 if cand["score"] <= threshold or len(tried) >= max_tries:
                     break
@@ -533,11 +547,17 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
                 trial = _fit(setup, variant, opts)
                 gain, ok, entry, cv = judged(cur, variant, trial)
                 tried.append({"effect": cand["effect"], "score": cand["score"], "test": cand.get("test", "per frame"),
-                              **entry, "accepted": ok})
-                if ok:
-                    accepted = kept(number, variant, cand["effect"], replaced, trial, ranking, threshold, tried, cv)
+                              **entry, "accepted": False})
+                if not ok:
+                    rejected.add(cand["effect"])
+                elif best is None or gain > best[0]:
+                    best = (gain, cand["effect"], replaced, variant, trial, len(tried) - 1, cv)
+                if best is not None and selection == "first":
                     break
-                rejected.add(cand["effect"])
+            if best is not None:
+                gain, name, replaced, variant, trial, k, cv = best
+                tried[k]["accepted"] = True
+                accepted = kept(number, variant, name, replaced, trial, ranking, threshold, tried, cv)
             if corrections and accepted is None:
                 # no effect passes: every correction of the model's own drive and priors that the
                 # residual points to is fitted, and the one with the largest gain of the criterion
@@ -569,7 +589,7 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
               "mesh_elements": int(setup.mesh.n_elements), "max_rounds": max_rounds, "alpha": float(alpha),
               "min_evidence": min_evidence, "max_tries": max_tries, "candidates": names,
               "corrections": bool(corrections), "criterion": criterion, "folds": folds,
-              "min_cv_gain": min_cv_gain, "final": rounds[-1].variant.as_json()}
+              "min_cv_gain": min_cv_gain, "selection": selection, "final": rounds[-1].variant.as_json()}
     g = setup.geometry
     held = setup.node_of_point[setup.heldout]
     reference = spline_reference(seq.points, seq.displacement, setup.observed, setup.heldout,
