@@ -31,7 +31,7 @@ import warnings
 import numpy as np
 
 from sfem_filters.cardiac import annulus_sequence, closing_the_loop, measured, prepare
-from sfem_filters.cardiac.closing import DEFAULT_CANDIDATES
+from sfem_filters.cardiac.closing import DEFAULT_CANDIDATES, SELECTIONS
 from sfem_filters.fem import Material
 
 CASES = ("scale", "two", "akinetic", "clean", "harmonic")
@@ -55,7 +55,7 @@ def _row(name, out, extra=""):
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--cases", nargs="*", choices=CASES, default=[c for c in CASES if c != "harmonic"])
-    ap.add_argument("--selection", choices=("first", "best"), default="first",
+    ap.add_argument("--selection", choices=SELECTIONS, default="first",
                     help="how a round picks among significant candidates (closing_the_loop's selection)")
     ap.add_argument("--max-tries", type=int, default=2, help="most significant candidates fitted per round")
     args = ap.parse_args(argv)

@@ -10,6 +10,7 @@ import os
 import sys
 
 from ._io import write_json
+from .cardiac.closing import CRITERIA, SELECTIONS
 from .cardiac.effects import CATALOGUE, EXPLICIT_ONLY
 from .cardiac.measured import DRIVES, ESTIMATORS, OBSERVE, PARAMETERISATIONS
 from .filtering.engines import ENGINES
@@ -137,11 +138,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="most rounds (effects or corrections added) of --effects auto (default 5)")
     d.add_argument("--alpha", type=_positive_float, default=0.01,
                    help="family-wise level of the candidates' score tests, Bonferroni-corrected (default 0.01)")
-    d.add_argument("--criterion", choices=("evidence", "cv"), default="evidence",
+    d.add_argument("--criterion", choices=CRITERIA, default="evidence",
                    help="what a candidate must improve to be kept: evidence, log p(y) of the observed points "
                         "(default); cv, the K-fold cross-validation error over the observed points (each fold "
                         "neither drives nor is observed)")
-    d.add_argument("--selection", choices=("first", "best"), default="first",
+    d.add_argument("--selection", choices=SELECTIONS, default="first",
                    help="how a round picks among significant candidates: first, the first by score that improves "
                         "the criterion (default); best, fit them (at most --max-tries) and keep the one that "
                         "improves it most")

@@ -248,7 +248,7 @@ def table_rows(record: dict, timing: dict) -> list:
         row.update({k: v for k, v in r.items() if not isinstance(v, (list, dict)) and k not in row
                     and k not in ("added", "round")})
         row.update({f"residual_spline_{k}": v for k, v in (r.get("residual_spline") or {}).items()})
-        for what, d in ((r.get("versus_spline") or {}).items()):
+        for what, d in (r.get("versus_spline") or {}).items():
             if isinstance(d, dict):       # the model's and the +spline's difference from the spline, with interval
                 row.update({f"versus_spline_{what}_{k}": d[k] for k in ("difference", "low", "high")})
         rows.append(row)
