@@ -53,6 +53,7 @@ from .measured import (
                        build_model,
                        evaluate,
                        kriged_heldout,
+                       material_conflict,
                        measured_wall_kinematics,
                        noise_floor,
                        prepare,
@@ -80,7 +81,7 @@ __all__ = ["Sequence", "make_sequence", "load_sequence", "save_sequence", "examp
            "build_effects", "NOMINAL", "PARAMETERISATIONS", "DRIVES", "OBSERVE", "Setup", "Run", "prepare",
            "build_model", "run", "evaluate", "noise_floor", "strain_maps", "measured_wall_kinematics",
            "LoopResult", "Round", "Variant", "closing_the_loop", "candidate_loads", "format_report", "log_evidence",
-           "spline_reference", "residual_spline", "rmse_difference", "angular_sectors", "kriged_heldout",
+           "spline_reference", "residual_spline", "rmse_difference", "angular_sectors", "kriged_heldout", "material_conflict",
            "contour_interpolant", "cross_validate", "observation_folds",
            "spline_cross_validation", "observe", "fusion_setup",
            "compare_fusion", "annulus_mask", "annulus_sequence", "deformed_masks"]

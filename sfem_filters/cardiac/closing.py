@@ -751,6 +751,15 @@ def format_report(result: "LoopResult") -> str:
     if b.get("E_sd_log_median") is not None and e.get("E_sd_log_median") is not None:
         lines.append(f"{'posterior sd of log E (median)':<34}{b['E_sd_log_median']:>12.3f}{e['E_sd_log_median']:>18.3f}")
         lines.append(f"{'posterior sd of nu (median)':<34}{b['nu_sd_median']:>12.3f}{e['nu_sd_median']:>18.3f}")
+    if b.get("prior_conflict") and e.get("prior_conflict"):
+        lines.append(f"{'material vs its prior, -log10 p':<34}{-b['prior_conflict']['log10_p']:>12.1f}"
+                     f"{-e['prior_conflict']['log10_p']:>18.1f}")
+        for key, pc in (("baseline", b["prior_conflict"]), ("final", e["prior_conflict"])):
+            if pc["flagged"]:
+                items = "; ".join(f"{f['quantity']} in {f['where']} "
+                                  + (f"(E x {f['estimate']:.3g}" if f["quantity"] == "log E" else f"(nu {f['estimate']:.3f}")
+                                  + f", z {f['z']:+.1f})" for f in pc["flagged"][:3])
+                lines.append(f"  prior-data conflict, {key} ({pc['n_flagged']} beyond |z| {pc['threshold']:.1f}): {items}")
     if b.get("strain_sd_median") is not None and e.get("strain_sd_median") is not None:
         for k, name in enumerate(("E_rr", "E_cc", "2 E_rc")):
             lines.append(f"{'strain sd ' + name + ' (median)':<34}{b['strain_sd_median'][k]:>12.4f}"

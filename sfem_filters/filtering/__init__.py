@@ -35,7 +35,7 @@ linearised about a trajectory, and its RTS smoother), :mod:`~sfem_filters.filter
 (the iterated smoother: Gauss-Newton on the MAP of one cycle),
 :mod:`~sfem_filters.filtering.marginal` (the exact marginal posterior of a few parameters),
 :mod:`~sfem_filters.filtering.checkpoint`, :mod:`~sfem_filters.filtering.history`,
-:mod:`~sfem_filters.filtering.diagnostics` (NIS, whiteness, score test, material drift),
+:mod:`~sfem_filters.filtering.diagnostics` (NIS, whiteness, score test, material drift, prior-data conflict),
 :mod:`~sfem_filters.filtering.linear` (linear observations, the linear-Gaussian template model).
 """
 from . import diagnostics

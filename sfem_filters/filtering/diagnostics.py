@@ -12,12 +12,12 @@ from scipy import stats
 
 from scipy.special import gammaln
 
-from .._validate import integer, non_negative, positive, probability
+from .._validate import as_float_array, integer, non_negative, positive, probability
 from .history import History
 from .protocol import LoadResponse, n_parameters
 
 __all__ = ["nis_summary", "innovation_rms", "whitened_innovations", "whiteness", "effect_score", "rank_effects",
-           "consistency", "material_drift", "chi2_logsf", "chi2_z"]
+           "consistency", "material_drift", "prior_conflict", "chi2_logsf", "chi2_z"]
 
 
 def _rows(history, loop, min_frames: int = 1):
@@ -309,3 +309,77 @@ def material_drift(model, history) -> dict:
         out["max_abs"].append(float(np.max(np.abs(theta - before))))
         before = theta
     return {k: np.asarray(v) for k, v in out.items()}
+
+
+def prior_conflict(theta, P_post, theta0, P_prior, functionals=None, level: float = 0.99,
+                   min_share: float = 1e-6) -> dict:
+    """How far the data moved the parameters from their prior, against how far they could.
+
+    In a linear-Gaussian model the posterior mean's shift from the prior mean,
+    ``d = theta - theta0``, has covariance ``P_prior - P_post`` over the prior predictive (the
+    variance the data explain; Desroziers et al. 2005, QJRMS 131:3385, applied to parameters).
+    So for a linear functional ``l``, ``z = l d / sqrt(l (P_prior - P_post) l^T)`` is standard
+    normal, and ``d^T (P_prior - P_post)^+ d`` is chi-square with the rank of
+    ``P_prior - P_post`` dof, when prior and model are right. A large ``|z|`` flags a prior-data
+    conflict: the parameter moved much further than the information the data carry about it
+    allows: either the prior is wrong for it, or the model uses it to
+    absorb something it lacks (a region made nearly rigid or incompressible to mimic a missing
+    active stress: the data push it into a saturated range and only the prior stops it). For a
+    nonlinear model ``theta`` and ``P_post`` are the Laplace approximation's mode and
+    covariance, and the check is approximate in the same sense.
+
+    Parameters
+    ----------
+    theta : (p,) array
+        Posterior mode or mean, in the model's parameter units.
+    P_post, P_prior : (p, p) arrays
+        Posterior and prior covariances (parameter units squared).
+    theta0 : (p,) array
+        Prior mean.
+    functionals : (k, p) array, optional
+        Rows ``l`` to test (default: the parameters themselves, the identity).
+    level : float
+        Family-wise level in (0, 1) for flagging: ``|z|`` beyond the two-sided normal quantile of
+        ``1 - (1 - level) / k_testable`` (Bonferroni).
+    min_share : float
+        A functional whose explained variance is below this fraction of its prior variance is
+        not informed by the data: its ``z`` is NaN and it is not tested (>= 0).
+
+    Returns
+    -------
+    dict with ``z`` (k,), ``shift`` (k,) (``l d``), ``data_share`` (k,) (explained over prior
+    variance, in [0, 1] when the data only add information), ``flagged`` (indices, by
+    decreasing ``|z|``), ``threshold`` (the ``|z|`` bound), ``chi2``, ``dof`` and ``log10_p``
+    (the joint test over the parameters), ``level``.
+    """
+    theta = as_float_array("theta", theta, shape=(None,))
+    p = theta.size
+    theta0 = as_float_array("theta0", theta0, shape=(p,))
+    P_post = as_float_array("P_post", P_post, shape=(p, p))
+    P_prior = as_float_array("P_prior", P_prior, shape=(p, p))
+    L = np.eye(p) if functionals is None else as_float_array("functionals", functionals, shape=(None, p))
+    level = probability("level", level)
+    min_share = non_negative("min_share", min_share)
+    d = theta - theta0
+    D = 0.5 * ((P_prior - P_post) + (P_prior - P_post).T)
+    prior_var = np.einsum("ij,jk,ik->i", L, P_prior, L)
+    explained = np.einsum("ij,jk,ik->i", L, D, L)
+    if np.any(prior_var <= 0):
+        raise ValueError("functionals: expected rows with a positive prior variance (l P_prior l^T > 0)")
+    share = explained / prior_var
+    shift = L @ d
+    testable = share > max(min_share, 0.0)
+    z = np.full(len(L), np.nan)
+    z[testable] = shift[testable] / np.sqrt(explained[testable])
+    k = int(testable.sum())
+    threshold = float(stats.norm.isf(0.5 * (1.0 - level) / max(k, 1)))
+    order = np.argsort(-np.abs(np.where(testable, z, 0.0)))
+    flagged = [int(i) for i in order if testable[i] and abs(z[i]) > threshold]
+    lam, U = np.linalg.eigh(D)
+    keep = lam > max(min_share, np.finfo(float).eps * p) * max(float(np.max(np.diag(P_prior))), 1e-300)
+    v = U[:, keep].T @ d
+    q = float(np.sum(v * v / lam[keep]))
+    dof = int(keep.sum())
+    return {"z": z, "shift": shift, "data_share": share, "flagged": flagged, "threshold": threshold,
+            "chi2": q, "dof": dof, "log10_p": chi2_logsf(q, dof) / np.log(10.0) if dof else 0.0,
+            "level": level}

@@ -94,19 +94,36 @@ def dense_strain_maps(loop: LoopResult, path: str, frame: int | None = None):
 
 def dense_material_maps(loop: LoopResult, path: str):
     """Estimated relative Young's modulus and Poisson's ratio (extended model), each with its
-    posterior standard deviation beside it (relative sd of E, sd of nu)."""
+    posterior standard deviation beside it (relative sd of E, sd of nu), and below them the
+    prior-data check's z of log E and of nu (:func:`sfem_filters.cardiac.measured.material_conflict`;
+    symmetric-log colour scale, linear within the check's threshold; flagged elements outlined)."""
+    from matplotlib.colors import SymLogNorm
     plt = _plt()
     setup = loop.setup
     ext = loop.extended
     m = ext.metrics
     tri = _triangulation(setup.mesh)
-    panels = [(np.asarray(m["E_relative"]), "estimated E / E_nominal (relative)", "magma"),
-              (np.asarray(m["E_sd_log"]), "posterior sd of log E (relative sd of E)", "viridis"),
-              (np.asarray(m["nu"]), r"estimated $\nu$", "cividis"),
-              (np.asarray(m["nu_sd"]), r"posterior sd of $\nu$", "viridis")]
-    fig, axes = plt.subplots(2, 2, figsize=(10, 8.5), constrained_layout=True)
-    for ax, (v, label, cmap) in zip(axes.ravel(), panels):
-        im = ax.tripcolor(tri, facecolors=v, cmap=cmap)
+    panels = [(np.asarray(m["E_relative"]), "estimated E / E_nominal (relative)", "magma", None),
+              (np.asarray(m["E_sd_log"]), "posterior sd of log E (relative sd of E)", "viridis", None),
+              (np.asarray(m["nu"]), r"estimated $\nu$", "cividis", None),
+              (np.asarray(m["nu_sd"]), r"posterior sd of $\nu$", "viridis", None)]
+    pc = m.get("prior_conflict")
+    if pc:
+        thr = pc["threshold"]
+        for key, name in (("E_z", "log E"), ("nu_z", r"$\nu$")):
+            z = np.array([np.nan if v is None else v for v in pc[key]], float)
+            top = max(float(np.nanmax(np.abs(z), initial=0.0)), 2.0 * thr)
+            panels.append((z, f"prior-data check: z of {name} (|z| > {thr:.1f} flagged)", "RdBu_r",
+                           SymLogNorm(linthresh=thr, vmin=-top, vmax=top, base=10)))
+    fig, axes = plt.subplots(len(panels) // 2, 2, figsize=(10, 4.25 * (len(panels) // 2)), constrained_layout=True)
+    for ax, (v, label, cmap, norm) in zip(axes.ravel(), panels):
+        if norm is not None:
+            im = ax.tripcolor(tri, facecolors=v, cmap=cmap, norm=norm)
+            beyond = np.abs(np.nan_to_num(v)) > norm.linthresh
+            if beyond.any():
+                ax.triplot(tri.x, tri.y, tri.triangles[beyond], color="k", lw=0.4)
+        else:
+            im = ax.tripcolor(tri, facecolors=v, cmap=cmap)
         ax.set_aspect("equal")
         ax.invert_yaxis()
         ax.set_title(label)

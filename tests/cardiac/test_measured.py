@@ -301,3 +301,69 @@ def test_material_parameterisations_of_the_dense_model():
     assert fixed.metrics["material_drift_sd"] is None and "material_drift_sd" in fixed.metrics
     with pytest.raises(ValueError, match="parameterisation: expected one of"):
         measured.build_model(su, (), "penalty", "elements")
+
+
+# ------------------------------------------------------------------ the material against its prior
+def _region_run(seq, effects, estimator, **kw):
+    su = measured.prepare(seq, 8)
+    su.noise_px = NOISE
+    return su, measured.run(su, effects, "penalty", "region", estimator=estimator, landmark_step_px=STEP, **kw)
+
+
+def test_material_conflict_on_clean_data_flags_nothing():
+    """Data from the baseline model with the nominal material: the joint check is not rejected and no
+    element is flagged; every element of a region carries its region's z."""
+    su, r = _region_run(annulus_sequence(None, seed=1, noise_px=NOISE, landmark_step_px=STEP), (), "cyclic",
+                        max_loops=1)
+    pc = r.metrics["prior_conflict"]
+    assert pc["dof"] == r.model.dim_theta and pc["log10_p"] > -3 and pc["flagged"] == [] and pc["n_flagged"] == 0
+    n_el = su.mesh.n_elements
+    assert len(pc["E_z"]) == len(pc["nu_z"]) == n_el
+    for region in np.unique(su.regions):
+        members = np.flatnonzero(su.regions == region)
+        assert len({pc["E_z"][e] for e in members}) == 1 and len({pc["nu_z"][e] for e in members}) == 1
+    with pytest.raises(ValueError, match="P_post"):
+        measured.material_conflict(su, r.model, r.result.theta, np.eye(2))
+
+
+@pytest.mark.slow
+def test_material_conflict_flags_a_material_absorbing_a_missing_effect():
+    """Undeclared active stress: the regional material absorbs it (nu driven toward 0) and the check
+    flags it far beyond its threshold; declared, the same data give no conflict."""
+    seq = annulus_sequence("active_polar", amplitude=(0.15, -0.3), seed=1, noise_px=NOISE, landmark_step_px=STEP)
+    _, base = _region_run(seq, (), "smoother", max_iterations=6)
+    pc = base.metrics["prior_conflict"]
+    assert pc["log10_p"] < -50 and pc["n_flagged"] >= 3
+    top = pc["flagged"][0]
+    assert abs(top["z"]) > 3 * pc["threshold"] and top["quantity"] in ("log E", "nu") and "sector" in top["where"]
+    _, ext = _region_run(seq, ("active_polar",), "smoother")
+    assert ext.metrics["prior_conflict"]["log10_p"] > -3 and ext.metrics["prior_conflict"]["flagged"] == []
+
+
+def test_dense_figures_show_the_material_with_its_sd_and_its_prior_check(tmp_path):
+    """Every figure of a run is written; the material figure has the two prior-check panels below the
+    estimates and their sd (6 colour maps), and a flagged element is outlined."""
+    import matplotlib
+    matplotlib.use("Agg")
+    from matplotlib import pyplot as plt
+
+    from sfem_filters.plotting import measured as plots
+    seq = annulus_sequence("active_polar", amplitude=(0.15, -0.3), seed=1, noise_px=NOISE, landmark_step_px=STEP)
+    out = closing.closing_the_loop(seq, effects="none", estimator="cyclic", max_loops=1, folds=9)
+    paths = plots.dense_figures(out, str(tmp_path))
+    assert {p.split("/")[-1] for p in paths} >= {"material_maps.png", "residual_maps.png", "nis_trace.png"}
+    assert all((tmp_path / p.split("/")[-1]).stat().st_size > 10_000 for p in paths)
+    captured = {}
+    real_close = plt.close
+    plt.close = lambda fig=None: captured.setdefault("fig", fig)
+    try:
+        plots.dense_material_maps(out, str(tmp_path / "m.png"))
+    finally:
+        plt.close = real_close
+    fig = captured["fig"]
+    titles = [ax.get_title() for ax in fig.axes]
+    assert sum("prior-data check" in t for t in titles) == 2 and sum("posterior sd" in t for t in titles) == 2
+    assert out.extended.metrics["prior_conflict"]["n_flagged"] > 0
+    flagged_panels = [ax for ax in fig.axes if "prior-data check" in ax.get_title() and ax.lines]
+    assert flagged_panels                               # outlines of the flagged elements
+    real_close(fig)
