@@ -1,7 +1,7 @@
 """Closing the loop in rounds where the answer is known: the issue-14 synthetic checks, with the spline beside.
 
     OPENBLAS_NUM_THREADS=1 python benchmarks/rounds_synthetic.py [--cases scale two akinetic clean harmonic]
-        [--selection first|best] [--max-tries 2]
+        [--selection best|first] [--max-tries 3]
 
 Synthetic annulus sequences drawn from the library's own generative model
 (:func:`sfem_filters.cardiac.annulus_sequence`), run through
@@ -14,8 +14,8 @@ Synthetic annulus sequences drawn from the library's own generative model
 * ``clean``: no undeclared effect, seeds 0-3;
 * ``harmonic``: ``active_harmonic`` (uniform plus a first harmonic in angle of both the
   circumferential and the radial stress), with ``active_harmonic`` named among the candidates
-  (the rounds try it only when named), once with each ``selection`` (``"first"`` with the default
-  2 tries, ``"best"`` fitting the 3 best-scored); not in the default list of cases.
+  (the rounds try it only when named), once with each ``selection`` (``"first"`` with 2 tries, the
+  default ``"best"`` fitting the 3 best-scored); not in the default list of cases.
 
 ``--selection`` and ``--max-tries`` are passed to every case but ``harmonic``, which runs both
 selections itself. Per case: the effects the rounds added, why they stopped, NIS/dof and held-out RMSE of the
@@ -55,9 +55,9 @@ def _row(name, out, extra=""):
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--cases", nargs="*", choices=CASES, default=[c for c in CASES if c != "harmonic"])
-    ap.add_argument("--selection", choices=SELECTIONS, default="first",
+    ap.add_argument("--selection", choices=SELECTIONS, default="best",
                     help="how a round picks among significant candidates (closing_the_loop's selection)")
-    ap.add_argument("--max-tries", type=int, default=2, help="most significant candidates fitted per round")
+    ap.add_argument("--max-tries", type=int, default=3, help="most significant candidates fitted per round")
     args = ap.parse_args(argv)
     warnings.simplefilter("ignore", RuntimeWarning)
     pick = {"selection": args.selection, "max_tries": args.max_tries}

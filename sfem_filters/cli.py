@@ -142,12 +142,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="what a candidate must improve to be kept: evidence, log p(y) of the observed points "
                         "(default); cv, the K-fold cross-validation error over the observed points (each fold "
                         "neither drives nor is observed)")
-    d.add_argument("--selection", choices=SELECTIONS, default="first",
-                   help="how a round picks among significant candidates: first, the first by score that improves "
-                        "the criterion (default); best, fit them (at most --max-tries) and keep the one that "
-                        "improves it most")
-    d.add_argument("--max-tries", type=_positive_int, default=2,
-                   help="most significant candidates fitted per round (default 2)")
+    d.add_argument("--selection", choices=SELECTIONS, default="best",
+                   help="how a round picks among significant candidates: best, fit them (at most --max-tries) and "
+                        "keep the one that improves the criterion most (default); first, the first by score that "
+                        "improves it")
+    d.add_argument("--max-tries", type=_positive_int, default=3,
+                   help="most significant candidates fitted per round (default 3)")
     d.add_argument("--folds", type=_folds, default=4,
                    help="folds of the cross-validation over the observed points, reported for every round "
                         "(default 4, at least 2)")
@@ -245,11 +245,12 @@ def cmd_dense(args) -> int:
     config = dict(effects=args.effects, drive=args.drive, landmarks=args.landmarks, observe=args.observe,
                   holdout_seed=args.holdout_seed, parameterisation=args.parameterisation, max_loops=args.max_loops,
                   estimator=args.estimator, max_iterations=args.max_iterations, max_rounds=args.max_rounds,
-                  alpha=args.alpha, criterion=args.criterion, folds=args.folds)
+                  alpha=args.alpha, criterion=args.criterion, folds=args.folds,
+                  # always in the configuration (and a batch job's fingerprint): the default changed
+                  # from "first" to "best", and a result of the one must not be reused for the other
+                  selection=args.selection, max_tries=args.max_tries)
     if args.candidates is not None:
         config["candidates"] = args.candidates
-    if args.selection != "first" or args.max_tries != 2:     # the defaults stay out of batch fingerprints
-        config.update(selection=args.selection, max_tries=args.max_tries)
     if _batch_mode(args, len(args.path)):
         from .batch import dense_jobs, describe_record, merge_timing
         jobs = dense_jobs(args.path, figures=args.figures, export=args.export, **config)

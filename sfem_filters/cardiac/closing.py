@@ -22,12 +22,13 @@ of the observed points, not the interpolation between them that held-out points 
 points by more than ``min_cv_gain`` of it (:mod:`sfem_filters.cardiac.crossval`: each fold's
 points neither drive nor are observed, and are predicted by the smoothed kinematics of the
 rest). Every round's model is cross-validated either way, beside the spline's cross-validation
-on the same folds, so a report shows both criteria. A significant candidate that fails (b) is
-set aside and the next significant one is fitted (at most ``max_tries`` fits per round). With
-``selection="best"`` the significant candidates (again at most ``max_tries``) are all fitted and
-the one that improves the criterion most is kept: where candidates overlap (six segments and a
-smooth harmonic field both explain a regional stress) the score test's order, which favours the
-candidate with fewer free amplitudes per frame, does not decide which of them enters.
+on the same folds, so a report shows both criteria. By default (``selection="best"``) the
+significant candidates (at most ``max_tries``, by score) are all fitted and the one that improves
+the criterion most is kept: where candidates overlap (six segments and a smooth harmonic field both
+explain a regional stress) the score test's order, which favours the candidate with fewer free
+amplitudes per frame, does not decide which of them enters. With ``selection="first"`` a
+significant candidate that fails (b) is set aside and the next significant one is fitted (at most
+``max_tries`` fits per round), and the first that passes is kept.
 
 Once the model has effects, every candidate gets two score tests, both counted in m: one with a
 free amplitude in every frame, and one with its amplitudes tied to a constant and the current
@@ -416,9 +417,9 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
                      observe: str = "boundary", holdout_seed: int = 0, parameterisation: str = "region",
                      max_loops: int = 5, progress: bool = False, estimator: str = "smoother",
                      max_iterations: int = 20, max_rounds: int = 5, alpha: float = 0.01,
-                     min_evidence: float = 0.0, max_tries: int = 2, candidates=None,
+                     min_evidence: float = 0.0, max_tries: int = 3, candidates=None,
                      corrections: bool = True, criterion: str = "evidence", folds: int = DEFAULT_FOLDS,
-                     min_cv_gain: float = 0.01, selection: str = "first") -> LoopResult:
+                     min_cv_gain: float = 0.01, selection: str = "best") -> LoopResult:
     """Baseline run, then rounds of ranking and adding effects (module docstring), with the spline
     reference.
 
@@ -442,10 +443,10 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
         Least rise of ``log p(y)`` (nats, >= 0) for an effect to be kept (``criterion="evidence"``).
     max_tries : int
         Most significant candidates fitted per round (>= 1).
-    selection : {"first", "best"}
-        :data:`SELECTIONS`: keep the first significant candidate (by score) that improves the
-        criterion, or fit the significant candidates (at most ``max_tries``) and keep the one
-        that improves it most (module docstring).
+    selection : {"best", "first"}
+        :data:`SELECTIONS`: fit the significant candidates (at most ``max_tries``) and keep the one
+        that improves the criterion most (the default), or keep the first significant candidate
+        (by score) that improves it (module docstring).
     candidates : sequence of str, optional
         The catalogue names to consider (default: :data:`DEFAULT_CANDIDATES`, the catalogue
         without :data:`~sfem_filters.cardiac.effects.EXPLICIT_ONLY`).
