@@ -27,7 +27,9 @@ def export_dense(loop: LoopResult, directory) -> list:
     ``tissue.pvd``: the mesh (m) with, per frame, ``displacement_m`` and ``velocity_m_s`` (the
     smoothed or filtered estimate), ``strain_polar`` (E_rr, E_cc, 2 E_rc of each node w.r.t. the
     data's reference configuration) and ``strain_polar_sd`` when the smoother gives them; per
-    element ``E_Pa``, ``nu``, ``E_sd_log``, ``nu_sd`` and ``region``. ``points.pvd``: every data
+    element ``E_Pa``, ``nu``, ``E_sd_log``, ``nu_sd``, ``region`` and, where the material is estimated,
+    the prior-data check's ``prior_conflict_z_E`` and ``prior_conflict_z_nu``
+    (:func:`sfem_filters.cardiac.measured.material_conflict`). ``points.pvd``: every data
     point as a vertex with ``observed`` (1 observed, 0 held out), the measured and estimated
     displacement and their difference ``residual_m``. Returns the two ``.pvd`` paths.
     """
@@ -46,6 +48,10 @@ def export_dense(loop: LoopResult, directory) -> list:
             field[:, nodes] = np.asarray(m[key], float)
             pd[key] = field
     cd = _material_fields(model, result.theta, result.posterior_cov)
+    pc = m.get("prior_conflict")
+    if pc:                                  # NaN where the data carry no information on the quantity
+        cd.update({f"prior_conflict_z_{k}": np.array([np.nan if v is None else v for v in pc[f"{k}_z"]], float)
+                   for k in ("E", "nu")})
     if setup.regions is not None:
         cd["region"] = np.asarray(setup.regions, np.int32)
     tissue = write_series(directory, "tissue", setup.mesh.nodes, setup.mesh.elements, times, pd, cd)

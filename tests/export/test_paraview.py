@@ -45,6 +45,10 @@ def test_export_dense_fields_match_the_result(tmp_path):
                                    np.asarray(ext.metrics["strain_polar"])[t])
     mat = ext.model.material_of_theta(ext.result.theta)
     np.testing.assert_allclose(series[0][1].cell_data["E_Pa"][0], mat.E)
+    pc = ext.metrics["prior_conflict"]
+    for k in ("E", "nu"):
+        want = np.array([np.nan if v is None else v for v in pc[f"{k}_z"]], float)
+        np.testing.assert_allclose(series[0][1].cell_data[f"prior_conflict_z_{k}"][0], want, equal_nan=True)
     cloud = read_series(points)
     last = cloud[-1][1]
     assert last.points.shape[0] == setup.seq.n_points
