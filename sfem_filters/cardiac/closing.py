@@ -753,8 +753,8 @@ def format_report(result: "LoopResult") -> str:
         lines.append(f"{'posterior sd of log E (median)':<34}{b['E_sd_log_median']:>12.3f}{e['E_sd_log_median']:>18.3f}")
         lines.append(f"{'posterior sd of nu (median)':<34}{b['nu_sd_median']:>12.3f}{e['nu_sd_median']:>18.3f}")
     if b.get("prior_conflict") and e.get("prior_conflict"):
-        lines.append(f"{'material vs its prior, -log10 p':<34}{-b['prior_conflict']['log10_p']:>12.1f}"
-                     f"{-e['prior_conflict']['log10_p']:>18.1f}")
+        lines.append(f"{'material vs its prior, -log10 p':<34}{max(0.0, -b['prior_conflict']['log10_p']):>12.1f}"
+                     f"{max(0.0, -e['prior_conflict']['log10_p']):>18.1f}")
         for key, pc in (("baseline", b["prior_conflict"]), ("final", e["prior_conflict"])):
             if pc["flagged"]:
                 items = "; ".join(f"{f['quantity']} in {f['where']} "

@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse.linalg as spla
 
-from .._validate import positive
+from .._validate import as_float_array, integer, positive
 from ..fem.dofs import node_dofs
 from ..fem.elasticity import stiffness_matrix
 from ..fem.loads import penalty_load, penalty_stiffness, pressure_load
@@ -466,7 +466,10 @@ def kriged_heldout(setup: Setup, U) -> dict:
 
 
 def region_label(setup: Setup, element: int) -> str:
-    """Where an element lies: its sector of the regional map and its half of the wall."""
+    """Where an element lies: its sector of the regional map and its half of the wall (or its
+    number, for a set-up without regions)."""
+    if setup.regions is None:
+        return f"element {int(element)}"
     r = int(setup.regions[element])
     return f"sector {r // 2} {'endo' if r % 2 == 0 else 'epi'} half"
 
@@ -479,9 +482,16 @@ def material_conflict(setup: Setup, model: SFEMModel, theta, P_theta, top: int =
     ``nu_z`` (standard normal when prior and model are right; NaN where the data carry no
     information), and ``flagged``: up to ``top`` entries, by decreasing ``|z|``, with the quantity,
     an element, where it lies, the estimate (E relative to the nominal, or nu) and ``z``.
+    ``theta`` and ``P_theta`` must hold the posterior of the data counted once (the smoother's
+    Laplace posterior, or one cyclic loop; :func:`evaluate` leaves the check out otherwise).
     """
     par = model.parameterisation
+    if par is None:
+        raise ValueError("model: expected a model that estimates its material, got one with a fixed material")
     n_el, k, p = setup.mesh.n_elements, par.n_E, par.n_params
+    theta = as_float_array("theta", theta, shape=(p,))
+    P_theta = as_float_array("P_theta", P_theta, shape=(p, p))
+    top = integer("top", top, 0)
     rows = np.zeros((2 * n_el, p))
     rows[:n_el, :k] = par.basis_E.toarray()
     rows[n_el:, k:] = par.basis_nu.toarray()
@@ -573,7 +583,9 @@ def evaluate(setup: Setup, model: SFEMModel, result, seconds: float = 0.0, obser
                         "E_level_kPa_95": [float(np.exp(level - 1.96 * level_sd) / 1e3),
                                            float(np.exp(level + 1.96 * level_sd) / 1e3)],
                         "absolute_stiffness": model.parameterisation.level_index is not None})
-        metrics["prior_conflict"] = material_conflict(setup, model, result.theta, P_theta)
+        # the check needs the data counted once: the smoother's posterior, or a single cyclic loop
+        metrics["prior_conflict"] = (material_conflict(setup, model, result.theta, P_theta)
+                                     if smoother or result.loops == 1 else None)
         metrics.update({"E_relative": (mat.E / NOMINAL["E"]).tolist(), "nu": mat.nu.tolist(),
                         "E_sd_log": sd_logE.tolist(), "nu_sd": sd_nu.tolist(),
                         "E_sd_log_median": float(np.median(sd_logE)), "nu_sd_median": float(np.median(sd_nu))})

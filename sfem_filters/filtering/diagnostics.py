@@ -322,18 +322,20 @@ def prior_conflict(theta, P_post, theta0, P_prior, functionals=None, level: floa
     normal, and ``d^T (P_prior - P_post)^+ d`` is chi-square with the rank of
     ``P_prior - P_post`` dof, when prior and model are right. A large ``|z|`` flags a prior-data
     conflict: the parameter moved much further than the information the data carry about it
-    allows: either the prior is wrong for it, or the model uses it to
-    absorb something it lacks (a region made nearly rigid or incompressible to mimic a missing
-    active stress: the data push it into a saturated range and only the prior stops it). For a
-    nonlinear model ``theta`` and ``P_post`` are the Laplace approximation's mode and
-    covariance, and the check is approximate in the same sense.
+    allows: either the prior is wrong for it, or the model uses it to absorb something it lacks
+    (a region made nearly rigid or incompressible to mimic a missing active stress: the data
+    push it into a saturated range and only the prior stops it). For a nonlinear model ``theta``
+    and ``P_post`` are the Laplace approximation's mode and covariance (the iterated smoother's),
+    and the check is approximate in the same sense. It needs the posterior of the data counted
+    once: the paper's cyclic EKF after k > 1 loops has counted the cycle k times, and its shift
+    is then larger than ``P_prior - P_post`` of one cycle allows.
 
     Parameters
     ----------
     theta : (p,) array
-        Posterior mode or mean, in the model's parameter units.
+        Posterior mode or mean, in the model's parameter units (p >= 1).
     P_post, P_prior : (p, p) arrays
-        Posterior and prior covariances (parameter units squared).
+        Posterior and prior covariances (parameter units squared); ``P_prior`` positive definite.
     theta0 : (p,) array
         Prior mean.
     functionals : (k, p) array, optional
@@ -342,8 +344,9 @@ def prior_conflict(theta, P_post, theta0, P_prior, functionals=None, level: floa
         Family-wise level in (0, 1) for flagging: ``|z|`` beyond the two-sided normal quantile of
         ``1 - (1 - level) / k_testable`` (Bonferroni).
     min_share : float
-        A functional whose explained variance is below this fraction of its prior variance is
-        not informed by the data: its ``z`` is NaN and it is not tested (>= 0).
+        A functional (or, for the joint test, a direction in the prior's metric) whose explained
+        variance is below this fraction of its prior variance is not informed by the data: its
+        ``z`` is NaN and it is not tested (>= 0; never below 1e-12, the round-off of the shares).
 
     Returns
     -------
@@ -354,30 +357,37 @@ def prior_conflict(theta, P_post, theta0, P_prior, functionals=None, level: floa
     """
     theta = as_float_array("theta", theta, shape=(None,))
     p = theta.size
+    if p == 0:
+        raise ValueError("theta: expected at least one parameter, got an empty array")
     theta0 = as_float_array("theta0", theta0, shape=(p,))
     P_post = as_float_array("P_post", P_post, shape=(p, p))
     P_prior = as_float_array("P_prior", P_prior, shape=(p, p))
     L = np.eye(p) if functionals is None else as_float_array("functionals", functionals, shape=(None, p))
     level = probability("level", level)
-    min_share = non_negative("min_share", min_share)
+    floor = max(non_negative("min_share", min_share), 1e-12)
+    try:
+        root = np.linalg.cholesky(0.5 * (P_prior + P_prior.T))
+    except np.linalg.LinAlgError:
+        raise ValueError("P_prior: expected a symmetric positive definite prior covariance") from None
     d = theta - theta0
     D = 0.5 * ((P_prior - P_post) + (P_prior - P_post).T)
     prior_var = np.einsum("ij,jk,ik->i", L, P_prior, L)
     explained = np.einsum("ij,jk,ik->i", L, D, L)
-    if np.any(prior_var <= 0):
-        raise ValueError("functionals: expected rows with a positive prior variance (l P_prior l^T > 0)")
-    share = explained / prior_var
+    share = np.where(prior_var > 0, explained / np.where(prior_var > 0, prior_var, 1.0), 0.0)
     shift = L @ d
-    testable = share > max(min_share, 0.0)
+    testable = (prior_var > 0) & (share > floor)     # a zero row of L has nothing to test
     z = np.full(len(L), np.nan)
     z[testable] = shift[testable] / np.sqrt(explained[testable])
     k = int(testable.sum())
     threshold = float(stats.norm.isf(0.5 * (1.0 - level) / max(k, 1)))
     order = np.argsort(-np.abs(np.where(testable, z, 0.0)))
     flagged = [int(i) for i in order if testable[i] and abs(z[i]) > threshold]
-    lam, U = np.linalg.eigh(D)
-    keep = lam > max(min_share, np.finfo(float).eps * p) * max(float(np.max(np.diag(P_prior))), 1e-300)
-    v = U[:, keep].T @ d
+    # the joint test in the prior's metric, where the explained variances are the data's shares
+    # (in [0, 1] whatever the parameters' units)
+    W = sla.solve_triangular(root, sla.solve_triangular(root, D, lower=True).T, lower=True)
+    lam, U = np.linalg.eigh(0.5 * (W + W.T))
+    keep = lam > floor
+    v = U[:, keep].T @ sla.solve_triangular(root, d, lower=True)
     q = float(np.sum(v * v / lam[keep]))
     dof = int(keep.sum())
     return {"z": z, "shift": shift, "data_share": share, "flagged": flagged, "threshold": threshold,

@@ -96,7 +96,8 @@ def dense_material_maps(loop: LoopResult, path: str):
     """Estimated relative Young's modulus and Poisson's ratio (extended model), each with its
     posterior standard deviation beside it (relative sd of E, sd of nu), and below them the
     prior-data check's z of log E and of nu (:func:`sfem_filters.cardiac.measured.material_conflict`;
-    symmetric-log colour scale, linear within the check's threshold; flagged elements outlined)."""
+    symmetric-log colour scale, linear within the check's threshold; flagged elements outlined;
+    grey where the data carry no information)."""
     from matplotlib.colors import SymLogNorm
     plt = _plt()
     setup = loop.setup
@@ -118,6 +119,7 @@ def dense_material_maps(loop: LoopResult, path: str):
     fig, axes = plt.subplots(len(panels) // 2, 2, figsize=(10, 4.25 * (len(panels) // 2)), constrained_layout=True)
     for ax, (v, label, cmap, norm) in zip(axes.ravel(), panels):
         if norm is not None:
+            cmap = plt.get_cmap(cmap).with_extremes(bad="lightgrey")     # grey: no data information
             im = ax.tripcolor(tri, facecolors=v, cmap=cmap, norm=norm)
             beyond = np.abs(np.nan_to_num(v)) > norm.linthresh
             if beyond.any():

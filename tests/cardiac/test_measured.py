@@ -1,4 +1,5 @@
 """Measured-data workflow: sequence format, myocardial geometry, effects, diagnostics (issue 3)."""
+import dataclasses
 import subprocess
 import sys
 
@@ -322,8 +323,26 @@ def test_material_conflict_on_clean_data_flags_nothing():
     for region in np.unique(su.regions):
         members = np.flatnonzero(su.regions == region)
         assert len({pc["E_z"][e] for e in members}) == 1 and len({pc["nu_z"][e] for e in members}) == 1
-    with pytest.raises(ValueError, match="P_post"):
+    # the wiring: an element's z is its log E (nu: logit 2 nu) shift over the explained sd, computed
+    # here from the parameterisation's rows directly
+    par, nr = r.model.parameterisation, r.model.n_restart
+    P0, theta0 = np.asarray(r.model.P0)[nr:, nr:], np.asarray(r.model.x0)[nr:]
+    P, theta = r.result.posterior_cov, r.result.theta
+    for e in (0, n_el // 2, n_el - 1):
+        for rows, block, key in ((par.basis_E, slice(0, par.n_E), "E_z"), (par.basis_nu, slice(par.n_E, None), "nu_z")):
+            l = np.zeros(len(theta))
+            l[block] = rows[e].toarray().ravel()
+            want = l @ (theta - theta0) / np.sqrt(l @ (P0 - P) @ l)
+            assert np.isclose(pc[key][e], want, rtol=1e-8), (key, e)
+    with pytest.raises(ValueError, match="^P_theta:"):
         measured.material_conflict(su, r.model, r.result.theta, np.eye(2))
+    with pytest.raises(ValueError, match="^theta:"):
+        measured.material_conflict(su, r.model, r.result.theta[:3], P)
+    with pytest.raises(ValueError, match="^top:"):
+        measured.material_conflict(su, r.model, r.result.theta, P, top=-1)
+    # after more than one cyclic loop the cycle is counted several times: no check is reported
+    _, again = measured.evaluate(su, r.model, dataclasses.replace(r.result, loops=2))
+    assert again["prior_conflict"] is None
 
 
 @pytest.mark.slow

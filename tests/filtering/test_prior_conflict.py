@@ -3,7 +3,7 @@ set-ups, standard normal and chi-square under the prior predictive, and a confli
 was planted; through the iterated smoother on a small nonlinear model."""
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
+from hypothesis import assume, given, settings, strategies as st
 
 from sfem_filters.filtering import IteratedSmoother, LinearGaussianModel, diagnostics
 
@@ -27,6 +27,10 @@ def _problem(rng, p, m, uninformed=()):
 def test_z_is_the_shift_over_the_explained_sd(seed, p, m):
     rng = np.random.default_rng(seed)
     theta0, P0, G, R, K, P_post = _problem(rng, p, m)
+    # the data's shares in the prior's metric: s^2 / (1 + s^2), s the singular values of
+    # R^-1/2 G P0^1/2; a nearly singular G informs a direction too little to count (min_share)
+    s = np.linalg.svd(np.linalg.solve(np.linalg.cholesky(R), G @ np.linalg.cholesky(P0)), compute_uv=False)
+    assume(np.min(s[: min(p, m)] ** 2 / (1 + s[: min(p, m)] ** 2)) > 1e-4)
     theta = theta0 + rng.standard_normal(p)
     L = rng.standard_normal((3, p))
     out = diagnostics.prior_conflict(theta, P_post, theta0, P0, functionals=L)
@@ -115,5 +119,25 @@ def test_bad_input_is_named():
         diagnostics.prior_conflict([0.0, 1.0], 0.5 * P, [0.0, 0.0], P, functionals=np.ones((2, 3)))
     with pytest.raises(ValueError, match="level"):
         diagnostics.prior_conflict([0.0, 1.0], 0.5 * P, [0.0, 0.0], P, level=1.5)
-    with pytest.raises(ValueError, match="theta"):
+    with pytest.raises(ValueError, match="^theta:"):
         diagnostics.prior_conflict([0.0, np.nan], 0.5 * P, [0.0, 0.0], P)
+    with pytest.raises(ValueError, match="^theta: expected at least one"):
+        diagnostics.prior_conflict([], np.zeros((0, 0)), [], np.zeros((0, 0)))
+    with pytest.raises(ValueError, match="^P_prior: expected a symmetric positive definite"):
+        diagnostics.prior_conflict([0.0, 1.0], 0.5 * P, [0.0, 0.0], np.diag([1.0, -1.0]))
+
+
+def test_the_joint_test_does_not_depend_on_the_parameters_units():
+    """Rescaling a parameter (a unit change) leaves z, the shares, the chi-square and its dof as they were,
+    also when the scales differ by 8 orders of magnitude; a zero functional is not tested."""
+    rng = np.random.default_rng(6)
+    theta0, P0, G, R, K, P_post = _problem(rng, 2, 2)
+    theta = theta0 + [0.5, -0.7]
+    base = diagnostics.prior_conflict(theta, P_post, theta0, P0)
+    S = np.diag([1e4, 1e-4])
+    scaled = diagnostics.prior_conflict(S @ theta, S @ P_post @ S, S @ theta0, S @ P0 @ S)
+    np.testing.assert_allclose(scaled["z"], base["z"], rtol=1e-8)
+    np.testing.assert_allclose(scaled["data_share"], base["data_share"], rtol=1e-8)
+    assert scaled["dof"] == base["dof"] == 2 and np.isclose(scaled["chi2"], base["chi2"], rtol=1e-8)
+    out = diagnostics.prior_conflict(theta, P_post, theta0, P0, functionals=[[1.0, 0.0], [0.0, 0.0]])
+    assert np.isfinite(out["z"][0]) and np.isnan(out["z"][1]) and out["data_share"][1] == 0.0
