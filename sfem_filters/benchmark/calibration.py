@@ -48,6 +48,7 @@ from ..cardiac.annulus import annulus_sequence
 from ..fem.material import Parameterisation
 from ..fem.strain import nodal_strains
 from ..filtering.cyclic import CyclicEKF
+from ..filtering.diagnostics import prior_conflict
 from ..filtering.iterated import IteratedSmoother
 from .pinned import benchmark_model, pinned_benchmark
 from .statistics import wilson_interval
@@ -140,6 +141,7 @@ class Replicate:
     seconds: float
     strain_inside: float = np.nan     # fraction of (frame, node, component) strains inside their 95% interval
     process_noise_scale: float = 1.0  # factor on the model's Q the estimate used
+    prior_check: dict | None = None   # the prior-data check (chi2, dof, flagged) of the estimate, if computed
 
     @property
     def nees(self) -> float:
@@ -199,7 +201,20 @@ class Calibration:
                 "coverage_interval": [clo, chi], "strain_coverage": self.strain_coverage,
                 "converged": int(sum(r.converged for r in self.replicates)),
                 "process_noise_scale_median": float(np.median([r.process_noise_scale for r in self.replicates])),
-                "seconds_median": float(np.median([r.seconds for r in self.replicates]))}
+                "seconds_median": float(np.median([r.seconds for r in self.replicates])),
+                **self.prior_check_summary()}
+
+    def prior_check_summary(self) -> dict:
+        """The prior-data check over the replicates (:func:`sfem_filters.filtering.diagnostics.prior_conflict`,
+        family-wise level 0.99): its pooled chi-square over its pooled dof (1 when calibrated) and the
+        fraction of replicates with a flagged parameter (at most about 1% when calibrated; the truth
+        is drawn from the prior, so there is no conflict to find)."""
+        checks = [r.prior_check for r in self.replicates if r.prior_check is not None]
+        if not checks:
+            return {"prior_check_chi2_over_dof": np.nan, "prior_check_flagged": np.nan}
+        dof = sum(c["dof"] for c in checks)
+        return {"prior_check_chi2_over_dof": float(sum(c["chi2"] for c in checks) / dof) if dof else np.nan,
+                "prior_check_flagged": float(np.mean([c["flagged"] > 0 for c in checks]))}
 
 
 def _strain_inside(model, result, truth) -> float:
@@ -232,6 +247,11 @@ def calibrate(problem: str = "pinned", estimators=ESTIMATORS, n: int = 200, star
     if progress:
         from tqdm import tqdm
         indices = tqdm(indices, desc=f"calibration {problem}", unit="replicate", leave=False)
+    def check(model, theta, P):
+        nr = int(model.n_restart)
+        c = prior_conflict(theta, P, np.asarray(model.x0, float)[nr:], np.asarray(model.P0, float)[nr:, nr:])
+        return {"chi2": c["chi2"], "dof": c["dof"], "flagged": len(c["flagged"])}
+
     for i in indices:
         model, y, theta_true, truth = make(i)
         with warnings.catch_warnings():
@@ -242,21 +262,24 @@ def calibrate(problem: str = "pinned", estimators=ESTIMATORS, n: int = 200, star
                 sec = time.perf_counter() - t0
                 for name, P in (("cyclic_ekf", res.P_theta), ("cyclic_ekf_one_cycle", res.P_theta_one_cycle)):
                     if name in out:
-                        out[name].replicates.append(Replicate(i, theta_true, res.theta, P, res.converged, sec))
+                        out[name].replicates.append(Replicate(i, theta_true, res.theta, P, res.converged, sec,
+                                                              prior_check=check(model, res.theta, P)))
             if {"roukf", "roukf_one_cycle"} & set(estimators):
                 t0 = time.perf_counter()
                 res = CyclicEKF(engine="roukf").run(model, y)
                 sec = time.perf_counter() - t0
                 for name, P in (("roukf", res.P_theta), ("roukf_one_cycle", res.P_theta_one_cycle)):
                     if name in out:
-                        out[name].replicates.append(Replicate(i, theta_true, res.theta, P, res.converged, sec))
+                        out[name].replicates.append(Replicate(i, theta_true, res.theta, P, res.converged, sec,
+                                                              prior_check=check(model, res.theta, P)))
             for name, noise in (("iterated_smoother", "fixed"), ("smoother_estimated_q", "estimate")):
                 if name in estimators:
                     t0 = time.perf_counter()
                     res = IteratedSmoother(process_noise=noise).run(model, y)
                     out[name].replicates.append(
                         Replicate(i, theta_true, res.theta, res.P_theta, res.converged, time.perf_counter() - t0,
-                                  _strain_inside(model, res, truth), res.process_noise_scale))
+                                  _strain_inside(model, res, truth), res.process_noise_scale,
+                                  check(model, res.theta, res.P_theta)))
     return out
 
 
@@ -274,4 +297,11 @@ def format_calibration(results) -> str:
         lines.append(f"{r['problem']:<22}{r['estimator']:<22}{r['n']:>5}{r['p']:>4}{r['anees_over_p']:>9.3f}{band:>14}"
                      f"{r['coverage']:>10.3f}{wil:>15}{sc:>12}{r['converged']:>6}/{r['n']:<3}{r['seconds_median']:>8.2f}"
                      + (f"{r['process_noise_scale_median']:>13.3g}" if scaled else ""))
+    checked = [r for r in rows if np.isfinite(r.get("prior_check_chi2_over_dof", np.nan))]
+    if checked:
+        lines.append(f"prior-data check of the estimates (diagnostics.prior_conflict; calibrated: chi2/dof 1, "
+                     f"at most ~1% of replicates flagged at the family-wise 1% level):")
+        for r in checked:
+            lines.append(f"  {r['problem']:<22}{r['estimator']:<22} chi2/dof {r['prior_check_chi2_over_dof']:>6.3f}"
+                         f"   flagged {100 * r['prior_check_flagged']:>5.1f}%")
     return "\n".join(lines)

@@ -8,7 +8,7 @@ from hypothesis import strategies as st
 from scipy import stats
 
 from sfem_filters.benchmark.calibration import (Calibration, Replicate, _strain_inside, annulus_problem, calibrate,
-                                                pinned_problem, wilson_interval)
+                                                format_calibration, pinned_problem, wilson_interval)
 from sfem_filters.cardiac import closing_the_loop
 from sfem_filters.cardiac.annulus import annulus_sequence
 from sfem_filters.filtering import IteratedSmoother
@@ -70,6 +70,12 @@ def test_the_cyclic_ekf_is_overconfident_and_the_smoother_is_not():
     assert sm.coverage >= 0.9 and one.coverage >= 0.9
     assert one.anees_over_p < ekf.anees_over_p
     assert all(r.converged for r in sm.replicates)
+    # the prior-data check of the smoother's estimates: the truth is drawn from the prior, so no
+    # conflict (chi2 near its dof, hardly any replicate flagged); printed below the table
+    check = sm.summary()
+    assert 0.5 < check["prior_check_chi2_over_dof"] < 2.0 and check["prior_check_flagged"] <= 0.1
+    assert all(r.prior_check["dof"] == 4 for r in sm.replicates)
+    assert "prior-data check" in format_calibration(res)
 
 
 def test_smoothed_strain_intervals_cover_the_true_strain_on_the_annulus():
