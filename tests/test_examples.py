@@ -43,6 +43,7 @@ def test_synthetic_comparison_prints_the_readme_table_of_seed_0():
         assert re.search(rf" 0 {re.escape(label)} {re.escape(D)} ", README), (strategy, D)
 
 
+@pytest.mark.slow                      # 75 s: the default suite keeps under 10 minutes
 def test_front_end_tracking_numbers_are_the_readmes():
     """Parts 1-2 (tracking error and confidence) do not depend on the loop count: the quick run
     prints the README's figures; part 3 (fusion) is checked in the slow test."""
