@@ -49,6 +49,7 @@ from ..fem.material import Parameterisation
 from ..fem.strain import nodal_strains
 from ..filtering.cyclic import CyclicEKF
 from ..filtering.diagnostics import prior_conflict
+from ..filtering.protocol import parameter_prior
 from ..filtering.iterated import IteratedSmoother
 from .pinned import benchmark_model, pinned_benchmark
 from .statistics import wilson_interval
@@ -248,8 +249,7 @@ def calibrate(problem: str = "pinned", estimators=ESTIMATORS, n: int = 200, star
         from tqdm import tqdm
         indices = tqdm(indices, desc=f"calibration {problem}", unit="replicate", leave=False)
     def check(model, theta, P):
-        nr = int(model.n_restart)
-        c = prior_conflict(theta, P, np.asarray(model.x0, float)[nr:], np.asarray(model.P0, float)[nr:, nr:])
+        c = prior_conflict(theta, P, *parameter_prior(model))
         return {"chi2": c["chi2"], "dof": c["dof"], "flagged": len(c["flagged"])}
 
     for i in indices:

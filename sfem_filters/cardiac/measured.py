@@ -45,6 +45,7 @@ from ..filtering import diagnostics
 from ..filtering.cyclic import cyclic_estimate
 from ..filtering.iterated import IteratedSmoother
 from ..filtering.marginal import log_posterior
+from ..filtering.protocol import parameter_prior
 from ..geometry import polygon_centroid, radius_by_angle, triangle_double_areas
 from ..model import SFEMModel
 from .effects import build_effects
@@ -495,10 +496,8 @@ def material_conflict(setup: Setup, model: SFEMModel, theta, P_theta, top: int =
     rows = np.zeros((2 * n_el, p))
     rows[:n_el, :k] = par.basis_E.toarray()
     rows[n_el:, k:] = par.basis_nu.toarray()
-    distinct, first, inverse = np.unique(np.round(rows, 12), axis=0, return_index=True, return_inverse=True)
-    nr = int(model.n_restart)
-    out = diagnostics.prior_conflict(theta, P_theta, np.asarray(model.x0, float)[nr:],
-                                     np.asarray(model.P0, float)[nr:, nr:], functionals=rows[first])
+    _, first, inverse = np.unique(np.round(rows, 12), axis=0, return_index=True, return_inverse=True)
+    out = diagnostics.prior_conflict(theta, P_theta, *parameter_prior(model), functionals=rows[first])
     z = out["z"][np.ravel(inverse)]
     mat = model.material_of_theta(theta)
     flagged = []
@@ -602,8 +601,7 @@ def evaluate(setup: Setup, model: SFEMModel, result, seconds: float = 0.0, obser
     if smoother:
         metrics["log_evidence"] = float(result.log_likelihood)
     elif observations is not None:
-        nr = int(model.n_restart)
-        P0 = np.asarray(model.P0, float)[nr:, nr:]
+        P0 = parameter_prior(model)[1]
         lp = log_posterior(model, observations, result.theta)
         if P0.size:
             Pc = np.asarray(result.posterior_cov, float)

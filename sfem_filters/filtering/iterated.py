@@ -60,7 +60,8 @@ from .checkpoint import load_checkpoint, run_fingerprint, save_checkpoint
 from .cyclic import check_observations
 from .history import History
 from .linearised import check_static_parameters, linearise
-from .protocol import OutputOperators, check_model, measurement_cov, physical_parameters, scaled_process_noise
+from .protocol import (OutputOperators, check_model, measurement_cov, parameter_prior, physical_parameters,
+                       scaled_process_noise)
 from .safeguards import Safeguards
 from .smoother import kalman_forward, smooth, smooth_backward
 
@@ -439,8 +440,7 @@ class IteratedSmoother:
         y = check_observations(model, observations)
         guard = self.safeguards if self.safeguards is not None else Safeguards()
         nr = int(model.n_restart)
-        P3 = np.asarray(model.P0, float)[nr:, nr:]
-        theta0 = np.asarray(model.x0, float)[nr:]
+        theta0, P3 = parameter_prior(model)
         fp = run_fingerprint(model, y, self.trajectory_settings())
         records: list = []
 

@@ -21,7 +21,7 @@ from scipy import optimize
 from .._validate import as_float_array, integer, positive
 from .cyclic import check_observations
 from .linearised import check_static_parameters, linearise
-from .protocol import check_model, n_parameters
+from .protocol import check_model, n_parameters, parameter_prior
 from .smoother import kalman_forward
 
 __all__ = ["log_likelihood", "log_posterior", "MarginalCheck", "laplace_check"]
@@ -45,9 +45,8 @@ def log_likelihood(model, observations, theta) -> float:
 
 def log_posterior(model, observations, theta) -> float:
     """``log p(y | theta) + log p(theta)`` up to a constant (the Gaussian prior of ``model``)."""
-    nr = int(model.n_restart)
-    P3 = np.asarray(model.P0, float)[nr:, nr:]
-    d = np.asarray(theta, float) - np.asarray(model.x0, float)[nr:]
+    theta0, P3 = parameter_prior(model)
+    d = np.asarray(theta, float) - theta0
     return log_likelihood(model, observations, theta) - 0.5 * float(d @ sla.cho_solve(sla.cho_factor(P3), d))
 
 

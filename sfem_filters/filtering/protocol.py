@@ -29,7 +29,7 @@ import numpy as np
 
 __all__ = ["FilterModel", "PerFrameNoise", "Fingerprinted", "PhysicalParameters", "TransitionDerivatives",
            "LoadResponse", "Linearisable", "OutputOperators", "ScalableProcessNoise", "check_model", "measurement_cov",
-           "model_fingerprint", "physical_parameters", "n_parameters", "scaled_process_noise"]
+           "model_fingerprint", "physical_parameters", "n_parameters", "parameter_prior", "scaled_process_noise"]
 
 
 @runtime_checkable
@@ -207,3 +207,10 @@ def scaled_process_noise(model, scale: float):
 def n_parameters(model) -> int:
     """Number of static parameters in the state, ``dim_state - n_restart``."""
     return int(model.dim_state) - int(model.n_restart)
+
+
+def parameter_prior(model) -> tuple:
+    """The static parameters' prior: their mean and covariance, the parameter blocks of ``x0`` and
+    ``P0`` (``(p,)`` and ``(p, p)`` arrays, model units)."""
+    nr = int(model.n_restart)
+    return np.asarray(model.x0, float)[nr:], np.asarray(model.P0, float)[nr:, nr:]
