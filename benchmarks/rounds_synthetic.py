@@ -1,7 +1,7 @@
 """Closing the loop in rounds where the answer is known: the issue-14 synthetic checks, with the spline beside.
 
     OPENBLAS_NUM_THREADS=1 python benchmarks/rounds_synthetic.py [--cases scale two akinetic clean harmonic]
-        [--selection best|first] [--max-tries 3]
+        [--selection best|first] [--max-tries 3] [--no-prune]
 
 Synthetic annulus sequences drawn from the library's own generative model
 (:func:`sfem_filters.cardiac.annulus_sequence`), run through
@@ -18,7 +18,7 @@ Synthetic annulus sequences drawn from the library's own generative model
   default ``"best"`` fitting the 3 best-scored); not in the default list of cases.
 
 ``--selection`` and ``--max-tries`` are passed to every case but ``harmonic``, which runs both
-selections itself. Per case: the effects the rounds added, why they stopped, NIS/dof and held-out RMSE of the
+selections itself; ``--no-prune`` turns the backward steps off in every case. Per case: the effects the rounds added, why they stopped, NIS/dof and held-out RMSE of the
 final model, the thin-plate spline's held-out RMSE, and the case's own check. The same cases
 are asserted in ``tests/cardiac/test_rounds.py`` (slow marks).
 """
@@ -58,9 +58,11 @@ def main(argv=None):
     ap.add_argument("--selection", choices=SELECTIONS, default="best",
                     help="how a round picks among significant candidates (closing_the_loop's selection)")
     ap.add_argument("--max-tries", type=int, default=3, help="most significant candidates fitted per round")
+    ap.add_argument("--no-prune", action="store_true",
+                    help="no backward steps (closing_the_loop's prune=False, the rule before this option)")
     args = ap.parse_args(argv)
     warnings.simplefilter("ignore", RuntimeWarning)
-    pick = {"selection": args.selection, "max_tries": args.max_tries}
+    pick = {"selection": args.selection, "max_tries": args.max_tries, "prune": not args.no_prune}
     print(f"{'case':<30}{'effects added':<32} {'stopped':<25}{'NIS/dof':>8}{'held-out':>9}{'spline':>8}  check",
           flush=True)
     t0 = time.perf_counter()
@@ -80,7 +82,7 @@ def main(argv=None):
                             ("polar (0.1, -0.2), helical 0.6", ((0.1, -0.2), (0.0, 0.6)))):
             out = closing_the_loop(annulus_sequence(["active_polar", "active_helical"], amplitude=amps, seed=0),
                                    effects="auto", max_iterations=6, **pick)
-            _row(label, out, "order added: " + ", ".join(r.added for r in out.rounds[1:]))
+            _row(label, out, "steps: " + ", ".join(r.change for r in out.rounds[1:]))
     if "akinetic" in args.cases:
         amp = np.tile([0.15, -0.3], 6)
         amp[[4, 5]] = 0.0
@@ -109,14 +111,15 @@ def main(argv=None):
         seq = annulus_sequence("active_harmonic", amplitude=harmonic_amplitudes(), seed=0)
         for selection, tries in (("first", 2), ("best", 3)):
             out = closing_the_loop(seq, effects="auto", max_iterations=6, selection=selection, max_tries=tries,
-                                   candidates=list(DEFAULT_CANDIDATES) + ["active_harmonic"])
+                                   prune=pick["prune"], candidates=list(DEFAULT_CANDIDATES) + ["active_harmonic"])
             gap = out.extended.metrics["versus_spline"]["model"]
             fitted = "; ".join(f"round {r.number}: " + ", ".join(f"{t['effect']} {t['evidence_gain']:+.1f}"
                                                                  for t in r.tried if t.get("score") is not None)
-                               for r in out.rounds[1:])
+                               for r in out.rounds[1:] if r.removed is None)
             _row(f"active_harmonic, {selection}", out,
                  "round-0 scores: " + ", ".join(f"{r['effect']} {r['score']:.1f}" for r in out.ranking[:3])
                  + f"; fitted (gain in log p(y), nats): {fitted}"
+                 + "; steps: " + ", ".join(r.change for r in out.rounds[1:])
                  + f"; model - spline {gap['difference']:+.3f} px (95% {gap['low']:+.3f} to {gap['high']:+.3f})")
     print(f"wall time {time.perf_counter() - t0:.0f} s")
 

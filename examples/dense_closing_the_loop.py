@@ -1,8 +1,8 @@
 """Close the loop on measured DENSE data: residual, missing effect, error before and after.
 
 Run:  python examples/dense_closing_the_loop.py [--quick]    (a few minutes on 2 cores; --quick: the
-first 12 frames, two Gauss-Newton iterations per run and at most two candidates fitted per round, a
-smoke test of the workflow, not the README's numbers)
+first 12 frames, two Gauss-Newton iterations per run, at most two candidates fitted per round and no
+backward steps, a smoke test of the workflow, not the README's numbers)
 
 Uses the DENSE slice shipped with the package (any file of the documented format works: pass
 its path instead of example_path()).
@@ -21,10 +21,10 @@ from sfem_filters.cardiac import (
 
 ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
 ap.add_argument("--quick", action="store_true", help="12 frames, two iterations per run, two candidates "
-                                                     "fitted per round (smoke test)")
+                                                     "fitted per round, no backward steps (smoke test)")
 quick = ap.parse_args().quick
 iterations = 2 if quick else 20
-tries = {"max_tries": 2} if quick else {}          # the default (3) otherwise
+tries = {"max_tries": 2, "prune": False} if quick else {}     # the defaults (3, True) otherwise
 
 seq = load_sequence(example_path("subject_a"))
 if quick:

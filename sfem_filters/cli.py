@@ -148,6 +148,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "improves it")
     d.add_argument("--max-tries", type=_positive_int, default=3,
                    help="most significant candidates fitted per round (default 3)")
+    d.add_argument("--no-prune", action="store_true",
+                   help="no backward steps: after a round adds a term, do not try taking earlier terms out "
+                        "(by default the one whose removal improves the criterion most is taken out, while one does)")
     d.add_argument("--folds", type=_folds, default=4,
                    help="folds of the cross-validation over the observed points, reported for every round "
                         "(default 4, at least 2)")
@@ -248,7 +251,9 @@ def cmd_dense(args) -> int:
                   alpha=args.alpha, criterion=args.criterion, folds=args.folds,
                   # always in the configuration (and a batch job's fingerprint): the default changed
                   # from "first" to "best", and a result of the one must not be reused for the other
-                  selection=args.selection, max_tries=args.max_tries)
+                  selection=args.selection, max_tries=args.max_tries,
+                  # likewise: the backward steps are new, and a result without them is not one with them
+                  prune=not args.no_prune)
     if args.candidates is not None:
         config["candidates"] = args.candidates
     if _batch_mode(args, len(args.path)):

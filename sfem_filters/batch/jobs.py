@@ -243,10 +243,13 @@ def table_rows(record: dict, timing: dict) -> list:
         return rows
     rows = []
     for r in res["rounds"]:
-        row = {"job": job["name"], "input": job["inputs"][0], "strategy": f"round {r['round']}",
-               "label": r["added"] or "baseline", "effects": "+".join(r["effects"]), "drive": r["drive"]}
+        removed = r.get("removed")
+        row = {"job": job["name"], "input": job["inputs"][0],
+               "strategy": f"round {r['round']}" + ("-" if removed else ""),
+               "label": f"- {removed}" if removed else (r["added"] or "baseline"),
+               "effects": "+".join(r["effects"]), "drive": r["drive"]}
         row.update({k: v for k, v in r.items() if not isinstance(v, (list, dict)) and k not in row
-                    and k not in ("added", "round")})
+                    and k not in ("added", "removed", "round")})
         row.update({f"residual_spline_{k}": v for k, v in (r.get("residual_spline") or {}).items()})
         for what, d in (r.get("versus_spline") or {}).items():
             if isinstance(d, dict):       # the model's and the +spline's difference from the spline, with interval

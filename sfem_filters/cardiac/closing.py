@@ -48,6 +48,16 @@ instead of held a frame behind, and effect amplitudes that follow a trend; when 
 its expected value from above, the process noise doubled. They have no score test (the drive's direction changes with each frame's
 data): all that apply are fitted, and the one that raises the evidence most is kept.
 
+After every round that adds a term, the rounds also step backward (``prune=True``, the default;
+:func:`removals`): each earlier term (an effect, or a correction of the drive or the noise) is
+taken out in turn, an effect is also tried replaced by an effect it strictly contains (the six
+segments by the uniform stress), and the change that improves the criterion most is made, as long
+as one does. A greedy forward search can let a term enter that a later one makes unnecessary:
+stiffer springs that stand in for a missing effect until the effect becomes significant, or the
+segments where the uniform stress suffices once a transmural effect is in. Every step, forward or
+backward, raises the criterion strictly, and a model fitted once is not fitted again, so the
+search cannot cycle; it is stepwise selection in both directions (Efroymson 1960).
+
 Candidates that explain the same thing are kept from piling up in three ways: the ranking is
 redone on the extended model's innovations, so what the added effect explains no longer counts
 for the others (``cavity_pressure`` after ``active_polar`` on a circular wall); a candidate whose
@@ -85,6 +95,7 @@ from .reference import angular_sectors, rmse_difference, spline_reference
 from .sequence import Sequence
 
 __all__ = ["LoopResult", "Round", "Variant", "closing_the_loop", "candidate_loads", "spans", "log_evidence", "format_report",
+           "removals",
            "versus_spline", "SELECTIONS",
            "DRIVE_CORRECTIONS", "time_courses", "CRITERIA", "round_cross_validation", "DEFAULT_CANDIDATES"]
 
@@ -183,7 +194,7 @@ class Round:
     variant : Variant
         The round's model.
     added : str or None
-        The effect or correction this round added (None for the baseline).
+        The effect or correction this round added (None for the baseline and for a removal).
     replaced : tuple of str
         Effects the added one contains and replaced.
     run : Run
@@ -201,6 +212,13 @@ class Round:
     cv : dict or None
         The round's model's cross-validation over the observed points
         (:func:`round_cross_validation`).
+    removed : str or None
+        For a backward step (:func:`removals`), the term it took out (an effect, a correction's
+        name, or ``<effect>-><nested effect>``); the step shares the number of the round whose
+        addition it followed.
+    backward : list of dict
+        The backward steps fitted from this round's model: removed term, evidence gain (nats;
+        with ``criterion="cv"`` also the CV error and its fall), accepted.
     """
 
     number: int
@@ -213,15 +231,24 @@ class Round:
     tried: list = field(default_factory=list)
     log_evidence: float = np.nan
     cv: dict | None = None
+    removed: str | None = None
+    backward: list = field(default_factory=list)
 
     @property
     def effects(self) -> tuple:
         return self.variant.effects
 
+    @property
+    def change(self) -> str:
+        """What the round changed: ``+ <added>``, ``- <removed>``, or ``baseline``."""
+        if self.removed is not None:
+            return f"- {self.removed}"
+        return "baseline" if self.added is None else f"+ {self.added}"
+
     def as_json(self) -> dict:
         m = self.run.metrics
         return {"round": self.number, **self.variant.as_json(), "added": self.added,
-                "replaced": list(self.replaced), "log_evidence": self.log_evidence,
+                "removed": self.removed, "backward": list(self.backward), "replaced": list(self.replaced), "log_evidence": self.log_evidence,
                 "threshold": None if not np.isfinite(self.threshold) else float(self.threshold),
                 "tried": list(self.tried), "cross_validation": self.cv,
                 "ranking": _ranking_json(self.ranking),
@@ -248,7 +275,8 @@ class LoopResult:
     setup : Setup
         Mesh, geometry and the observed / held-out split.
     rounds : list of Round
-        The baseline (round 0) and every round that added an effect, in order.
+        The baseline (round 0), every round that added an effect or a correction, and every
+        backward step that took one out (:attr:`Round.removed`), in order.
     stop_reason : str
         Why the rounds ended: ``"no significant candidate"``, ``"evidence"`` or ``"cv"`` (significant
         candidates did not improve the criterion), ``"max_rounds"``, ``"given"`` (effects named by
@@ -413,13 +441,61 @@ def _corrections(cur: Round) -> list:
     return out
 
 
+def removals(variant: Variant, start: Variant, loads: dict) -> list:
+    """(name, Variant) of the backward steps from ``variant``: every term it holds beyond ``start``,
+    taken out one at a time.
+
+    An effect is removed (``name``: the effect), or replaced by a catalogue effect strictly nested
+    in it (``<effect>-><nested>``: its loads span the nested effect's and not the other way, as
+    six segments contain the uniform ``active_polar``); a correction is undone by one step
+    (``drive:<drive>``: back to ``start``'s drive; ``drive:trend``, ``effects:trend``: off;
+    ``springs:x10``, ``noise:x2``: the scale divided by that factor). A greedy forward search can
+    let a term enter that a later one makes unnecessary (stiffer springs standing in for a
+    missing effect); these steps let the rounds take it out again (stepwise selection in both
+    directions, Efroymson 1960).
+
+    Parameters
+    ----------
+    variant : Variant
+        The current model.
+    start : Variant
+        The rounds' starting model (its drive and scales are not terms).
+    loads : dict
+        Catalogue effect name -> load matrix (``candidate_loads``): the effects a nested
+        replacement may use.
+
+    Returns
+    -------
+    list of (str, Variant)
+    """
+    out = []
+    for e in variant.effects:
+        rest = tuple(x for x in variant.effects if x != e)
+        out.append((e, variant.with_(effects=rest, effect_rates=variant.effect_rates and bool(rest))))
+        if e in loads:
+            for c, G in loads.items():
+                if c not in variant.effects and spans(loads[e], G) and not spans(G, loads[e]):
+                    out.append((f"{e}->{c}", variant.with_(effects=tuple(c if x == e else x for x in variant.effects))))
+    if variant.drive != start.drive:
+        out.append((f"drive:{variant.drive}", variant.with_(drive=start.drive)))
+    if variant.drive_trend and not start.drive_trend:
+        out.append(("drive:trend", variant.with_(drive_trend=False)))
+    if variant.effect_rates and not start.effect_rates:
+        out.append(("effects:trend", variant.with_(effect_rates=False)))
+    if variant.spring_scale > start.spring_scale:
+        out.append(("springs:x10", variant.with_(spring_scale=variant.spring_scale / 10.0)))
+    if variant.process_scale > start.process_scale:
+        out.append(("noise:x2", variant.with_(process_scale=variant.process_scale / 2.0)))
+    return out
+
+
 def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", landmarks: int = 8,
                      observe: str = "boundary", holdout_seed: int = 0, parameterisation: str = "region",
                      max_loops: int = 5, progress: bool = False, estimator: str = "smoother",
                      max_iterations: int = 20, max_rounds: int = 5, alpha: float = 0.01,
                      min_evidence: float = 0.0, max_tries: int = 3, candidates=None,
                      corrections: bool = True, criterion: str = "evidence", folds: int = DEFAULT_FOLDS,
-                     min_cv_gain: float = 0.01, selection: str = "best") -> LoopResult:
+                     min_cv_gain: float = 0.01, selection: str = "best", prune: bool = True) -> LoopResult:
     """Baseline run, then rounds of ranking and adding effects (module docstring), with the spline
     reference.
 
@@ -464,6 +540,11 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
         Folds of the cross-validation (>= 2, :func:`sfem_filters.cardiac.crossval.observation_folds`).
     min_cv_gain : float
         Least relative fall of the cross-validation RMSE (>= 0) with ``criterion="cv"``.
+    prune : bool
+        After every round that adds a term, try taking out each earlier term (:func:`removals`)
+        and take out the one that improves the criterion most, as long as one does (each such
+        backward step is a row of the rounds, numbered with the round it followed). The
+        criterion rises strictly at every step, forward or backward, so the search cannot cycle.
     """
     if criterion not in CRITERIA:
         raise ValueError(f"criterion: expected one of {CRITERIA}, got {criterion!r}")
@@ -473,6 +554,8 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
     folds = integer("folds", folds, 2)
     max_rounds = integer("max_rounds", max_rounds, 1)
     max_tries = integer("max_tries", max_tries, 1)
+    if not isinstance(prune, (bool, np.bool_)):
+        raise ValueError(f"prune: expected True or False, got {prune!r}")
     min_evidence = non_negative("min_evidence", min_evidence)
     if not (isinstance(alpha, (int, float)) and 0.0 < float(alpha) < 1.0):
         raise ValueError(f"alpha: expected a level in (0, 1), got {alpha!r}")
@@ -527,6 +610,7 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
         stop = "given"
     else:
         stop, tests, rejected = "max_rounds", 0, set()
+        visited = {start}
         n_dofs = setup.mesh.n_dofs
         for number in range(1, max_rounds + 1):
             cur = rounds[-1]
@@ -581,6 +665,29 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
                 last = {"ranking": ranking, "threshold": float(threshold), "tried": tried}
                 break
             rounds.append(accepted)
+            visited.add(accepted.variant)
+            while prune:
+                # backward steps: take out the earlier term whose removal improves the criterion
+                # most; a variant fitted once is not fitted again (the criterion only rises, so
+                # a model that lost to an earlier one loses to every later one)
+                cur = rounds[-1]
+                best = None
+                for name, variant in removals(cur.variant, start, loads):
+                    if variant in visited:
+                        continue
+                    visited.add(variant)
+                    trial = _fit(setup, variant, opts)
+                    gain, ok, entry, cv = judged(cur, variant, trial)
+                    cur.backward.append({"removed": name, **entry, "accepted": False})
+                    if ok and (best is None or gain > best[0]):
+                        best = (gain, name, variant, trial, len(cur.backward) - 1, cv)
+                if best is None:
+                    break
+                gain, name, variant, trial, k, cv = best
+                cur.backward[k]["accepted"] = True
+                step = kept(number, variant, None, (), trial, [], np.nan, [], cv)
+                step.removed = name
+                rounds.append(step)
     config = {"drive": drive, "landmarks": landmarks, "observe": observe, "holdout_seed": holdout_seed,
               "parameterisation": parameterisation, "estimator": estimator,
               "max_iterations" if estimator == "smoother" else "max_loops":
@@ -590,7 +697,8 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
               "mesh_elements": int(setup.mesh.n_elements), "max_rounds": max_rounds, "alpha": float(alpha),
               "min_evidence": min_evidence, "max_tries": max_tries, "candidates": names,
               "corrections": bool(corrections), "criterion": criterion, "folds": folds,
-              "min_cv_gain": min_cv_gain, "selection": selection, "final": rounds[-1].variant.as_json()}
+              "min_cv_gain": min_cv_gain, "selection": selection, "prune": bool(prune),
+              "final": rounds[-1].variant.as_json()}
     g = setup.geometry
     held = setup.node_of_point[setup.heldout]
     reference = spline_reference(seq.points, seq.displacement, setup.observed, setup.heldout,
@@ -680,16 +788,21 @@ def format_report(result: "LoopResult") -> str:
               "untouched until here):",
               f"  {'round':<6}{'model':<44}{'score':>8}{'need':>7}{'dlogp(y)':>10}{'NIS/dof':>9}{'lag-1':>7}"
               f"{'CV':>7}{'held-out':>9}{'radial':>8}{'circ.':>8}{'+spline':>9}"]
+    previous = None
     for r in report["rounds"]:
         tried = {t["effect"]: t for t in r["tried"]}
         t = tried.get(r["added"], {})
+        if r.get("removed") is not None and previous is not None:   # a backward step: its gain
+            t = next((b for b in previous.get("backward", []) if b["accepted"]), {})
         score = (f"{t['score']:.1f}" + ("t" if t.get("test") == "time courses" else "")
                  if t.get("score") is not None else "-")
         need = f"{r['threshold']:.1f}" if r["threshold"] is not None else "-"
         gain = f"{t['evidence_gain']:+.1f}" if "evidence_gain" in t else "-"
         label = _variant(r).label(cfg["drive"])
         cv = f"{r['cross_validation']['rmse_px']:.3f}" if r.get("cross_validation") else "-"
-        lines.append(f"  {r['round']:<6}{label:<44}{score:>8}{need:>7}{gain:>10}"
+        number = f"{r['round']}-" if r.get("removed") is not None else str(r["round"])
+        previous = r
+        lines.append(f"  {number:<6}{label:<44}{score:>8}{need:>7}{gain:>10}"
                      f"{r['nis_mean_over_dof']:>9.3f}{r['innovation_lag1_autocorrelation']:>7.3f}{cv:>7}"
                      f"{r['heldout_rmse_px']:>9.3f}{r['heldout_rmse_radial_px']:>8.3f}"
                      f"{r['heldout_rmse_circumferential_px']:>8.3f}{r['residual_spline']['heldout_rmse_px']:>9.3f}")
@@ -711,6 +824,12 @@ def format_report(result: "LoopResult") -> str:
                          f"+spline {p['difference']:+.3f} ({p['low']:+.3f} to {p['high']:+.3f})")
     if any(t.get("test") == "time courses" for r in report["rounds"] for t in r["tried"]):
         lines.append("  (t: score of the test with amplitudes tied to the current effects' time courses)")
+    for r in report["rounds"]:
+        if r.get("backward"):
+            steps = ", ".join(f"{b['removed']} {b['evidence_gain']:+.1f}" + (" (taken out)" if b["accepted"] else "")
+                              for b in r["backward"])
+            lines.append(f"  backward steps from round {r['round']}{'-' if r.get('removed') else ''} "
+                         f"(term taken out: gain in log p(y), nats): {steps}")
     att = report["last_attempt"]
     rejected = [f"{t['effect']} ({t['evidence_gain']:+.1f} nats" + (f", CV {t['cv_rmse_px']:.3f} px)" if "cv_rmse_px" in t
                                                                   else ")")

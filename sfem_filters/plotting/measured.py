@@ -159,7 +159,7 @@ def rounds_figure(loop: LoopResult, path: str):
     fig, (ax, bx) = plt.subplots(1, 2, figsize=(11, 4), constrained_layout=True)
     rounds = loop.as_json()["rounds"]
     x = np.arange(len(rounds))
-    labels = ["baseline"] + [f"+ {r['added']}" for r in rounds[1:]]
+    labels = ["baseline"] + [f"- {r['removed']}" if r.get("removed") else f"+ {r['added']}" for r in rounds[1:]]
     ref = loop.reference
     for key, style, name in (("heldout_rmse_px", "o-", "total"), ("heldout_rmse_radial_px", "s--", "radial"),
                              ("heldout_rmse_circumferential_px", "^--", "circumferential")):
