@@ -242,10 +242,13 @@ def table_rows(record: dict, timing: dict) -> list:
             rows.append(row)
         return rows
     rows = []
+    backward = {}                             # backward steps so far in each round: 3-1, 3-2, ...
     for r in res["rounds"]:
         removed = r.get("removed")
+        if removed:
+            backward[r["round"]] = backward.get(r["round"], 0) + 1
         row = {"job": job["name"], "input": job["inputs"][0],
-               "strategy": f"round {r['round']}" + ("-" if removed else ""),
+               "strategy": f"round {r['round']}" + (f"-{backward[r['round']]}" if removed else ""),
                "label": f"- {removed}" if removed else (r["added"] or "baseline"),
                "effects": "+".join(r["effects"]), "drive": r["drive"]}
         row.update({k: v for k, v in r.items() if not isinstance(v, (list, dict)) and k not in row
@@ -270,6 +273,6 @@ def describe_record(record: dict) -> str:
     rounds = res["rounds"]
     last = rounds[-1]
     return (f"{job['name']}: held-out RMSE baseline {rounds[0]['heldout_rmse_px']:.3f} px -> "
-            f"round {last['round']} {last['heldout_rmse_px']:.3f} px (effects {'+'.join(last['effects']) or 'none'}, "
+            f"round {last['round']}{'-' if last.get('removed') else ''} {last['heldout_rmse_px']:.3f} px (effects {'+'.join(last['effects']) or 'none'}, "
             f"drive {last['drive']}); spline {res['spline_reference']['heldout_rmse_px']:.3f} px; "
             f"stopped: {res['stop_reason']}")

@@ -218,7 +218,7 @@ class Round:
         addition it followed.
     backward : list of dict
         The backward steps fitted from this round's model: removed term, evidence gain (nats;
-        with ``criterion="cv"`` also the CV error and its fall), accepted.
+        with ``criterion="cv"`` also the CV error and its fall, data units), accepted.
     """
 
     number: int
@@ -441,18 +441,25 @@ def _corrections(cur: Round) -> list:
     return out
 
 
+def _key(variant: Variant) -> Variant:
+    """A model's identity for the rounds: its variant with the effects in a fixed order."""
+    return variant.with_(effects=tuple(sorted(variant.effects)))
+
+
 def removals(variant: Variant, start: Variant, loads: dict) -> list:
     """(name, Variant) of the backward steps from ``variant``: every term it holds beyond ``start``,
     taken out one at a time.
 
-    An effect is removed (``name``: the effect), or replaced by a catalogue effect strictly nested
-    in it (``<effect>-><nested>``: its loads span the nested effect's and not the other way, as
-    six segments contain the uniform ``active_polar``); a correction is undone by one step
-    (``drive:<drive>``: back to ``start``'s drive; ``drive:trend``, ``effects:trend``: off;
-    ``springs:x10``, ``noise:x2``: the scale divided by that factor). A greedy forward search can
-    let a term enter that a later one makes unnecessary (stiffer springs standing in for a
-    missing effect); these steps let the rounds take it out again (stepwise selection in both
-    directions, Efroymson 1960).
+    An effect is removed (``name``: the effect; the last one out takes ``effects:trend`` with it),
+    or replaced by a catalogue effect strictly nested in it (``<effect>-><nested>``: its loads span
+    the nested effect's and not the other way, as six segments contain the uniform
+    ``active_polar``), unless the other effects' loads already span the nested one (that would be
+    a second copy of one cause). A correction is undone by one step (``drive:<drive>``: back to
+    ``start``'s drive; ``drive:trend``, ``effects:trend``: off; ``springs:x10``, ``noise:x2``: the
+    scale divided by that factor); ``drive:contour+trend``, one forward step, is undone in two. A
+    greedy forward search can let a term enter that a later one makes unnecessary (stiffer springs
+    standing in for a missing effect); these steps let the rounds take it out again (stepwise
+    selection in both directions, Efroymson 1960).
 
     Parameters
     ----------
@@ -461,21 +468,28 @@ def removals(variant: Variant, start: Variant, loads: dict) -> list:
     start : Variant
         The rounds' starting model (its drive and scales are not terms).
     loads : dict
-        Catalogue effect name -> load matrix (``candidate_loads``): the effects a nested
-        replacement may use.
+        Catalogue effect name -> load matrix (``candidate_loads``: (n_dofs, k) nodal loads per
+        unit amplitude; only their column spans are used): the effects a nested replacement may
+        use. Effects of ``variant`` missing from it get no nested replacement.
 
     Returns
     -------
     list of (str, Variant)
+        Each backward step's name and the model it leads to, effects first (in ``variant``'s
+        order), then the corrections.
     """
     out = []
     for e in variant.effects:
         rest = tuple(x for x in variant.effects if x != e)
         out.append((e, variant.with_(effects=rest, effect_rates=variant.effect_rates and bool(rest))))
-        if e in loads:
-            for c, G in loads.items():
-                if c not in variant.effects and spans(loads[e], G) and not spans(G, loads[e]):
-                    out.append((f"{e}->{c}", variant.with_(effects=tuple(c if x == e else x for x in variant.effects))))
+        if e not in loads:
+            continue
+        others = [loads[x] for x in rest if x in loads]
+        G_rest = np.column_stack(others) if others else np.zeros((loads[e].shape[0], 0))
+        for c, G in loads.items():
+            if (c not in variant.effects and spans(loads[e], G) and not spans(G, loads[e])
+                    and not spans(G_rest, G)):
+                out.append((f"{e}->{c}", variant.with_(effects=tuple(c if x == e else x for x in variant.effects))))
     if variant.drive != start.drive:
         out.append((f"drive:{variant.drive}", variant.with_(drive=start.drive)))
     if variant.drive_trend and not start.drive_trend:
@@ -512,7 +526,8 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
         The iterated smoother (at most ``max_iterations`` Gauss-Newton steps) or the paper's
         cyclic joint EKF (at most ``max_loops`` loops); see :func:`sfem_filters.cardiac.measured.run`.
     max_rounds : int
-        Most effects added (>= 1).
+        Most forward rounds, each adding an effect or a correction (>= 1); backward steps are not
+        counted.
     alpha : float
         Family-wise level of the score tests, in (0, 1).
     min_evidence : float
@@ -610,7 +625,10 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
         stop = "given"
     else:
         stop, tests, rejected = "max_rounds", 0, set()
-        visited = {start}
+        # every model fitted, by its terms (effects in any order): none is fitted twice, forward or
+        # backward. Each accepted step raises the criterion strictly, so a model fitted before and
+        # not kept, or kept and left since, can never pass against a later one.
+        seen = {_key(start)}
         n_dofs = setup.mesh.n_dofs
         for number in range(1, max_rounds + 1):
             cur = rounds[-1]
@@ -629,6 +647,9 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
                 replaced = tuple(e for e in cur.effects if spans(loads[cand["effect"]], loads[e]))
                 new = tuple(e for e in cur.effects if e not in replaced) + (cand["effect"],)
                 variant = cur.variant.with_(effects=new)
+                if _key(variant) in seen:
+                    continue
+                seen.add(_key(variant))
                 trial = _fit(setup, variant, opts)
                 gain, ok, entry, cv = judged(cur, variant, trial)
                 tried.append({"effect": cand["effect"], "score": cand["score"], "test": cand.get("test", "per frame"),
@@ -650,6 +671,9 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
                 # (a correction that fails here is tried again on a later round's model)
                 best = None
                 for name, variant in _corrections(cur):
+                    if _key(variant) in seen:
+                        continue
+                    seen.add(_key(variant))
                     trial = _fit(setup, variant, opts)
                     gain, ok, entry, cv = judged(cur, variant, trial)
                     tried.append({"effect": name, "score": None, **entry, "accepted": False})
@@ -665,17 +689,14 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
                 last = {"ranking": ranking, "threshold": float(threshold), "tried": tried}
                 break
             rounds.append(accepted)
-            visited.add(accepted.variant)
             while prune:
-                # backward steps: take out the earlier term whose removal improves the criterion
-                # most; a variant fitted once is not fitted again (the criterion only rises, so
-                # a model that lost to an earlier one loses to every later one)
+                # backward steps: take out the earlier term whose removal improves the criterion most
                 cur = rounds[-1]
                 best = None
                 for name, variant in removals(cur.variant, start, loads):
-                    if variant in visited:
+                    if _key(variant) in seen:
                         continue
-                    visited.add(variant)
+                    seen.add(_key(variant))
                     trial = _fit(setup, variant, opts)
                     gain, ok, entry, cv = judged(cur, variant, trial)
                     cur.backward.append({"removed": name, **entry, "accepted": False})
@@ -688,6 +709,7 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
                 step = kept(number, variant, None, (), trial, [], np.nan, [], cv)
                 step.removed = name
                 rounds.append(step)
+                rejected.clear()        # an effect rejected beside the term now gone may pass without it
     config = {"drive": drive, "landmarks": landmarks, "observe": observe, "holdout_seed": holdout_seed,
               "parameterisation": parameterisation, "estimator": estimator,
               "max_iterations" if estimator == "smoother" else "max_loops":
@@ -783,7 +805,9 @@ def format_report(result: "LoopResult") -> str:
                      f"explains {100 * r['explained']:5.1f}% of the NIS")
     crit = ("log p(y) rises" if cfg.get("criterion", "evidence") == "evidence"
             else f"the {cfg['folds']}-fold cross-validation error over the observed points falls")
-    lines += ["", f"rounds (each adds the best significant candidate while {crit}; CV: {cfg.get('folds')}-fold "
+    lines += ["", f"rounds (each adds the best significant candidate while {crit}"
+              + ("; a row numbered k- is a backward step after round k, taking out the term whose removal "
+                 "improves it most" if cfg.get("prune") else "") + f"; CV: {cfg.get('folds')}-fold "
               "cross-validation over the observed points, material at the fit's estimate; held-out points "
               "untouched until here):",
               f"  {'round':<6}{'model':<44}{'score':>8}{'need':>7}{'dlogp(y)':>10}{'NIS/dof':>9}{'lag-1':>7}"
@@ -813,7 +837,8 @@ def format_report(result: "LoopResult") -> str:
                  f"{ref['heldout_rmse_circumferential_px']:>8.3f}")
     lines.append("  (+spline: held-out RMSE of the model plus a thin-plate spline of its residual at the observed "
                  "points; below the spline's only where the physics adds what interpolation misses)")
-    vs = [(r["round"], r.get("versus_spline")) for r in report["rounds"] if r.get("versus_spline")]
+    vs = [(f"{r['round']}-" if r.get("removed") else r["round"], r.get("versus_spline"))
+          for r in report["rounds"] if r.get("versus_spline")]
     if vs:
         first = vs[0][1]
         lines.append(f"  held-out RMSE minus the spline's [px], {100 * first['model']['level']:.0f}% interval (jackknife over "
@@ -826,10 +851,13 @@ def format_report(result: "LoopResult") -> str:
         lines.append("  (t: score of the test with amplitudes tied to the current effects' time courses)")
     for r in report["rounds"]:
         if r.get("backward"):
-            steps = ", ".join(f"{b['removed']} {b['evidence_gain']:+.1f}" + (" (taken out)" if b["accepted"] else "")
-                              for b in r["backward"])
+            steps = ", ".join(f"{b['removed']} {b['evidence_gain']:+.1f}"
+                              + (f" (CV {b['cv_rmse_px']:.3f})" if "cv_rmse_px" in b else "")
+                              + (" (taken out)" if b["accepted"] else "") for b in r["backward"])
             lines.append(f"  backward steps from round {r['round']}{'-' if r.get('removed') else ''} "
-                         f"(term taken out: gain in log p(y), nats): {steps}")
+                         f"(term taken out: gain in log p(y), nats"
+                         + ("; CV over the observed points, px" if any("cv_rmse_px" in b for b in r["backward"]) else "")
+                         + f"): {steps}")
     att = report["last_attempt"]
     rejected = [f"{t['effect']} ({t['evidence_gain']:+.1f} nats" + (f", CV {t['cv_rmse_px']:.3f} px)" if "cv_rmse_px" in t
                                                                   else ")")

@@ -421,7 +421,8 @@ def test_a_smooth_regional_stress_is_identified_as_the_harmonic_field(harmonic_r
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="measured (benchmarks/rounds_synthetic.py --cases harmonic --no-prune): "
+@pytest.mark.xfail(strict=True, raises=AssertionError,
+                   reason="measured (benchmarks/rounds_synthetic.py --cases harmonic --no-prune): "
                                        "the six segments rank first at round 0 (542 against 409 for active_harmonic, "
                                        "which has more dof per frame), enter, and leave the harmonic field nothing "
                                        "significant to add; with selection='first' and no backward steps the rounds "
@@ -467,11 +468,13 @@ def test_removals_take_out_one_term_at_a_time(annulus):
     v = closing.Variant(("active_segments", "active_helical"), drive="contour", drive_trend=True, effect_rates=True,
                         process_scale=4.0, spring_scale=100.0)
     steps = dict(closing.removals(v, start, loads))
-    nested = {f"{e}->{n}" for e in v.effects for n in loads if n not in v.effects
-              and closing.spans(loads[e], loads[n]) and not closing.spans(loads[n], loads[e])}
-    assert "active_segments->active_polar" in nested
+    # the segments contain the uniform, radial, isotropic and circumferential stresses, but the
+    # helical effect already holds the circumferential one: no second copy of it
+    nested = {"active_segments->active_polar", "active_segments->active_radial", "active_segments->dilatation"}
     assert set(steps) == {"active_segments", "active_helical", "drive:contour", "drive:trend", "effects:trend",
                           "springs:x10", "noise:x2"} | nested
+    alone = dict(closing.removals(closing.Variant(("active_segments",)), start, loads))
+    assert set(alone) == {"active_segments", "active_segments->active_circumferential"} | nested
     assert steps["active_segments"] == v.with_(effects=("active_helical",))
     assert steps["active_segments->active_polar"] == v.with_(effects=("active_polar", "active_helical"))
     assert steps["drive:contour"] == v.with_(drive="penalty")
@@ -482,7 +485,12 @@ def test_removals_take_out_one_term_at_a_time(annulus):
     assert dict(closing.removals(alone, start, loads))["active_polar"] == closing.Variant()
 
 
-def _scripted_rounds(monkeypatch, evidence, scores, **kw):
+#: the metrics a report reads (the scripted fits give them all 0)
+_REPORT_KEYS = closing._ROUND_KEYS + ("heldout_rmse_worst_frame_px", "innovation_rms_px", "nis_fraction_outside_95")
+
+
+def _scripted_rounds(monkeypatch, evidence, scores, candidates=("active_polar", "active_segments", "active_helical"),
+                     **kw):
     """closing_the_loop with every fit and score test replaced by a script: ``evidence(variant)``
     is a model's log p(y), ``scores(variant)`` the candidates' -log10 p on its innovations. Tests
     the search itself (which variants are fitted and kept), not the statistics."""
@@ -493,18 +501,20 @@ def _scripted_rounds(monkeypatch, evidence, scores, **kw):
         fitted.append(variant)
         U = np.zeros((setup.seq.n_frames, setup.seq.n_points, 2))
         return SimpleNamespace(model=variant, result=SimpleNamespace(history=None), U=U,
-                               metrics={**dict.fromkeys(closing._ROUND_KEYS, 0.0),
-                                        "log_evidence": evidence(variant), "lag1_z": 0.0, "nis_z": 0.0})
+                               metrics={**dict.fromkeys(_REPORT_KEYS, 0.0), "converged": True, "loops": 1,
+                                        "residual_spline": {"heldout_rmse_px": 0.0},
+                                        "log_evidence": evidence(variant)})
 
     def rank(model, history, pool, loop=None, time_courses=None):
         s = scores(model)
-        return sorted(({"effect": n, "score": s.get(n, 0.0), "n_tests": 1} for n, _ in pool), key=lambda d: -d["score"])
+        return sorted(({"effect": n, "score": s.get(n, 0.0), "n_tests": 1, "lm": 0.0, "df": 1, "explained": 0.0}
+                       for n, _ in pool), key=lambda d: -d["score"])
 
     monkeypatch.setattr(closing, "_fit", fit)
     monkeypatch.setattr(closing.diagnostics, "rank_effects", rank)
     monkeypatch.setattr(closing, "time_courses", lambda r: None)
-    out = closing.closing_the_loop(seq, candidates=["active_polar", "active_segments", "active_helical"],
-                                   folds=9, **kw)                # 9 folds of 8 landmarks: no cross-validation
+    out = closing.closing_the_loop(seq, candidates=list(candidates), folds=9,
+                                   **kw)                # 9 folds of 8 landmarks: no cross-validation
     return out, fitted
 
 
@@ -543,12 +553,16 @@ def test_backward_steps_undo_a_greedy_detour(monkeypatch):
     first = out.rounds[3].backward
     assert {b["removed"] for b in first} == {"active_segments", "active_segments->active_polar", "springs:x10"}
     assert [b["removed"] for b in first if b["accepted"]] == ["springs:x10"]
-    assert all(np.isclose(b["evidence_gain"], evidence(v) - ev[3]) for b in first
-               for n, v in closing.removals(out.rounds[3].variant, closing.Variant(), {}) if n == b["removed"])
-    backward = [v for r in out.rounds for n, v in closing.removals(r.variant, closing.Variant(), {})]
-    assert len([v for v in fitted if v in backward]) == len({v for v in fitted if v in backward})
+    loads = dict(closing.candidate_loads(out.setup, ["active_polar", "active_segments", "active_helical"]))
+    steps = dict(closing.removals(out.rounds[3].variant, closing.Variant(), loads))
+    assert all(np.isclose(b["evidence_gain"], evidence(steps[b["removed"]]) - ev[3]) for b in first)
+    keys = [closing._key(v) for v in fitted]        # no model fitted twice, forward or backward, in any order
+    assert len(keys) == len(set(keys)), keys
     js = out.as_json()["rounds"]
     assert js[4]["removed"] == "springs:x10" and js[4]["added"] is None and js[3]["backward"] == first
+    report = closing.format_report(out)
+    assert "  3-    active_segments,active_helical" in report and "+20.0" in report
+    assert "springs:x10 +20.0 (taken out)" in report
 
 
 def test_without_backward_steps_the_detour_stays(monkeypatch):
@@ -558,3 +572,28 @@ def test_without_backward_steps_the_detour_stays(monkeypatch):
     assert all(not r.backward for r in out.rounds)
     with pytest.raises(ValueError, match="prune"):
         closing.closing_the_loop(annulus_sequence(None, n_frames=4, seed=0), prune="yes")
+
+
+def test_an_effect_rejected_beside_a_stand_in_is_tried_again_once_the_stand_in_is_out(monkeypatch):
+    """Stiffer springs enter first; the radial stress, fitted beside them, lowers the evidence and
+    is rejected; once the helical effect has made the springs unnecessary and they are taken out,
+    the radial stress passes."""
+    def evidence(v):
+        e, springs = set(v.effects), v.spring_scale == 10.0
+        return (60.0 * ("active_helical" in e) + (20.0 if not springs else -10.0) * ("active_radial" in e)
+                + (30.0 if "active_helical" not in e else -20.0) * springs - 5.0 * (v.drive != "penalty"))
+
+    def scores(v):
+        if not v.effects and v.spring_scale == 1.0:
+            return {}
+        return {n: 10.0 for n in ("active_radial", "active_helical") if n not in v.effects}
+
+    out, fitted = _scripted_rounds(monkeypatch, evidence, scores, selection="best",
+                                   candidates=("active_polar", "active_radial", "active_helical"))
+    changes = [r.change for r in out.rounds]
+    assert changes == ["baseline", "+ springs:x10", "+ active_helical", "- springs:x10", "+ active_radial"], changes
+    assert [(t["effect"], t["accepted"]) for t in out.rounds[2].tried] == [("active_radial", False),
+                                                                          ("active_helical", True)] or \
+        [(t["effect"], t["accepted"]) for t in out.rounds[2].tried] == [("active_helical", True),
+                                                                       ("active_radial", False)]
+    assert np.all(np.diff([r.log_evidence for r in out.rounds]) > 0)
