@@ -23,7 +23,8 @@ Modules: :mod:`~sfem_filters.cardiac.sequence` (the file format, loader, example
 :mod:`~sfem_filters.cardiac.myocardium` (mesh from points or masks, endo/epicardium,
 directions, landmarks), :mod:`~sfem_filters.cardiac.effects` (the catalogue of missing
 effects), :mod:`~sfem_filters.cardiac.measured` (set-up, model, runs, evaluation),
-:mod:`~sfem_filters.cardiac.closing` (residual diagnosis, effects and corrections added in rounds),
+:mod:`~sfem_filters.cardiac.closing` (residual diagnosis, effects and corrections added in rounds,
+and taken out again by backward steps),
 :mod:`~sfem_filters.cardiac.reference` (the thin-plate-spline yardstick, the model plus
 the spline of its residual, and intervals for a difference of held-out errors),
 :mod:`~sfem_filters.cardiac.crossval` (cross-validation over the observed points),
@@ -39,6 +40,7 @@ from .closing import (
                        closing_the_loop,
                        format_report,
                        log_evidence,
+                       removals,
 )
 from .crossval import cross_validate, observation_folds, spline_cross_validation
 from .effects import CATALOGUE, Effect, build_effects
@@ -81,6 +83,7 @@ __all__ = ["Sequence", "make_sequence", "load_sequence", "save_sequence", "examp
            "build_effects", "NOMINAL", "PARAMETERISATIONS", "DRIVES", "OBSERVE", "Setup", "Run", "prepare",
            "build_model", "run", "evaluate", "noise_floor", "strain_maps", "measured_wall_kinematics",
            "LoopResult", "Round", "Variant", "closing_the_loop", "candidate_loads", "format_report", "log_evidence",
+           "removals",
            "spline_reference", "residual_spline", "rmse_difference", "angular_sectors", "kriged_heldout", "material_conflict",
            "contour_interpolant", "cross_validate", "observation_folds",
            "spline_cross_validation", "observe", "fusion_setup",
