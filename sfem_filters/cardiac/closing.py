@@ -398,6 +398,10 @@ def _fit(setup, variant: Variant, opts) -> Run:
 #: Corrections of the drive the rounds may make: from the drive in use to the one tried instead.
 DRIVE_CORRECTIONS = {"penalty": "contour"}
 
+#: The corrections' factors: springs made this much stiffer (``springs:x10``), process noise this
+#: much larger (``noise:x2``); a backward step (:func:`removals`) divides by the same factor.
+SPRING_FACTOR, NOISE_FACTOR = 10.0, 2.0
+
 #: |z| of the innovations' checks (NIS, lag-1 whiteness; each ~N(0, 1) for a consistent model)
 #: beyond which the residual points to a correction of the model's noise or dynamics.
 CHECK_Z = 3.0
@@ -435,9 +439,9 @@ def _corrections(cur: Round) -> list:
     if lagged and v.effects and not v.effect_rates:
         out.append(("effects:trend", v.with_(effect_rates=True)))
     if v.drive in ("penalty", "contour"):
-        out.append(("springs:x10", v.with_(spring_scale=v.spring_scale * 10.0)))
+        out.append(("springs:x10", v.with_(spring_scale=v.spring_scale * SPRING_FACTOR)))
     if m["nis_z"] > CHECK_Z:
-        out.append(("noise:x2", v.with_(process_scale=v.process_scale * 2.0)))
+        out.append(("noise:x2", v.with_(process_scale=v.process_scale * NOISE_FACTOR)))
     return out
 
 
@@ -497,9 +501,9 @@ def removals(variant: Variant, start: Variant, loads: dict) -> list:
     if variant.effect_rates and not start.effect_rates:
         out.append(("effects:trend", variant.with_(effect_rates=False)))
     if variant.spring_scale > start.spring_scale:
-        out.append(("springs:x10", variant.with_(spring_scale=variant.spring_scale / 10.0)))
+        out.append(("springs:x10", variant.with_(spring_scale=variant.spring_scale / SPRING_FACTOR)))
     if variant.process_scale > start.process_scale:
-        out.append(("noise:x2", variant.with_(process_scale=variant.process_scale / 2.0)))
+        out.append(("noise:x2", variant.with_(process_scale=variant.process_scale / NOISE_FACTOR)))
     return out
 
 
@@ -780,6 +784,11 @@ def _variant(js: dict) -> Variant:
                    js["spring_scale"])
 
 
+def _round_label(r: dict) -> str:
+    """A round's label in the report: its number, with ``-`` for a backward step."""
+    return f"{r['round']}-" if r.get("removed") else str(r["round"])
+
+
 def format_report(result: "LoopResult") -> str:
     """Text summary of :func:`closing_the_loop`."""
     report = result.as_json()
@@ -816,17 +825,15 @@ def format_report(result: "LoopResult") -> str:
     for r in report["rounds"]:
         tried = {t["effect"]: t for t in r["tried"]}
         t = tried.get(r["added"], {})
-        if r.get("removed") is not None and previous is not None:   # a backward step: its gain
-            t = next((b for b in previous.get("backward", []) if b["accepted"]), {})
         score = (f"{t['score']:.1f}" + ("t" if t.get("test") == "time courses" else "")
                  if t.get("score") is not None else "-")
         need = f"{r['threshold']:.1f}" if r["threshold"] is not None else "-"
-        gain = f"{t['evidence_gain']:+.1f}" if "evidence_gain" in t else "-"
+        gain = (f"{t['evidence_gain']:+.1f}" if "evidence_gain" in t else
+                f"{r['log_evidence'] - previous['log_evidence']:+.1f}" if r.get("removed") else "-")
         label = _variant(r).label(cfg["drive"])
         cv = f"{r['cross_validation']['rmse_px']:.3f}" if r.get("cross_validation") else "-"
-        number = f"{r['round']}-" if r.get("removed") is not None else str(r["round"])
         previous = r
-        lines.append(f"  {number:<6}{label:<44}{score:>8}{need:>7}{gain:>10}"
+        lines.append(f"  {_round_label(r):<6}{label:<44}{score:>8}{need:>7}{gain:>10}"
                      f"{r['nis_mean_over_dof']:>9.3f}{r['innovation_lag1_autocorrelation']:>7.3f}{cv:>7}"
                      f"{r['heldout_rmse_px']:>9.3f}{r['heldout_rmse_radial_px']:>8.3f}"
                      f"{r['heldout_rmse_circumferential_px']:>8.3f}{r['residual_spline']['heldout_rmse_px']:>9.3f}")
@@ -837,8 +844,7 @@ def format_report(result: "LoopResult") -> str:
                  f"{ref['heldout_rmse_circumferential_px']:>8.3f}")
     lines.append("  (+spline: held-out RMSE of the model plus a thin-plate spline of its residual at the observed "
                  "points; below the spline's only where the physics adds what interpolation misses)")
-    vs = [(f"{r['round']}-" if r.get("removed") else r["round"], r.get("versus_spline"))
-          for r in report["rounds"] if r.get("versus_spline")]
+    vs = [(_round_label(r), r.get("versus_spline")) for r in report["rounds"] if r.get("versus_spline")]
     if vs:
         first = vs[0][1]
         lines.append(f"  held-out RMSE minus the spline's [px], {100 * first['model']['level']:.0f}% interval (jackknife over "
@@ -854,7 +860,7 @@ def format_report(result: "LoopResult") -> str:
             steps = ", ".join(f"{b['removed']} {b['evidence_gain']:+.1f}"
                               + (f" (CV {b['cv_rmse_px']:.3f})" if "cv_rmse_px" in b else "")
                               + (" (taken out)" if b["accepted"] else "") for b in r["backward"])
-            lines.append(f"  backward steps from round {r['round']}{'-' if r.get('removed') else ''} "
+            lines.append(f"  backward steps from round {_round_label(r)} "
                          f"(term taken out: gain in log p(y), nats"
                          + ("; CV over the observed points, px" if any("cv_rmse_px" in b for b in r["backward"]) else "")
                          + f"): {steps}")
