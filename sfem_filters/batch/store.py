@@ -4,7 +4,8 @@
     ``{"job": {kind, name, config, inputs, fingerprint}, "result": ...}``: depends only on the
     job (byte for byte the same from any scheduler and worker count).
 ``<name>.run.json``
-    How that result was obtained: timing (s), warnings, worker, files written, when.
+    How that result was obtained: timing (s), warnings, worker, files written, when. Written
+    before the result, so every result has one; a job counts as done only once its result is.
 ``<name>.error.json``
     The error of a job that failed (removed once the job succeeds).
 ``table.csv``
@@ -102,11 +103,14 @@ class ResultStore:
         old = self._read(path)
         if old is not None and old.get("job", {}).get("fingerprint") not in (None, fp):
             os.replace(path, self.path(job, "." + old["job"]["fingerprint"][:12]))
-        _atomic_write(path, _dumps({"job": job.describe(fp), "result": outcome.result}))
+        # the run record first, the result last: the result file is the commit point, so a
+        # process killed between the two writes leaves a job that reruns, never a result
+        # without its run record
         _atomic_write(self.path(job, ".run"), _dumps({
             "fingerprint": fp, "timing": outcome.timing, "wall_seconds": outcome.wall_seconds,
             "warnings": outcome.warnings, "written": outcome.written, "worker": worker or socket.gethostname(),
             "finished": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")}))
+        _atomic_write(path, _dumps({"job": job.describe(fp), "result": outcome.result}))
         if os.path.exists(self.path(job, ".error")):
             os.remove(self.path(job, ".error"))
         return path

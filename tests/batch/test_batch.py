@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -218,6 +219,11 @@ def test_dense_job_record_and_rows(tmp_path):
     assert float(rows[1]["heldout_rmse_px"]) == rec["result"]["spline_reference"]["heldout_rmse_px"]
 
 
+def _results(folder):
+    """Names of the jobs whose result file exists (not their run or error records)."""
+    return sorted(p.name[:-len(".json")] for p in folder.glob("seed*.json") if re.fullmatch(r"seed\d+\.json", p.name))
+
+
 def test_sigkill_of_the_client_then_rerun_finishes_only_the_rest(tmp_path):
     out = tmp_path / "batch"
     cmd = [sys.executable, "-m", "sfem_filters.cli", "compare", "--seed", "0-5", "--max-loops", "3",
@@ -225,7 +231,7 @@ def test_sigkill_of_the_client_then_rerun_finishes_only_the_rest(tmp_path):
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     try:
         deadline = time.time() + 120
-        while time.time() < deadline and not list(out.glob("seed*.run.json")):
+        while time.time() < deadline and not _results(out):
             time.sleep(0.05)
         os.kill(proc.pid, signal.SIGKILL)
         proc.wait()
@@ -234,7 +240,7 @@ def test_sigkill_of_the_client_then_rerun_finishes_only_the_rest(tmp_path):
             os.killpg(proc.pid, signal.SIGKILL)  # orphaned worker processes, if any
         except ProcessLookupError:
             pass
-    done = sorted(p.name[:-len(".run.json")] for p in out.glob("seed*.run.json"))
+    done = _results(out)  # a job is done once its result file is written (the commit point)
     assert 1 <= len(done) < 6, "the kill must land mid-batch"
     stamps = {n: (out / f"{n}.json").stat().st_mtime_ns for n in done}
     res = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
