@@ -10,7 +10,8 @@ on the points, observes sparse landmarks, holds the rest out and closes the loop
 >>> setup = prepare(seq, landmarks=8)
 >>> setup.mesh.n_nodes, len(setup.observed), len(setup.heldout)
 (240, 16, 224)
->>> result = closing_the_loop(seq, effects="auto", max_iterations=3, max_rounds=1)
+>>> result = closing_the_loop(seq, effects="auto", max_iterations=3, max_rounds=1,
+...                           selection="first", prune=False)   # quick: the defaults try more
 >>> result.effects                                                       # the undeclared effect is found
 ['active_polar']
 >>> result.extended.metrics["heldout_rmse_px"] < result.reference["heldout_rmse_px"]   # beats the spline
