@@ -45,11 +45,14 @@ the landmarks' motion interpolated along it, instead of on the isolated landmark
 forms tents in the wall between them; springs ten times stiffer; when the
 innovations are correlated in time, spring targets extrapolated from the last two frames
 instead of held a frame behind, and effect amplitudes that follow a trend; when the NIS is off
-its expected value from above, the process noise doubled. They have no score test (the drive's direction changes with each frame's
-data): all that apply are fitted, and the one that raises the evidence most is kept.
+its expected value from above, the process noise doubled; and a smoother prior of the material
+(independent regions or elements replaced by the smooth basis of a few modes): a map of
+independent regions can absorb a misfit of the border in the stiffness of the regions under it,
+which a smooth field cannot. They have no score test (the drive's direction changes with each
+frame's data): all that apply are fitted, and the one that raises the criterion most is kept.
 
 After every round that adds a term, the rounds also step backward (``prune=True``, the default;
-:func:`removals`): each earlier term (an effect, or a correction of the drive or the noise) is
+:func:`removals`): each earlier term (an effect, or a correction of the drive, the noise or the material) is
 taken out in turn, an effect is also tried replaced by an effect it strictly contains (the six
 segments by the uniform stress), and the change that improves the criterion most is made, as long
 as one does. A greedy forward search can let a term enter that a later one makes unnecessary:
@@ -150,6 +153,9 @@ class Variant:
         Scale of every process noise.
     spring_scale : float
         Scale of the drive's spring stiffness.
+    material : str, optional
+        The material map (:data:`~sfem_filters.cardiac.measured.PARAMETERISATIONS`) when the rounds
+        have changed it; None: the one the rounds were configured with.
     """
 
     effects: tuple = ()
@@ -158,6 +164,7 @@ class Variant:
     effect_rates: bool = False
     process_scale: float = 1.0
     spring_scale: float = 1.0
+    material: str | None = None
 
     def with_(self, **change) -> "Variant":
         return replace(self, **change)
@@ -175,12 +182,14 @@ class Variant:
             out += f" [noise x{self.process_scale:g}]"
         if self.spring_scale != 1.0:
             out += f" [springs x{self.spring_scale:g}]"
+        if self.material is not None:
+            out += f" [material {self.material}]"
         return out
 
     def as_json(self) -> dict:
         return {"effects": list(self.effects), "drive": self.drive, "drive_trend": self.drive_trend,
                 "effect_rates": self.effect_rates, "process_scale": self.process_scale,
-                "spring_scale": self.spring_scale}
+                "spring_scale": self.spring_scale, "material": self.material}
 
 
 @dataclass(eq=False)
@@ -390,6 +399,8 @@ def round_cross_validation(setup: Setup, variant: Variant, r: Run, folds: int = 
 
 
 def _fit(setup, variant: Variant, opts) -> Run:
+    if variant.material is not None:
+        opts = {**opts, "parameterisation": variant.material}
     return run(setup, variant.effects, variant.drive, name=variant.label(variant.drive), effect_rates=variant.effect_rates,
                drive_trend=variant.drive_trend, process_scale=variant.process_scale,
                spring_scale=variant.spring_scale, **opts)
@@ -397,6 +408,10 @@ def _fit(setup, variant: Variant, opts) -> Run:
 
 #: Corrections of the drive the rounds may make: from the drive in use to the one tried instead.
 DRIVE_CORRECTIONS = {"penalty": "contour"}
+
+#: Corrections of the material's prior the rounds may make: from the map in use to a smoother one
+#: (independent regions or elements to the smooth basis of a few modes, which ties neighbours).
+MATERIAL_CORRECTIONS = {"region": "basis", "element": "basis"}
 
 #: The corrections' factors: springs made this much stiffer (``springs:x10``), process noise this
 #: much larger (``noise:x2``); a backward step (:func:`removals`) divides by the same factor.
@@ -407,7 +422,7 @@ SPRING_FACTOR, NOISE_FACTOR = 10.0, 2.0
 CHECK_Z = 3.0
 
 
-def _corrections(cur: Round) -> list:
+def _corrections(cur: Round, material: str | None = None) -> list:
     """(name, Variant) of the corrections the current round's residual points to.
 
     ``drive:<new>``: the drive's correction (:data:`DRIVE_CORRECTIONS`), always a candidate.
@@ -425,6 +440,10 @@ def _corrections(cur: Round) -> list:
     way: a NIS below 1 in the smoother's final pass comes from the parameters' prior as well as
     from the process noise (a model that is right everywhere gives NIS/dof 0.5-0.8 on the
     synthetic checks), so it is no evidence that the noise is too large.
+    ``material:<map>``: the material's prior made smoother (:data:`MATERIAL_CORRECTIONS`, from the
+    map in use, ``material`` unless the rounds changed it), always a candidate: independent
+    regions or elements let the stiffness absorb a misfit of the border that a smooth field
+    cannot.
     """
     v, m = cur.variant, cur.run.metrics
     out = []
@@ -442,6 +461,9 @@ def _corrections(cur: Round) -> list:
         out.append(("springs:x10", v.with_(spring_scale=v.spring_scale * SPRING_FACTOR)))
     if m["nis_z"] > CHECK_Z:
         out.append(("noise:x2", v.with_(process_scale=v.process_scale * NOISE_FACTOR)))
+    smoother = MATERIAL_CORRECTIONS.get(v.material if v.material is not None else material)
+    if smoother is not None:
+        out.append((f"material:{smoother}", v.with_(material=smoother)))
     return out
 
 
@@ -460,7 +482,7 @@ def removals(variant: Variant, start: Variant, loads: dict) -> list:
     ``active_polar``), unless the other effects' loads already span the nested one (that would be
     a second copy of one cause). A correction is undone by one step (``drive:<drive>``: back to
     ``start``'s drive; ``drive:trend``, ``effects:trend``: off; ``springs:x10``, ``noise:x2``: the
-    scale divided by that factor); ``drive:contour+trend``, one forward step, is undone in two. A
+    scale divided by that factor; ``material:<map>``: back to ``start``'s material map); ``drive:contour+trend``, one forward step, is undone in two. A
     greedy forward search can let a term enter that a later one makes unnecessary (stiffer springs
     standing in for a missing effect); these steps let the rounds take it out again (stepwise
     selection in both directions, Efroymson 1960).
@@ -504,6 +526,8 @@ def removals(variant: Variant, start: Variant, loads: dict) -> list:
         out.append(("springs:x10", variant.with_(spring_scale=variant.spring_scale / SPRING_FACTOR)))
     if variant.process_scale > start.process_scale:
         out.append(("noise:x2", variant.with_(process_scale=variant.process_scale / NOISE_FACTOR)))
+    if variant.material != start.material:
+        out.append((f"material:{variant.material}", variant.with_(material=start.material)))
     return out
 
 
@@ -674,7 +698,7 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
                 # is kept if the criterion improves
                 # (a correction that fails here is tried again on a later round's model)
                 best = None
-                for name, variant in _corrections(cur):
+                for name, variant in _corrections(cur, parameterisation):
                     if _key(variant) in seen:
                         continue
                     seen.add(_key(variant))
@@ -781,7 +805,7 @@ def versus_spline(setup: Setup, U, spline_U, level: float = 0.95) -> dict | None
 def _variant(js: dict) -> Variant:
     """The :class:`Variant` of a round's JSON."""
     return Variant(tuple(js["effects"]), js["drive"], js["drive_trend"], js["effect_rates"], js["process_scale"],
-                   js["spring_scale"])
+                   js["spring_scale"], js.get("material"))
 
 
 def _round_label(r: dict) -> str:

@@ -597,3 +597,47 @@ def test_an_effect_rejected_beside_a_stand_in_is_tried_again_once_the_stand_in_i
         [(t["effect"], t["accepted"]) for t in out.rounds[2].tried] == [("active_helical", True),
                                                                        ("active_radial", False)]
     assert np.all(np.diff([r.log_evidence for r in out.rounds]) > 0)
+
+
+# ------------------------------------------------------------------ the material's prior as a term
+def test_the_material_map_is_a_correction_and_a_backward_step(annulus, monkeypatch):
+    """A map of independent regions (or elements) may be replaced by the smooth basis when no effect
+    passes (``material:basis``); a smooth or fixed map gets no such correction; the backward step
+    returns to the configured map; the fit runs with the variant's map."""
+    mesh, geometry = annulus
+    loads = dict(closing.candidate_loads(SimpleNamespace(mesh=mesh, geometry=geometry)))
+    metrics = {"lag1_z": 0.0, "nis_z": 0.0}
+    cur = SimpleNamespace(variant=closing.Variant(), run=SimpleNamespace(metrics=metrics))
+    for configured, expected in (("region", "basis"), ("element", "basis"), ("basis", None), ("none", None)):
+        found = dict(closing._corrections(cur, configured))
+        assert ("material:basis" in found) == (expected is not None), configured
+        if expected:
+            assert found["material:basis"] == closing.Variant(material="basis")
+    moved = SimpleNamespace(variant=closing.Variant(material="basis"), run=cur.run)
+    assert "material:basis" not in dict(closing._corrections(moved, "region"))   # already smooth
+    v = closing.Variant(("active_polar",), material="basis")
+    back = dict(closing.removals(v, closing.Variant(), loads))
+    assert back["material:basis"] == closing.Variant(("active_polar",))
+    assert "material:basis" not in dict(closing.removals(closing.Variant(("active_polar",)), closing.Variant(), loads))
+    assert "[material basis]" in v.label("penalty") and closing._variant(v.as_json()) == v
+    calls = []
+    monkeypatch.setattr(closing, "run", lambda setup, effects, drive, **kw: calls.append(kw["parameterisation"]))
+    closing._fit(None, v, {"parameterisation": "region"})
+    closing._fit(None, closing.Variant(), {"parameterisation": "region"})
+    assert calls == ["basis", "region"]
+
+
+def test_the_rounds_smooth_the_material_when_the_evidence_prefers_it(monkeypatch):
+    """No effect is significant; of the corrections, only the smooth material map raises the
+    evidence: it is kept, and the rounds then stop; the backward step from it would be the
+    baseline, fitted already, so nothing is fitted twice."""
+    def evidence(v):
+        return 25.0 * (v.material == "basis") - 5.0 * (v.drive != "penalty") - 3.0 * (v.spring_scale != 1.0)
+
+    out, fitted = _scripted_rounds(monkeypatch, evidence, lambda v: {})
+    assert [r.change for r in out.rounds] == ["baseline", "+ material:basis"]
+    assert out.rounds[-1].variant == closing.Variant(material="basis")
+    assert out.config["final"]["material"] == "basis"
+    assert out.stop_reason == "no significant candidate"
+    keys = [closing._key(v) for v in fitted]
+    assert len(keys) == len(set(keys)), keys
