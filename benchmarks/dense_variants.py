@@ -65,7 +65,7 @@ def main(argv=None) -> int:
     ap.add_argument("--material", nargs="+", choices=("none", "region", "basis"), default=["none"],
                     help="material maps to run every row with (none: fixed uniform nominal)")
     args = ap.parse_args(argv)
-    variants = [(n if args.material == ["none"] else f"{n} [{m}]", v, m)
+    variants = [(n if m == "none" else f"{n} [{m}]", v, m)           # no tag: material fixed
                 for n, v in VARIANTS if args.only is None or n in args.only for m in args.material]
     seq = load_sequence(example_path())
     print(f"observe {args.observe}, {args.folds} folds")
