@@ -6,6 +6,7 @@ import warnings
 import pytest
 
 MODULES = ["sfem_filters.geometry", "sfem_filters.fem", "sfem_filters.filtering", "sfem_filters.filtering.protocol",
+           "sfem_filters.filtering.curvature",
            "sfem_filters.imaging", "sfem_filters.cardiac", "sfem_filters.benchmark", "sfem_filters.plotting"]
 
 

@@ -33,6 +33,8 @@ Chapelle's reduced-order UKF, simplex sigma points on the parameters), :mod:`~sf
 :mod:`~sfem_filters.filtering.linearised` and :mod:`~sfem_filters.filtering.smoother` (the model
 linearised about a trajectory, and its RTS smoother), :mod:`~sfem_filters.filtering.iterated`
 (the iterated smoother: Gauss-Newton on the MAP of one cycle),
+:mod:`~sfem_filters.filtering.curvature` (the profile cost of the material, its exact gradient and
+its exact Hessian by differences: how far Gauss-Newton's curvature is from the truth),
 :mod:`~sfem_filters.filtering.marginal` (the exact marginal posterior of a few parameters),
 :mod:`~sfem_filters.filtering.checkpoint`, :mod:`~sfem_filters.filtering.history`,
 :mod:`~sfem_filters.filtering.diagnostics` (NIS, whiteness, score test, material drift, prior-data conflict),
@@ -41,6 +43,7 @@ linearised about a trajectory, and its RTS smoother), :mod:`~sfem_filters.filter
 from . import diagnostics
 from .base import Engine
 from .checkpoint import CHECKPOINT_FORMAT, load_checkpoint, run_fingerprint, save_checkpoint
+from .curvature import ProfileHessian, gauss_newton_pass, optimal_trajectory, profile_hessian, profile_pass
 from .cyclic import CyclicEKF, CyclicResult, check_observations, cyclic_estimate, filter_loop, one_cycle_covariance
 from .ekf import FilterpyEngine, SFEMExtendedKalmanFilter
 from .engines import ENGINES, make_engine
@@ -69,4 +72,5 @@ __all__ = ["ROUKFEngine", "simplex_points", "UKFEngine", "make_ukf", "diagnostic
            "save_checkpoint", "load_checkpoint", "run_fingerprint", "one_cycle_covariance", "IteratedSmoother",
            "SmootherResult", "MapObjective", "iterated_smoother", "LinearisedModel", "linearise", "linearise_dense",
            "smooth", "kalman_forward", "smooth_backward", "rts_reference", "ForwardPass", "SmoothedPass",
-           "Linearisable", "OutputOperators", "ScalableProcessNoise", "scaled_process_noise", "MarginalCheck", "laplace_check", "log_likelihood", "log_posterior"]
+           "Linearisable", "OutputOperators", "ScalableProcessNoise", "scaled_process_noise", "MarginalCheck", "laplace_check", "log_likelihood", "log_posterior",
+           "ProfileHessian", "profile_hessian", "profile_pass", "optimal_trajectory", "gauss_newton_pass"]

@@ -63,7 +63,8 @@ from .linearised import check_static_parameters, linearise
 from .protocol import (OutputOperators, check_model, measurement_cov, parameter_prior, physical_parameters,
                        scaled_process_noise)
 from .safeguards import Safeguards
-from .smoother import kalman_forward, smooth, smooth_backward
+from .curvature import ProfileHessian, gauss_newton_pass, optimal_trajectory, profile_hessian, profile_pass
+from .smoother import smooth
 
 __all__ = ["IteratedSmoother", "SmootherResult", "MapObjective", "iterated_smoother", "open_loop"]
 
@@ -235,6 +236,14 @@ class SmootherResult:
     noise_search : list of dict
         With ``process_noise="estimate"``: per scale tried, ``scale``, ``log_evidence`` (log p(y)
         of the model linearised at that scale's mode), ``iterations``, ``converged``; by scale.
+    laplace : str
+        Which Hessian ``P_theta`` inverts: ``"gauss-newton"`` or ``"exact"`` (``laplace="exact"``
+        and the exact Hessian positive definite at the mode).
+    P_theta_gauss_newton : (p, p) array or None
+        With ``laplace="exact"``: the Gauss-Newton covariance, for comparison.
+    curvature : ProfileHessian or None
+        With ``laplace="exact"``: the exact and Gauss-Newton Hessians of the profile cost at the
+        mode (:func:`sfem_filters.filtering.curvature.profile_hessian`).
     """
 
     states: np.ndarray
@@ -252,6 +261,9 @@ class SmootherResult:
     method: str = "iterated_smoother"
     process_noise_scale: float = 1.0
     noise_search: list = field(default_factory=list)
+    laplace: str = "gauss-newton"
+    P_theta_gauss_newton: np.ndarray | None = None
+    curvature: ProfileHessian | None = None
 
     @property
     def loops(self) -> int:
@@ -314,6 +326,14 @@ class IteratedSmoother:
         Smallest and largest factor on Q tried (0 < low <= 1 <= high).
     noise_tol : float
         Evidence gain (nats, > 0) below which the walk over scales stops.
+    laplace : {"gauss-newton", "exact"}
+        The Hessian whose inverse is the reported covariance of theta. ``"gauss-newton"``: the
+        final pass's (free). ``"exact"``: the profile cost's exact Hessian at the mode by central
+        differences of its exact gradient (:func:`~sfem_filters.filtering.curvature.profile_hessian`,
+        2 p more gradient passes), the Laplace approximation proper; where the model misfits its
+        data the residual curvature Gauss-Newton leaves out can be large (``benchmarks/
+        hessian_check.py``). Not positive definite there (a run stopped short of a minimum): a
+        warning, and the Gauss-Newton covariance is kept.
 
     The damping follows Nielsen's rule: after an accepted full step lambda is multiplied by
     ``max(1/3, 1 - (2 rho - 1)^3)``, rho the ratio of the cost's actual to its predicted decrease;
@@ -335,6 +355,7 @@ class IteratedSmoother:
     process_noise: str = "fixed"
     noise_range: tuple = (4.0 ** -8, 4.0 ** 3)
     noise_tol: float = 0.05
+    laplace: str = "gauss-newton"
 
     def __post_init__(self):
         integer("max_iterations", self.max_iterations, 1)
@@ -356,6 +377,8 @@ class IteratedSmoother:
         if not (0.0 < low <= 1.0 <= high < np.inf):
             raise ValueError(f"noise_range: expected 0 < low <= 1 <= high (factors on Q), got {self.noise_range!r}")
         positive("noise_tol", self.noise_tol)
+        if self.laplace not in ("gauss-newton", "exact"):
+            raise ValueError(f"laplace: expected 'gauss-newton' or 'exact', got {self.laplace!r}")
 
     def trajectory_settings(self) -> dict:
         guard = self.safeguards if self.safeguards is not None else Safeguards()
@@ -371,8 +394,28 @@ class IteratedSmoother:
         ``process_noise="estimate"``, one checkpoint per scale tried, ``<checkpoint>.noise<k>``).
         """
         if self.process_noise == "estimate":
-            return self._estimate_noise(model, observations, progress, checkpoint, description)
-        return self._fit(model, observations, progress=progress, checkpoint=checkpoint, description=description)
+            result = self._estimate_noise(model, observations, progress, checkpoint, description)
+        else:
+            result = self._fit(model, observations, progress=progress, checkpoint=checkpoint, description=description)
+        if self.laplace == "exact" and result.theta.size:
+            used = model if result.process_noise_scale == 1.0 else scaled_process_noise(model,
+                                                                                       result.process_noise_scale)
+            self._exact_laplace(used, observations, result, progress)
+        return result
+
+    def _exact_laplace(self, model, observations, result, progress) -> None:
+        """Replace the Gauss-Newton covariance of theta by the inverse exact Hessian (``laplace``)."""
+        curv = profile_hessian(model, observations, result.states, safeguards=self.safeguards, progress=progress)
+        result.curvature, result.P_theta_gauss_newton = curv, result.P_theta
+        if not curv.positive_definite():
+            warnings.warn("iterated smoother: the exact Hessian of the MAP cost is not positive definite at the "
+                          "estimate (not a minimum); the Gauss-Newton covariance is reported", RuntimeWarning)
+            return
+        nr = int(model.n_restart)
+        result.P_theta = curv.covariance()
+        result.P_diag = np.array(result.P_diag, float)
+        result.P_diag[:, nr:] = np.diag(result.P_theta)
+        result.laplace = "exact"
 
     def _estimate_noise(self, model, observations, progress, checkpoint, description) -> SmootherResult:
         """Type-II maximum likelihood of one factor on Q (``process_noise`` in the class docstring)."""
@@ -450,19 +493,11 @@ class IteratedSmoother:
             """J_p(theta) = min over the trajectory of J, by one linear filter pass with theta held
             fixed (completing the square: the minimum is half the summed NIS plus theta's prior
             term), with what the backward pass needs to recover the optimal trajectory."""
-            z = np.array(like, float)
-            z[:, nr:] = theta
-            try:
-                lin = linearise(model, z, sensitivity=False)
-                fwd = kalman_forward(lin, y, safeguards=guard, check_every_frame=False, label=len(records))
-            except (FloatingPointError, ValueError, np.linalg.LinAlgError):
-                return np.inf, None
-            return fwd.fit + (0.5 * P3_root.norm2(theta - theta0) if p else 0.0), (lin, fwd, z)
+            fit, found = profile_pass(model, y, theta, like, guard, label=len(records))
+            return fit + (0.5 * P3_root.norm2(theta - theta0) if p and found is not None else 0.0), found
 
         def trajectory(found):
-            lin, fwd, z = found
-            z[:, :nr] = lin.to_model(smooth_backward(lin, fwd).smoothed[:, :nr])
-            return z
+            return optimal_trajectory(model, found)
 
         secant = _StructuredSecant(p)
         if checkpoint is not None and os.path.exists(checkpoint):
@@ -490,21 +525,13 @@ class IteratedSmoother:
             P3_inv = sla.cho_solve(sla.cho_factor(P3), np.eye(p)) if p else None
             while not stop and len(records) < self.max_iterations:
                 t0 = time.perf_counter()
-                lin = linearise(model, z)
                 theta_bar = z[0, nr:]
                 # One undamped pass of the linearised model gives the Gauss-Newton quadratic model
                 # of the profile cost about theta_bar: its Hessian is the inverse of the pass's
                 # posterior covariance of theta, and its gradient is exact (the linearisation is
                 # exact to first order and the trajectory part is at its optimum). Damped steps and
                 # rejections are then p x p solves, not further passes.
-                fwd = kalman_forward(lin, y, safeguards=guard, check_every_frame=False, label=len(records),
-                                     store=False)
-                P_theta = fwd.engine.P[nr:, nr:].copy()
-                cho_H = sla.cho_factor(P_theta, lower=True)
-                H = sla.cho_solve(cho_H, np.eye(p))
-                H = 0.5 * (H + H.T)
-                g = -H @ (fwd.filtered[-1, nr:] - theta_bar)
-                del fwd, lin                        # n^2 floats a frame: not needed for the trials
+                g, H, P_theta = gauss_newton_pass(model, y, z, guard, label=len(records))
                 S = secant.update(H, g)
                 H_model = H + S
                 try:
