@@ -19,7 +19,7 @@ def misfit():
     """The smooth material basis on an annulus whose motion holds an undeclared active stress (the
     measured slice's misspecified baseline in small): the model, its data, the mode with the
     exact Laplace covariance, and a trajectory whose material is off the mode by about 1 sd."""
-    seq = annulus_sequence("active_polar", n_frames=8, seed=0, amplitude=(0.3, -0.6))
+    seq = annulus_sequence("active_polar", n_frames=6, seed=0, amplitude=(0.3, -0.6))
     m, y = build_model(prepare(seq, 8), (), "penalty", "basis")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
