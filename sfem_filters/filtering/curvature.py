@@ -43,7 +43,7 @@ import scipy.linalg as sla
 from .._validate import as_float_array, positive
 from .cyclic import check_observations
 from .linearised import check_static_parameters, linearise
-from .protocol import check_model, parameter_prior
+from .protocol import check_model
 from .safeguards import Safeguards
 from .smoother import kalman_forward, smooth_backward
 
@@ -198,11 +198,10 @@ def profile_hessian(model, observations, states, *, step_sd: float = 0.1, safegu
     positive("step_sd", step_sd)
     guard = safeguards if safeguards is not None else Safeguards()
     nr = int(model.n_restart)
-    theta0, P3 = parameter_prior(model)
     theta = z[0, nr:].copy()
 
     def gradient(th):
-        fit, found = profile_pass(model, y, th, z, guard)
+        _, found = profile_pass(model, y, th, z, guard)
         if found is None:
             raise FloatingPointError(f"profile Hessian: the model cannot step at theta = {th}")
         return gauss_newton_pass(model, y, optimal_trajectory(model, found), guard)

@@ -496,9 +496,6 @@ class IteratedSmoother:
             fit, found = profile_pass(model, y, theta, like, guard, label=len(records))
             return fit + (0.5 * P3_root.norm2(theta - theta0) if p and found is not None else 0.0), found
 
-        def trajectory(found):
-            return optimal_trajectory(model, found)
-
         secant = _StructuredSecant(p)
         if checkpoint is not None and os.path.exists(checkpoint):
             state = load_checkpoint(checkpoint, fp)
@@ -514,7 +511,7 @@ class IteratedSmoother:
             if found is None or not np.isfinite(cost):
                 raise FloatingPointError("the prior's material gives no finite MAP cost: the model cannot step its "
                                          "initial state")
-            z = trajectory(found)
+            z = optimal_trajectory(model, found)
         if p == 0:
             stop = "no parameters"
         bar = None
@@ -591,7 +588,7 @@ class IteratedSmoother:
                                 "damping": lam_used, "step_length": alpha, "gain_ratio": float(gain), "rejected": rejected,
                                 "rel_change": rel, "step_sd": step_sd, "max_abs_step": float(np.max(np.abs(taken))),
                                 "full_step_sd": full_sd, "newton_decrement": newton_decrement, "seconds": 0.0})
-                z, cost = trajectory(found), new_cost
+                z, cost = optimal_trajectory(model, found), new_cost
                 records[-1]["seconds"] = time.perf_counter() - t0
                 # the rules judge the undamped step too: a step shortened by a large lambda says
                 # nothing about the distance to the mode
