@@ -92,15 +92,15 @@ from .._validate import integer, non_negative
 from ..filtering import diagnostics
 from .crossval import DEFAULT_FOLDS, cross_validate, observation_folds, spline_cross_validation
 from .effects import CATALOGUE, EXPLICIT_ONLY, build_effects
-from .measured import (NOMINAL, Run, Setup, equivalent_eigenstrain, kriged_heldout, measured_wall_kinematics,
-                       prepare, run)
+from .measured import (NOMINAL, Run, Setup, equivalent_eigenstrain, exact_posterior, kriged_heldout,
+                       measured_wall_kinematics, prepare, run)
 from .reference import angular_sectors, rmse_difference, spline_reference
 from .sequence import Sequence
 
 __all__ = ["LoopResult", "Round", "Variant", "closing_the_loop", "candidate_loads", "spans", "log_evidence", "format_report",
            "removals",
            "versus_spline", "SELECTIONS",
-           "DRIVE_CORRECTIONS", "time_courses", "CRITERIA", "round_cross_validation", "DEFAULT_CANDIDATES"]
+           "DRIVE_CORRECTIONS", "time_courses", "CRITERIA", "round_cross_validation", "DEFAULT_CANDIDATES", "LAPLACE"]
 
 #: How a round picks among significant candidates (``selection=``, ``--selection``): the first by
 #: score that improves the criterion, or the one of the fitted that improves it most.
@@ -110,6 +110,10 @@ SELECTIONS = ("first", "best")
 #: ``log p(y)`` of the observed points, or K-fold cross-validation over them
 #: (:mod:`sfem_filters.cardiac.crossval`).
 CRITERIA = ("evidence", "cv")
+
+#: The final model's material covariance (``laplace=``, ``--laplace``): the smoother's inverse
+#: Gauss-Newton Hessian, or the inverse exact Hessian of the MAP cost at the mode.
+LAPLACE = ("gauss-newton", "exact")
 
 #: The candidates of the rounds when none are given: the catalogue without the effects that are
 #: tried only by name (:data:`~sfem_filters.cardiac.effects.EXPLICIT_ONLY`).
@@ -537,7 +541,8 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
                      max_iterations: int = 20, max_rounds: int = 5, alpha: float = 0.01,
                      min_evidence: float = 0.0, max_tries: int = 3, candidates=None,
                      corrections: bool = True, criterion: str = "evidence", folds: int = DEFAULT_FOLDS,
-                     min_cv_gain: float = 0.01, selection: str = "best", prune: bool = True) -> LoopResult:
+                     min_cv_gain: float = 0.01, selection: str = "best", prune: bool = True,
+                     laplace: str = "gauss-newton") -> LoopResult:
     """Baseline run, then rounds of ranking and adding effects (module docstring), with the spline
     reference.
 
@@ -588,9 +593,21 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
         and take out the one that improves the criterion most, as long as one does (each such
         backward step is a row of the rounds, numbered with the round it followed). The
         criterion rises strictly at every step, forward or backward, so the search cannot cycle.
+    laplace : {"gauss-newton", "exact"}
+        The final model's material covariance: the smoother's inverse Gauss-Newton Hessian (free),
+        or the exact Laplace, the inverse exact Hessian of the MAP cost at the final mode
+        (:func:`sfem_filters.cardiac.measured.exact_posterior`, 2 p + 1 more gradient passes; the
+        rounds' fits keep Gauss-Newton). Needs ``estimator="smoother"`` and a material map.
     """
     if criterion not in CRITERIA:
         raise ValueError(f"criterion: expected one of {CRITERIA}, got {criterion!r}")
+    if laplace not in LAPLACE:
+        raise ValueError(f"laplace: expected one of {LAPLACE}, got {laplace!r}")
+    if laplace == "exact" and estimator != "smoother":
+        raise ValueError(f"laplace: 'exact' refines the iterated smoother's posterior; expected estimator='smoother', "
+                         f"got estimator={estimator!r}")
+    if laplace == "exact" and parameterisation == "none":
+        raise ValueError("laplace: 'exact' needs a material map; the parameterisation is 'none' (material fixed)")
     if selection not in SELECTIONS:
         raise ValueError(f"selection: expected one of {SELECTIONS}, got {selection!r}")
     min_cv_gain = non_negative("min_cv_gain", min_cv_gain)
@@ -738,6 +755,8 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
                 step.removed = name
                 rounds.append(step)
                 rejected.clear()        # an effect rejected beside the term now gone may pass without it
+    if laplace == "exact":
+        rounds[-1].run = exact_posterior(setup, rounds[-1].run, progress)
     config = {"drive": drive, "landmarks": landmarks, "observe": observe, "holdout_seed": holdout_seed,
               "parameterisation": parameterisation, "estimator": estimator,
               "max_iterations" if estimator == "smoother" else "max_loops":
@@ -747,7 +766,7 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
               "mesh_elements": int(setup.mesh.n_elements), "max_rounds": max_rounds, "alpha": float(alpha),
               "min_evidence": min_evidence, "max_tries": max_tries, "candidates": names,
               "corrections": bool(corrections), "criterion": criterion, "folds": folds,
-              "min_cv_gain": min_cv_gain, "selection": selection, "prune": bool(prune),
+              "min_cv_gain": min_cv_gain, "selection": selection, "prune": bool(prune), "laplace": laplace,
               "final": rounds[-1].variant.as_json()}
     g = setup.geometry
     held = setup.node_of_point[setup.heldout]
@@ -929,6 +948,18 @@ def format_report(result: "LoopResult") -> str:
     if b.get("E_sd_log_median") is not None and e.get("E_sd_log_median") is not None:
         lines.append(f"{'posterior sd of log E (median)':<34}{b['E_sd_log_median']:>12.3f}{e['E_sd_log_median']:>18.3f}")
         lines.append(f"{'posterior sd of nu (median)':<34}{b['nu_sd_median']:>12.3f}{e['nu_sd_median']:>18.3f}")
+    if cfg.get("laplace") == "exact" and e.get("material_covariance") is not None:
+        x = e.get("exact_laplace") or {}
+        lines.append("final material covariance: " + ("the exact Laplace (inverse exact Hessian of the MAP cost)"
+                                                      if e["material_covariance"] == "exact" else
+                                                      "Gauss-Newton (the exact Hessian is not positive definite)"))
+        if x:
+            lo, hi = x["relative_eigenvalues"]
+            line = f"  exact Hessian / Gauss-Newton: eigenvalues {lo:.3f} to {hi:.3f} ({x['gradient_passes']} gradient passes)"
+            if x["E_sd_log_ratio"] is not None:
+                line += ("; sd exact / Gauss-Newton: log E {:.2f}-{:.2f}, nu {:.2f}-{:.2f}"
+                         .format(*x["E_sd_log_ratio"], *x["nu_sd_ratio"]))
+            lines.append(line)
     if b.get("prior_conflict") and e.get("prior_conflict"):
         lines.append(f"{'material vs its prior, -log10 p':<34}{max(0.0, -b['prior_conflict']['log10_p']):>12.1f}"
                      f"{max(0.0, -e['prior_conflict']['log10_p']):>18.1f}")

@@ -48,7 +48,7 @@ from .cyclic import CyclicEKF, CyclicResult, check_observations, cyclic_estimate
 from .ekf import FilterpyEngine, SFEMExtendedKalmanFilter
 from .engines import ENGINES, make_engine
 from .history import History
-from .iterated import IteratedSmoother, MapObjective, SmootherResult, iterated_smoother
+from .iterated import IteratedSmoother, MapObjective, SmootherResult, exact_laplace, iterated_smoother
 from .linear import LinearGaussianModel, LinearObservation
 from .linearised import LinearisedModel, linearise, linearise_dense
 from .ljung import LJUNG_MAX_PARAMS, LjungCoupling
@@ -73,4 +73,4 @@ __all__ = ["ROUKFEngine", "simplex_points", "UKFEngine", "make_ukf", "diagnostic
            "SmootherResult", "MapObjective", "iterated_smoother", "LinearisedModel", "linearise", "linearise_dense",
            "smooth", "kalman_forward", "smooth_backward", "rts_reference", "ForwardPass", "SmoothedPass",
            "Linearisable", "OutputOperators", "ScalableProcessNoise", "scaled_process_noise", "MarginalCheck", "laplace_check", "log_likelihood", "log_posterior",
-           "ProfileHessian", "profile_hessian", "profile_pass", "optimal_trajectory", "gauss_newton_pass"]
+           "ProfileHessian", "profile_hessian", "profile_pass", "optimal_trajectory", "gauss_newton_pass", "exact_laplace"]

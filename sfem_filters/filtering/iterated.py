@@ -66,7 +66,7 @@ from .safeguards import Safeguards
 from .curvature import ProfileHessian, gauss_newton_pass, optimal_trajectory, profile_hessian, profile_pass
 from .smoother import smooth
 
-__all__ = ["IteratedSmoother", "SmootherResult", "MapObjective", "iterated_smoother", "open_loop"]
+__all__ = ["IteratedSmoother", "SmootherResult", "MapObjective", "iterated_smoother", "open_loop", "exact_laplace"]
 
 class _InverseRoot:
     """``x -> L^-1 x`` with ``C = L L^T`` (Cholesky), or the pseudo-inverse square root of a
@@ -280,6 +280,49 @@ class SmootherResult:
         return self.P_theta
 
 
+def exact_laplace(model, observations, result: SmootherResult, *, safeguards: Safeguards | None = None,
+                  progress: bool = False) -> SmootherResult:
+    """The smoother's result with the exact Laplace covariance of theta (``laplace="exact"``).
+
+    The profile cost's exact Hessian at the result's mode
+    (:func:`~sfem_filters.filtering.curvature.profile_hessian`, 2 p + 1 gradient passes) replaces
+    the Gauss-Newton Hessian whose inverse the smoother reports: ``P_theta`` becomes its inverse
+    (and the parameters' columns of ``P_diag`` its diagonal), the Gauss-Newton covariance is kept
+    as ``P_theta_gauss_newton`` and the Hessians as ``curvature``. Where the exact Hessian is not
+    positive definite (the run stopped short of a minimum) a warning is given and the result keeps
+    the Gauss-Newton covariance (``laplace`` stays ``"gauss-newton"``, ``curvature`` says why).
+    The kinematics' marginal variances are the final pass's, at the material's mode.
+
+    Parameters
+    ----------
+    model : the model the result was computed with (its process noise scale included)
+    observations : (n_frames, dim_obs) the same observations (model units, NaN where missing)
+    result : SmootherResult of :class:`IteratedSmoother` (not modified)
+    safeguards : Safeguards, optional
+        Covariance checks of the gradient passes.
+
+    Returns
+    -------
+    SmootherResult, a copy.
+    """
+    if not isinstance(result, SmootherResult):
+        raise TypeError(f"result: expected a SmootherResult of the iterated smoother, got {type(result).__name__}")
+    if not result.theta.size:
+        raise ValueError("result: the model has no static parameters, so there is no covariance of theta to replace")
+    curv = profile_hessian(model, observations, result.states, safeguards=safeguards, progress=progress)
+    out = replace(result, curvature=curv, P_theta_gauss_newton=np.array(result.P_theta, float), laplace="gauss-newton")
+    if not curv.positive_definite():
+        warnings.warn("iterated smoother: the exact Hessian of the MAP cost is not positive definite at the "
+                      "estimate (not a minimum); the Gauss-Newton covariance is reported", RuntimeWarning)
+        return out
+    nr = int(model.n_restart)
+    out.P_theta = curv.covariance()
+    out.P_diag = np.array(result.P_diag, float)
+    out.P_diag[:, nr:] = np.diag(out.P_theta)
+    out.laplace = "exact"
+    return out
+
+
 @dataclass
 class IteratedSmoother:
     """Settings of the iterated extended Kalman smoother (module docstring), one entry point :meth:`run`.
@@ -400,22 +443,8 @@ class IteratedSmoother:
         if self.laplace == "exact" and result.theta.size:
             used = model if result.process_noise_scale == 1.0 else scaled_process_noise(model,
                                                                                        result.process_noise_scale)
-            self._exact_laplace(used, observations, result, progress)
+            result = exact_laplace(used, observations, result, safeguards=self.safeguards, progress=progress)
         return result
-
-    def _exact_laplace(self, model, observations, result, progress) -> None:
-        """Replace the Gauss-Newton covariance of theta by the inverse exact Hessian (``laplace``)."""
-        curv = profile_hessian(model, observations, result.states, safeguards=self.safeguards, progress=progress)
-        result.curvature, result.P_theta_gauss_newton = curv, result.P_theta
-        if not curv.positive_definite():
-            warnings.warn("iterated smoother: the exact Hessian of the MAP cost is not positive definite at the "
-                          "estimate (not a minimum); the Gauss-Newton covariance is reported", RuntimeWarning)
-            return
-        nr = int(model.n_restart)
-        result.P_theta = curv.covariance()
-        result.P_diag = np.array(result.P_diag, float)
-        result.P_diag[:, nr:] = np.diag(result.P_theta)
-        result.laplace = "exact"
 
     def _estimate_noise(self, model, observations, progress, checkpoint, description) -> SmootherResult:
         """Type-II maximum likelihood of one factor on Q (``process_noise`` in the class docstring)."""

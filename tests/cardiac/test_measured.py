@@ -2,6 +2,7 @@
 import dataclasses
 import subprocess
 import sys
+import warnings
 
 import numpy as np
 import pytest
@@ -386,3 +387,39 @@ def test_dense_figures_show_the_material_with_its_sd_and_its_prior_check(tmp_pat
     flagged_panels = [ax for ax in fig.axes if "prior-data check" in ax.get_title() and ax.lines]
     assert flagged_panels                               # outlines of the flagged elements
     real_close(fig)
+
+
+def test_dense_final_model_can_report_the_exact_laplace():
+    """``laplace="exact"``: the final model's material sd maps come from the inverse exact Hessian of
+    the MAP cost (checked against the curvature it carries), the report and the metrics say so and
+    how far it is from Gauss-Newton's; bad combinations are named."""
+    seq = annulus_sequence("active_polar", n_frames=4, seed=0, amplitude=(0.3, -0.6))
+    kw = dict(effects="none", parameterisation="basis", max_iterations=8, folds=9)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        ex = closing.closing_the_loop(seq, laplace="exact", **kw)
+    e = ex.rounds[-1].run
+    assert e.metrics["material_covariance"] == "exact" and e.result.laplace == "exact"
+    curv = e.result.curvature
+    np.testing.assert_allclose(e.result.P_theta @ curv.hessian, np.eye(e.model.dim_theta), atol=1e-8)
+    np.testing.assert_allclose(e.result.P_theta_gauss_newton @ curv.gauss_newton, np.eye(e.model.dim_theta),
+                               atol=1e-6)
+    sd_E, sd_nu = e.model.material_sd(e.result.theta, np.linalg.inv(curv.hessian))
+    np.testing.assert_allclose(e.metrics["E_sd_log"], sd_E, rtol=1e-6)
+    np.testing.assert_allclose(e.metrics["nu_sd"], sd_nu, rtol=1e-6)
+    x = e.metrics["exact_laplace"]
+    assert x["positive_definite"] and x["gradient_passes"] == 2 * e.model.dim_theta + 1
+    gn_E = e.model.material_sd(e.result.theta, e.result.P_theta_gauss_newton)[0]
+    assert np.allclose(x["E_sd_log_ratio"], [(sd_E / gn_E).min(), (sd_E / gn_E).max()])
+    assert not np.allclose(x["E_sd_log_ratio"], 1.0, atol=0.02)     # the misfit makes them differ
+    report = closing.format_report(ex)
+    assert ex.config["laplace"] == "exact" and "final material covariance: the exact Laplace" in report
+    with pytest.raises(ValueError, match="^laplace: 'exact' .* estimator='smoother'"):
+        closing.closing_the_loop(seq, estimator="cyclic", laplace="exact", **kw)
+    with pytest.raises(ValueError, match="^laplace: expected one of"):
+        closing.closing_the_loop(seq, laplace="newton", **kw)
+    with pytest.raises(ValueError, match="^laplace: 'exact' needs a material map"):
+        closing.closing_the_loop(seq, laplace="exact", **{**kw, "parameterisation": "none"})
+    with pytest.raises(ValueError, match="^r: expected a run of the iterated smoother"):
+        measured.exact_posterior(ex.setup, dataclasses.replace(e, result=dataclasses.replace(e.result,
+                                                                                             method="cyclic")))
