@@ -55,7 +55,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import scipy.linalg as sla
 
-from .._validate import integer, non_negative, positive
+from .._validate import as_float_array, integer, non_negative, positive
 from .checkpoint import load_checkpoint, run_fingerprint, save_checkpoint
 from .cyclic import check_observations
 from .history import History
@@ -429,24 +429,32 @@ class IteratedSmoother:
                 **guard.settings()}
 
     def run(self, model, observations, *, progress: bool = False, checkpoint=None,
-            description: str = "iterated smoother") -> SmootherResult:
+            description: str = "iterated smoother", start=None) -> SmootherResult:
         """Estimate from one cycle's ``observations`` (n_frames, dim_obs), NaN where missing.
 
         ``checkpoint``: a path saved after every accepted iteration; an existing checkpoint of
         the same run is resumed and the run ends exactly as an uninterrupted one would (with
         ``process_noise="estimate"``, one checkpoint per scale tried, ``<checkpoint>.noise<k>``).
+        ``start``: a warm start, a trajectory (n_frames, dim_state) whose material (any frame's,
+        model coordinates) is the first iterate instead of the prior mean, for example another
+        run's ``states``; the MAP cost, and so the mode, are unchanged. A start where the model
+        cannot step falls back to the prior mean.
         """
+        if start is not None:
+            check_model(model)
+            start = as_float_array("start", start, shape=(model.n_frames, model.dim_state))
         if self.process_noise == "estimate":
-            result = self._estimate_noise(model, observations, progress, checkpoint, description)
+            result = self._estimate_noise(model, observations, progress, checkpoint, description, start)
         else:
-            result = self._fit(model, observations, progress=progress, checkpoint=checkpoint, description=description)
+            result = self._fit(model, observations, progress=progress, checkpoint=checkpoint, description=description,
+                               start=start)
         if self.laplace == "exact" and result.theta.size:
             used = model if result.process_noise_scale == 1.0 else scaled_process_noise(model,
                                                                                        result.process_noise_scale)
             result = exact_laplace(used, observations, result, safeguards=self.safeguards, progress=progress)
         return result
 
-    def _estimate_noise(self, model, observations, progress, checkpoint, description) -> SmootherResult:
+    def _estimate_noise(self, model, observations, progress, checkpoint, description, start=None) -> SmootherResult:
         """Type-II maximum likelihood of one factor on Q (``process_noise`` in the class docstring)."""
         check_model(model)
         y = check_observations(model, observations)
@@ -470,7 +478,7 @@ class IteratedSmoother:
             return evidence[k]
 
         try:
-            at(0.0, None)
+            at(0.0, start)
             for direction in (-1.0, 1.0):
                 k = 0.0
                 while kmin <= k + direction <= kmax:

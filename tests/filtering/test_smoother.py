@@ -186,6 +186,12 @@ def test_a_step_shortened_by_damping_does_not_end_the_run(pinned):
     assert first["step_sd"] < 0.1 and first["rel_change"] < 1e-3 and first["full_step_sd"] > 10
     assert res.converged and res.iterations > 1
     assert np.max(np.abs(res.theta - ref.theta) / np.sqrt(np.diag(ref.P_theta))) < 0.01
+    # a warm start at the mode: the same mode (the cost is the same), in fewer iterations
+    warm = IteratedSmoother().run(m, pinned.observations, start=ref.states)
+    assert warm.converged and warm.iterations < ref.iterations
+    assert np.max(np.abs(warm.theta - ref.theta) / np.sqrt(np.diag(ref.P_theta))) < 0.01
+    with pytest.raises(ValueError, match=r"^start: expected shape \(16, "):
+        IteratedSmoother().run(m, pinned.observations, start=ref.states[1:])
 
 
 def test_damped_smoother_converges_where_undamped_gauss_newton_does_not():
