@@ -21,6 +21,7 @@ from importlib import metadata
 
 from threadpoolctl import threadpool_limits
 
+from .._io import json_safe
 from ..benchmark.comparison import LABELS, run_comparison
 from ..cardiac.closing import closing_the_loop
 from ..cardiac.sequence import example_path, load_sequence
@@ -214,7 +215,8 @@ _RUNNERS = {"compare": _run_compare, "dense": _run_dense}
 def run_job(job: Job) -> JobOutcome:
     """Run one job (in this process, with BLAS held to one thread) and return its outcome.
 
-    The result goes through a JSON round trip, so it is exactly what the result file holds.
+    The result goes through a JSON round trip, so it is exactly what the result file holds
+    (non-finite numbers become ``None``: JSON has no NaN).
     Exceptions propagate: the batch runner records them as the job's error.
     """
     with threadpool_limits(limits=1), warnings.catch_warnings(record=True) as caught:
@@ -222,7 +224,7 @@ def run_job(job: Job) -> JobOutcome:
         t0 = time.perf_counter()
         payload, written = _RUNNERS[job.kind](job)
         wall = time.perf_counter() - t0
-    result, timing = split_timing(json.loads(json.dumps(payload, allow_nan=True)))
+    result, timing = split_timing(json.loads(json.dumps(json_safe(payload), allow_nan=False)))
     messages = sorted({f"{w.category.__name__}: {w.message}" for w in caught})
     return JobOutcome(result, timing, wall, messages, [str(p) for p in written])
 

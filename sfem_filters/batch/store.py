@@ -23,7 +23,7 @@ import os
 import socket
 import tempfile
 
-from .._io import write_json
+from .._io import json_safe, write_json
 from .jobs import Job, JobOutcome, table_rows
 
 __all__ = ["ResultStore"]
@@ -47,7 +47,7 @@ def _atomic_write(path: str, text: str) -> str:
 
 
 def _dumps(payload) -> str:
-    return json.dumps(payload, indent=2) + "\n"
+    return json.dumps(json_safe(payload), indent=2, allow_nan=False) + "\n"
 
 
 class ResultStore:

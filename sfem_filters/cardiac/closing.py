@@ -84,11 +84,12 @@ so that a report says whether a difference is more than the luck of which points
 """
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from .._validate import integer, non_negative
+from .._validate import integer, non_negative, probability
 from ..filtering import diagnostics
 from .crossval import DEFAULT_FOLDS, cross_validate, observation_folds, spline_cross_validation
 from .effects import CATALOGUE, EXPLICIT_ONLY, build_effects
@@ -337,6 +338,7 @@ class LoopResult:
         setup = self.setup
         ref = {k: v for k, v in self.reference.items() if k != "U"}
         return {
+            "length_unit": setup.seq.units,           # unit of every *_px length: "px", or "m" for units="m"
             "noise_floor_px": setup.noise_px,
             "measured": self.measured,
             "nominal": {k: NOMINAL[k] for k in setup.nominal},
@@ -617,8 +619,7 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
     if not isinstance(prune, (bool, np.bool_)):
         raise ValueError(f"prune: expected True or False, got {prune!r}")
     min_evidence = non_negative("min_evidence", min_evidence)
-    if not (isinstance(alpha, (int, float)) and 0.0 < float(alpha) < 1.0):
-        raise ValueError(f"alpha: expected a level in (0, 1), got {alpha!r}")
+    alpha = probability("alpha", alpha)
     names = list(DEFAULT_CANDIDATES) if candidates is None else list(candidates)
     unknown = [n for n in names if n not in CATALOGUE]
     if unknown:
@@ -832,9 +833,34 @@ def _round_label(r: dict) -> str:
     return f"{r['round']}-" if r.get("removed") else str(r["round"])
 
 
+def _lengths_scaled(value, factor: float, length: bool = False, versus: bool = False):
+    """The report with every length multiplied by ``factor``: the values (and lists of values)
+    of keys with ``_px`` in their name, and the ``difference``, ``low`` and ``high`` of a
+    ``versus_spline`` entry."""
+    if isinstance(value, dict):
+        return {k: _lengths_scaled(v, factor, length or "_px" in k or (versus and k in ("difference", "low", "high")),
+                                   versus or k.startswith("versus_spline"))
+                for k, v in value.items()}
+    if isinstance(value, list):
+        return [_lengths_scaled(v, factor, length, versus) for v in value]
+    if length and isinstance(value, (int, float)) and not isinstance(value, bool):
+        return value * factor
+    return value
+
+
 def format_report(result: "LoopResult") -> str:
-    """Text summary of :func:`closing_the_loop`."""
+    """Text summary of :func:`closing_the_loop`.
+
+    Lengths are in pixels; a sequence in metres (``units = "m"``) is reported in millimetres.
+    """
     report = result.as_json()
+    if report["length_unit"] == "m":
+        report = _lengths_scaled(report, 1e3)
+        return re.sub(r"\bpx\b", "mm", _format_report(report))
+    return _format_report(report)
+
+
+def _format_report(report: dict) -> str:
     b, e = report["baseline"], report["extended"]
     cfg = report["config"]
     lines = [f"{cfg['n_points']} points, {cfg['n_frames']} frames; mesh {cfg['mesh_nodes']} nodes, "

@@ -342,9 +342,9 @@ EXPLICIT_ONLY = ("active_harmonic",)
 
 
 def build_effects(names, mesh: TriMesh, geometry: LVGeometry, **options) -> list:
-    """Effects from configuration names (see :data:`CATALOGUE`)."""
+    """Effects from configuration names (see :data:`CATALOGUE`): a sequence of names, or one name."""
     out = []
-    for name in names:
+    for name in ([names] if isinstance(names, str) else names):
         if name not in CATALOGUE:
             raise ValueError(f"effects: unknown effect {name!r}; expected one of {sorted(CATALOGUE)}")
         out.append(CATALOGUE[name](mesh, geometry, **options))

@@ -57,7 +57,7 @@ from .myocardium import (
     polar_strains,
     transmural_depth,
 )
-from .reference import contour_interpolant, residual_spline
+from .reference import contour_interpolant, heldout_errors, residual_spline
 from .sequence import Sequence
 
 #: Values used when a sequence does not record them (documented in every report).
@@ -159,8 +159,14 @@ def prepare(seq: Sequence, landmarks: int = 8, observe: str = "boundary", holdou
     n_sectors : int
         Angular sectors of the regional material map (times two transmural layers).
     """
+    if not isinstance(seq, Sequence):
+        raise TypeError(f"seq: expected a Sequence (sfem_filters.cardiac.load_sequence(path) reads one), got "
+                        f"{type(seq).__name__}")
     if observe not in OBSERVE:
         raise ValueError(f"observe: expected one of {OBSERVE}, got {observe!r}")
+    landmarks = integer("landmarks", landmarks, 3)
+    n_sectors = integer("n_sectors", n_sectors, 1)
+    holdout_seed = integer("holdout_seed", holdout_seed, 0)
     nominal = []
     if seq.units == "m":
         spacing = 1.0
@@ -184,6 +190,10 @@ def prepare(seq: Sequence, landmarks: int = 8, observe: str = "boundary", holdou
                          "(isolated pixels?); remove them")
     node_of_point = np.arange(len(pts))
     geometry = lv_geometry(mesh)
+    shortest = min(len(geometry.endo), len(geometry.epi))
+    if landmarks > shortest:
+        raise ValueError(f"landmarks: expected at most {shortest} per contour (the shorter contour's points), "
+                         f"got {landmarks}")
     endo_l, epi_l = contour_landmarks(geometry, mesh, landmarks)
     lm = np.concatenate([endo_l, epi_l])
     observed = lm
@@ -196,9 +206,14 @@ def prepare(seq: Sequence, landmarks: int = 8, observe: str = "boundary", holdou
     c = mesh.centroids - geometry.centre
     sector = np.floor(np.mod(np.arctan2(c[:, 1], c[:, 0]), 2 * np.pi) / (2 * np.pi / n_sectors)).astype(int)
     layer = (transmural_depth(mesh, geometry) > 0.5).astype(int)
+    try:
+        noise_px = noise_floor(seq.displacement[:, observed])
+    except ValueError:
+        raise ValueError(f"displacement: none of the {len(observed)} observed points has data in 3 consecutive "
+                         "frames, which the noise floor (and the drive's process noise) is estimated from") from None
     return Setup(seq=seq, spacing=spacing, frame_interval=T, nominal=nominal, mesh=mesh, geometry=geometry,
                  node_of_point=node_of_point, landmarks=lm, observed=observed, heldout=heldout,
-                 noise_px=noise_floor(seq.displacement[:, observed]), n_landmarks=landmarks, observe=observe,
+                 noise_px=noise_px, n_landmarks=landmarks, observe=observe,
                  holdout_seed=holdout_seed, regions=2 * sector + layer)
 
 
@@ -269,6 +284,10 @@ def build_model(setup: Setup, effects=(), drive: str = "penalty", parameterisati
     """
     if drive not in DRIVES:
         raise ValueError(f"drive: expected one of {DRIVES}, got {drive!r}")
+    if not setup.noise_px > 0:
+        raise ValueError("displacement: the observed points' second differences in time are all zero (no motion, or "
+                         "motion exactly linear in time), so the noise floor that sets the measurement and process "
+                         f"noise is {setup.noise_px!r}; a sequence needs motion to estimate from")
     seq, mesh, s = setup.seq, setup.mesh, setup.spacing
     F = seq.n_frames
     data = seq.displacement if setup.obs_displacement is None else setup.obs_displacement
@@ -291,6 +310,9 @@ def build_model(setup: Setup, effects=(), drive: str = "penalty", parameterisati
             interp = None
         else:
             drive_nodes, targets, conf, interp = _contour_targets(setup, data)
+        if not np.any(np.mean(np.atleast_2d(conf), axis=0) > 0):
+            raise ValueError("confidence: every landmark of the drive has confidence 0 in every frame, so its springs "
+                             "hold nothing and the tissue floats free; expected some confidence > 0")
         dofs = node_dofs(drive_nodes)
         conf = np.repeat(conf, 2, axis=-1)                                      # per dof
         k = NOMINAL["penalty"] * positive("spring_scale", spring_scale) * Kdiag
@@ -550,10 +572,7 @@ def evaluate(setup: Setup, model: SFEMModel, result, seconds: float = 0.0, obser
     r = meas[:, h] - U[:, h]                                              # (F, H, 2)
     er = setup.geometry.radial[setup.node_of_point[h]]
     ec = setup.geometry.circumferential[setup.node_of_point[h]]
-    rad = np.sum(r * er[None], axis=2)
-    circ = np.sum(r * ec[None], axis=2)
-    norm2 = np.sum(r ** 2, axis=2)
-    per_frame = np.sqrt(np.nanmean(norm2, axis=1))
+    errors = heldout_errors(r, er, ec)
     rows = np.arange(2 * len(setup.observed)).reshape(-1, 2)
     nis = diagnostics.nis_summary(result.history)
     white = diagnostics.whiteness(result.history)
@@ -563,13 +582,13 @@ def evaluate(setup: Setup, model: SFEMModel, result, seconds: float = 0.0, obser
     kriged = kriged_heldout(setup, U)
     metrics = {
         "estimator": "smoother" if smoother else "cyclic",
-        "heldout_rmse_px": float(np.sqrt(np.nanmean(norm2))),
+        "heldout_rmse_px": errors["heldout_rmse_px"],
         "residual_spline": {k: kriged[k] for k in ("heldout_rmse_px", "heldout_rmse_radial_px",
                                                    "heldout_rmse_circumferential_px")},
-        "heldout_rmse_radial_px": float(np.sqrt(np.nanmean(rad ** 2))),
-        "heldout_rmse_circumferential_px": float(np.sqrt(np.nanmean(circ ** 2))),
-        "heldout_rmse_per_frame_px": per_frame.tolist(),
-        "heldout_rmse_worst_frame_px": float(np.nanmax(per_frame)),
+        "heldout_rmse_radial_px": errors["heldout_rmse_radial_px"],
+        "heldout_rmse_circumferential_px": errors["heldout_rmse_circumferential_px"],
+        "heldout_rmse_per_frame_px": errors["heldout_rmse_per_frame_px"],
+        "heldout_rmse_worst_frame_px": errors["heldout_rmse_worst_frame_px"],
         "innovation_rms_px": diagnostics.innovation_rms(result.history, rows_of_points=rows) / s,
         "nis_mean_over_dof": nis["nis_mean_over_dof"],
         "nis_fraction_outside_95": nis["nis_fraction_outside_95"],
@@ -598,12 +617,16 @@ def evaluate(setup: Setup, model: SFEMModel, result, seconds: float = 0.0, obser
             metrics["material_covariance"] = result.laplace
             if result.curvature is not None:
                 metrics["exact_laplace"] = _laplace_summary(model, result, sd_logE, sd_nu)
-        a, c = model.parameterisation.level_functional()
-        level, level_sd = float(a @ result.theta + c), float(np.sqrt(max(a @ P_theta @ a, 0.0)))
-        metrics.update({"E_level_kPa": float(np.exp(level) / 1e3), "E_level_sd_log": level_sd,
-                        "E_level_kPa_95": [float(np.exp(level - 1.96 * level_sd) / 1e3),
-                                           float(np.exp(level + 1.96 * level_sd) / 1e3)],
-                        "absolute_stiffness": model.parameterisation.level_index is not None})
+        # the stiffness level in kPa only where a measured pressure makes it identifiable: a relative
+        # map's level is its nominal reference, and an interval on it would read as a measurement
+        absolute = model.parameterisation.level_index is not None
+        metrics["absolute_stiffness"] = absolute
+        if absolute:
+            a, c = model.parameterisation.level_functional()
+            level, level_sd = float(a @ result.theta + c), float(np.sqrt(max(a @ P_theta @ a, 0.0)))
+            metrics.update({"E_level_kPa": float(np.exp(level) / 1e3), "E_level_sd_log": level_sd,
+                            "E_level_kPa_95": [float(np.exp(level - 1.96 * level_sd) / 1e3),
+                                               float(np.exp(level + 1.96 * level_sd) / 1e3)]})
         # the check needs the data counted once: the smoother's posterior, or a single cyclic loop
         metrics["prior_conflict"] = (material_conflict(setup, model, result.theta, P_theta)
                                      if smoother or result.loops == 1 else None)

@@ -245,7 +245,8 @@ def delaunay_mesh(points, keep=None, min_angle_deg: float = 5.0, max_edge: float
     try:
         tri = Delaunay(pts).simplices
     except Exception as exc:  # scipy's QhullError: all points collinear, or too few distinct
-        raise ValueError(f"points: cannot be triangulated (collinear or degenerate point set): {exc}") from None
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise ValueError(f"points: cannot be triangulated (collinear or degenerate point set; Qhull: {first})") from None
     if max_edge is not None:
         q = pts[tri]
         longest = np.linalg.norm(q - q[:, [1, 2, 0]], axis=2).max(axis=1)

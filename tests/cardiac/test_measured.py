@@ -1,5 +1,6 @@
 """Measured-data workflow: sequence format, myocardial geometry, effects, diagnostics (issue 3)."""
 import dataclasses
+import json
 import subprocess
 import sys
 import warnings
@@ -7,6 +8,7 @@ import warnings
 import numpy as np
 import pytest
 
+from sfem_filters._io import write_json
 from sfem_filters.cardiac import closing, measured
 from sfem_filters.cardiac.annulus import annulus_mask, annulus_sequence
 from sfem_filters.cardiac.effects import CATALOGUE, build_effects
@@ -72,6 +74,74 @@ def test_malformed_files_give_clear_errors_and_cli_exit_2(tmp_path):
                               capture_output=True, text=True, timeout=120)
         assert proc.returncode == 2 and "error" in proc.stderr and "Traceback" not in proc.stderr
 
+
+
+# ------------------------------------------------------------------ inputs as users write them
+def test_set_up_arguments_are_checked_by_name():
+    seq = annulus_sequence(None, n_frames=4)
+    for kw, match in (({"landmarks": "eight"}, "landmarks: expected an integer >= 3"),
+                      ({"landmarks": 2}, "landmarks: expected an integer >= 3"),
+                      ({"landmarks": 1000}, r"landmarks: expected at most \d+ per contour"),
+                      ({"n_sectors": 0}, "n_sectors: expected an integer >= 1"),
+                      ({"holdout_seed": -1}, "holdout_seed: expected an integer >= 0")):
+        with pytest.raises(ValueError, match=match):
+            measured.prepare(seq, **kw)
+    with pytest.raises(TypeError, match="seq: expected a Sequence"):
+        measured.prepare({"points": seq.points}, 8)
+    with pytest.raises(ValueError, match="alpha: expected a number in the open interval"):
+        closing.closing_the_loop(seq, effects=(), alpha=np.float32(1.5))
+    # one effect named by a string is that effect, not its letters
+    setup = measured.prepare(seq, 8)
+    model, _ = measured.build_model(setup, "active_polar", parameterisation="none")
+    assert [e.name for e in model.effects] == ["active_polar"]
+
+
+def test_degenerate_data_are_named_for_what_they_are():
+    seq = annulus_sequence(None, n_frames=4)
+    still = dataclasses.replace(seq, displacement=np.zeros_like(seq.displacement))
+    with pytest.raises(ValueError, match="displacement: the observed points' second differences in time are all zero"):
+        measured.build_model(measured.prepare(still, 8))
+    blind = dataclasses.replace(seq, confidence=np.zeros(seq.n_points))
+    with pytest.raises(ValueError, match="confidence: every landmark of the drive has confidence 0"):
+        measured.build_model(measured.prepare(blind, 8))
+    setup = measured.prepare(seq, 8)
+    gappy = seq.displacement.copy()
+    gappy[1:, setup.observed] = np.nan                   # the landmarks are seen in frame 0 only
+    with pytest.raises(ValueError, match="displacement: none of the 16 observed points has data in 3 consecutive"):
+        measured.prepare(dataclasses.replace(seq, displacement=gappy), 8)
+
+
+def test_a_frame_without_data_is_null_in_the_json_and_metres_are_reported_in_mm(tmp_path):
+    """No bare NaN in a results file (strict JSON), and a sequence in metres is reported in mm,
+    with the same figures as the same sequence in pixels."""
+    seq = annulus_sequence(None, n_frames=6, pixel_spacing=2e-3)
+    d = seq.displacement.copy()
+    d[4] = np.nan                                        # a frame with no data at all
+    seq = dataclasses.replace(seq, displacement=d)
+    s = seq.pixel_spacing
+    metres = dataclasses.replace(seq, points=seq.points * s, displacement=seq.displacement * s, units="m",
+                                 pixel_spacing=None)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        px, m = (closing.closing_the_loop(q, effects=(), parameterisation="none") for q in (seq, metres))
+    path = write_json(tmp_path / "r.json", px.as_json())
+
+    def strict(token):
+        raise AssertionError(f"non-standard JSON token {token}")
+    report = json.loads(open(path).read(), parse_constant=strict)
+    per_frame = report["baseline"]["heldout_rmse_per_frame_px"]
+    assert per_frame[4] is None and all(np.isfinite(v) for k, v in enumerate(per_frame) if k != 4)
+    assert px.as_json()["length_unit"] == "px" and m.as_json()["length_unit"] == "m"
+    np.testing.assert_allclose(m.baseline.metrics["heldout_rmse_px"], px.baseline.metrics["heldout_rmse_px"] * s,
+                               rtol=1e-6)
+
+    def held_out(text, unit):
+        line = next(row for row in text.splitlines() if row.startswith(f"held-out RMSE [{unit}]"))
+        return float(line.split()[-1])
+    text_px, text_m = closing.format_report(px), closing.format_report(m)
+    assert " px" not in text_m and "[mm]" in text_m
+    assert held_out(text_m, "mm") == pytest.approx(held_out(text_px, "px") * s * 1e3, abs=1.5e-3)
+    assert held_out(text_m, "mm") > 0.01
 
 # ------------------------------------------------------------------ geometry
 def test_annulus_geometry_and_landmarks():
