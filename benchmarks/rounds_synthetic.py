@@ -48,6 +48,8 @@ def harmonic_amplitudes() -> tuple:
 
 def _row(name, out, extra=""):
     e = out.extended.metrics
+    if "steps:" not in extra and len(out.rounds) > 1:            # corrections are steps too, not effects
+        extra += ("; " if extra else "") + "steps: " + ", ".join(r.change for r in out.rounds[1:])
     print(f"{name:<30}{','.join(out.effects) or 'none':<32} {out.stop_reason:<25}{e['nis_mean_over_dof']:>8.3f}"
           f"{e['heldout_rmse_px']:>9.3f}{out.reference['heldout_rmse_px']:>8.3f}  {extra}", flush=True)
 
