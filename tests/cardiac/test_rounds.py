@@ -279,14 +279,18 @@ def _scale_run(E_kpa, seed=0):
 @pytest.mark.parametrize("E_kpa", [5.0, 30.0, 100.0])
 def test_measured_pressure_sets_the_absolute_stiffness(E_kpa):
     """Under a measured pressure the global stiffness level is estimated in kPa with an interval
-    that covers the truth, and no effect is added to absorb a scale error (the rounds stop at the
-    baseline; its NIS/dof is below 1, not above: the final pass starts the level from its wide prior)."""
+    that covers the truth, and no effect is added to absorb a scale error (a correction of the
+    prior, the smooth material map, may be: the level's interval must then cover the truth too;
+    NIS/dof is below 1, not above: the final pass starts the level from its wide prior)."""
     out = _scale_run(E_kpa)
     m = out.baseline.metrics
     assert m["absolute_stiffness"] and m["converged"]
     lo, hi = m["E_level_kPa_95"]
     assert lo < E_kpa < hi and hi / lo < 1.5
     assert out.effects == [] and m["nis_mean_over_dof"] < 1.4
+    final = out.extended.metrics
+    lo, hi = final["E_level_kPa_95"]
+    assert final["absolute_stiffness"] and lo < E_kpa < hi and final["nis_mean_over_dof"] < 1.4
 
 
 def test_a_measured_pressure_makes_the_level_a_parameter_of_every_map():
