@@ -23,7 +23,7 @@ from threadpoolctl import threadpool_limits
 
 from .._io import json_safe
 from ..benchmark.comparison import LABELS, run_comparison
-from ..cardiac.closing import closing_the_loop
+from ..cardiac.closing import closing_the_loop, length_display
 from ..cardiac.sequence import example_path, load_sequence
 from ..export import export_comparison, export_dense
 from ..plotting import comparison_figures, dense_figures
@@ -274,7 +274,12 @@ def describe_record(record: dict) -> str:
         raise ValueError(f"record: expected a dense job's record, got kind {job['kind']!r}")
     rounds = res["rounds"]
     last = rounds[-1]
-    return (f"{job['name']}: held-out RMSE baseline {rounds[0]['heldout_rmse_px']:.3f} px -> "
-            f"round {last['round']}{'-' if last.get('removed') else ''} {last['heldout_rmse_px']:.3f} px (effects {'+'.join(last['effects']) or 'none'}, "
-            f"drive {last['drive']}); spline {res['spline_reference']['heldout_rmse_px']:.3f} px; "
+    unit, k = length_display(res.get("length_unit", "px"))
+
+    def length(v):                      # null in the file: no held-out data to score
+        return "n/a" if v is None else f"{v * k:.3f} {unit}"
+    return (f"{job['name']}: held-out RMSE baseline {length(rounds[0]['heldout_rmse_px'])} -> "
+            f"round {last['round']}{'-' if last.get('removed') else ''} {length(last['heldout_rmse_px'])} "
+            f"(effects {'+'.join(last['effects']) or 'none'}, "
+            f"drive {last['drive']}); spline {length(res['spline_reference']['heldout_rmse_px'])}; "
             f"stopped: {res['stop_reason']}")

@@ -54,11 +54,14 @@ def summarise(results, level: float = 0.95) -> dict:
     for s in names:
         rows = [r["strategies"][s] for r in results if s in r["strategies"]]
         k = int(sum(int(m["ks_H"]) for m in rows))
-        values = {key: [float(m[key]) for m in rows] for key, _ in SUMMARY_QUANTITIES if all(key in m for m in rows)}
+        # a null in a stored result (an undefined figure) counts as missing, not as zero
+        values = {key: [np.nan if m[key] is None else float(m[key]) for m in rows]
+                  for key, _ in SUMMARY_QUANTITIES if all(key in m for m in rows)}
         out["strategies"][s] = {
             "n": len(rows), "rejections": k, "rate": k / len(rows), "interval": wilson_interval(k, len(rows), level),
             "values": values,
-            "quartiles": {key: tuple(float(q) for q in np.percentile(v, [25, 50, 75])) for key, v in values.items()},
+            "quartiles": {key: tuple(float(q) for q in np.nanpercentile(v, [25, 50, 75])) if np.any(np.isfinite(v))
+                          else (np.nan,) * 3 for key, v in values.items()},
         }
         if all("converged" in m for m in rows):
             out["strategies"][s]["unconverged"] = int(sum(not m["converged"] for m in rows))

@@ -101,7 +101,8 @@ from .sequence import Sequence
 __all__ = ["LoopResult", "Round", "Variant", "closing_the_loop", "candidate_loads", "spans", "log_evidence", "format_report",
            "removals",
            "versus_spline", "SELECTIONS",
-           "DRIVE_CORRECTIONS", "time_courses", "CRITERIA", "round_cross_validation", "DEFAULT_CANDIDATES", "LAPLACE"]
+           "DRIVE_CORRECTIONS", "time_courses", "CRITERIA", "round_cross_validation", "DEFAULT_CANDIDATES", "LAPLACE",
+           "length_display"]
 
 #: How a round picks among significant candidates (``selection=``, ``--selection``): the first by
 #: score that improves the criterion, or the one of the fitted that improves it most.
@@ -836,9 +837,9 @@ def _round_label(r: dict) -> str:
 def _lengths_scaled(value, factor: float, length: bool = False, versus: bool = False):
     """The report with every length multiplied by ``factor``: the values (and lists of values)
     of keys with ``_px`` in their name, and the ``difference``, ``low`` and ``high`` of a
-    ``versus_spline`` entry."""
+    ``versus_spline`` entry (``difference``, ``low``, ``high``, ``se``, ``rmse_a``, ``rmse_b``)."""
     if isinstance(value, dict):
-        return {k: _lengths_scaled(v, factor, length or "_px" in k or (versus and k in ("difference", "low", "high")),
+        return {k: _lengths_scaled(v, factor, length or "_px" in k or (versus and k in ("difference", "low", "high", "se", "rmse_a", "rmse_b")),
                                    versus or k.startswith("versus_spline"))
                 for k, v in value.items()}
     if isinstance(value, list):
@@ -848,15 +849,25 @@ def _lengths_scaled(value, factor: float, length: bool = False, versus: bool = F
     return value
 
 
+def length_display(units: str) -> tuple:
+    """``(label, factor)`` to show lengths of a sequence with ``units`` ("px" or "m"): pixels as
+    they are, metres in millimetres (``value * factor`` in ``label``)."""
+    if units not in ("px", "m"):
+        raise ValueError(f"units: expected 'px' or 'm', got {units!r}")
+    return ("mm", 1e3) if units == "m" else ("px", 1.0)
+
+
 def format_report(result: "LoopResult") -> str:
     """Text summary of :func:`closing_the_loop`.
 
-    Lengths are in pixels; a sequence in metres (``units = "m"``) is reported in millimetres.
+    Lengths are in pixels; a sequence in metres (``units = "m"``) is reported in millimetres
+    (:func:`length_display`).
     """
     report = result.as_json()
-    if report["length_unit"] == "m":
-        report = _lengths_scaled(report, 1e3)
-        return re.sub(r"\bpx\b", "mm", _format_report(report))
+    label, factor = length_display(report["length_unit"])
+    if factor != 1.0:
+        report = _lengths_scaled(report, factor)
+        return re.sub(r"\bpx\b", label, _format_report(report))
     return _format_report(report)
 
 

@@ -210,7 +210,8 @@ def prepare(seq: Sequence, landmarks: int = 8, observe: str = "boundary", holdou
         noise_px = noise_floor(seq.displacement[:, observed])
     except ValueError:
         raise ValueError(f"displacement: none of the {len(observed)} observed points has data in 3 consecutive "
-                         "frames, which the noise floor (and the drive's process noise) is estimated from") from None
+                         "frames, which the noise floor (and the drive's process noise) is estimated from; expected "
+                         "at least one") from None
     return Setup(seq=seq, spacing=spacing, frame_interval=T, nominal=nominal, mesh=mesh, geometry=geometry,
                  node_of_point=node_of_point, landmarks=lm, observed=observed, heldout=heldout,
                  noise_px=noise_px, n_landmarks=landmarks, observe=observe,
@@ -287,7 +288,7 @@ def build_model(setup: Setup, effects=(), drive: str = "penalty", parameterisati
     if not setup.noise_px > 0:
         raise ValueError("displacement: the observed points' second differences in time are all zero (no motion, or "
                          "motion exactly linear in time), so the noise floor that sets the measurement and process "
-                         f"noise is {setup.noise_px!r}; a sequence needs motion to estimate from")
+                         f"noise is {setup.noise_px!r}; expected a sequence whose points move")
     seq, mesh, s = setup.seq, setup.mesh, setup.spacing
     F = seq.n_frames
     data = seq.displacement if setup.obs_displacement is None else setup.obs_displacement
@@ -310,9 +311,11 @@ def build_model(setup: Setup, effects=(), drive: str = "penalty", parameterisati
             interp = None
         else:
             drive_nodes, targets, conf, interp = _contour_targets(setup, data)
-        if not np.any(np.mean(np.atleast_2d(conf), axis=0) > 0):
-            raise ValueError("confidence: every landmark of the drive has confidence 0 in every frame, so its springs "
-                             "hold nothing and the tissue floats free; expected some confidence > 0")
+        held = mesh.nodes[drive_nodes[np.mean(np.atleast_2d(conf), axis=0) > 0]]
+        if len(held) < 3 or np.linalg.matrix_rank(held - held[0], tol=1e-9 * np.ptp(mesh.nodes)) < 2:
+            raise ValueError(f"confidence: {len(held)} of the drive's {len(drive_nodes)} landmark nodes have a "
+                             "confidence > 0 in some frame, not spread over the plane, so the springs cannot hold the "
+                             "tissue's rigid-body motion; expected confidence > 0 on at least 3 landmarks not on one line")
         dofs = node_dofs(drive_nodes)
         conf = np.repeat(conf, 2, axis=-1)                                      # per dof
         k = NOMINAL["penalty"] * positive("spring_scale", spring_scale) * Kdiag

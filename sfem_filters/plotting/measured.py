@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..cardiac.closing import LoopResult
+from ..cardiac.closing import LoopResult, length_display
 from ..cardiac.myocardium import polar_strains
 from ..fem.strain import nodal_strains
 from ..filtering.diagnostics import nis_summary
@@ -19,16 +19,17 @@ def dense_residual_maps(loop: LoopResult, path: str):
     plt = _plt()
     setup = loop.setup
     runs = [loop.baseline, loop.extended]
+    unit, k = length_display(setup.seq.units)                # metres are shown in mm
     meas = setup.seq.displacement
     h = setup.heldout
-    res = [meas[:, h] - r.U[:, h] for r in runs]
+    res = [(meas[:, h] - r.U[:, h]) * k for r in runs]
     mag = [np.linalg.norm(r, axis=2) for r in res]
     worst = int(np.nanargmax(np.sqrt(np.nanmean(mag[0] ** 2, axis=1))))
     ang = setup.geometry.angle(setup.mesh.nodes[setup.node_of_point[h]])
     order = np.argsort(ang)
     vmax = np.nanpercentile(mag[0], 99)
     fig, axes = plt.subplots(2, 2, figsize=(11, 8.5), constrained_layout=True)
-    pts = setup.seq.points
+    pts = setup.seq.points * k
     names = ["baseline", "final: " + loop.rounds[-1].variant.label(loop.config["drive"])]
     for i, (r, m, name) in enumerate(zip(res, mag, names)):
         ax = axes[0, i]
@@ -39,17 +40,17 @@ def dense_residual_maps(loop: LoopResult, path: str):
         ax.set_aspect("equal")
         ax.invert_yaxis()
         ax.set_title(f"{name}\nheld-out residual at frame {worst} (arrows x4)")
-        ax.set_xlabel("x [px]")
-        ax.set_ylabel("y [px]")
+        ax.set_xlabel(f"x [{unit}]")
+        ax.set_ylabel(f"y [{unit}]")
         ax.legend(loc="upper right", fontsize=8)
         ax2 = axes[1, i]
         im = ax2.imshow(m[:, order].T, aspect="auto", cmap="magma", vmin=0, vmax=vmax, origin="lower",
                         extent=(-0.5, len(m) - 0.5, 0, 360))
         ax2.set_xlabel("frame")
         ax2.set_ylabel("angle about the cavity centre [deg]")
-        ax2.set_title(f"|held-out residual| (RMSE {np.sqrt(np.nanmean(m ** 2)):.3f} px)")
-    fig.colorbar(q, ax=axes[0, :], label="|residual| [px]", shrink=0.8)
-    fig.colorbar(im, ax=axes[1, :], label="|residual| [px]", shrink=0.8)
+        ax2.set_title(f"|held-out residual| (RMSE {np.sqrt(np.nanmean(m ** 2)):.3f} {unit})")
+    fig.colorbar(q, ax=axes[0, :], label=f"|residual| [{unit}]", shrink=0.8)
+    fig.colorbar(im, ax=axes[1, :], label=f"|residual| [{unit}]", shrink=0.8)
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
@@ -161,11 +162,12 @@ def rounds_figure(loop: LoopResult, path: str):
     x = np.arange(len(rounds))
     labels = ["baseline"] + [f"- {r['removed']}" if r.get("removed") else f"+ {r['added']}" for r in rounds[1:]]
     ref = loop.reference
+    unit, k = length_display(loop.setup.seq.units)
     for key, style, name in (("heldout_rmse_px", "o-", "total"), ("heldout_rmse_radial_px", "s--", "radial"),
                              ("heldout_rmse_circumferential_px", "^--", "circumferential")):
-        line, = ax.plot(x, [r[key] for r in rounds], style, label=f"model, {name}")
-        ax.axhline(ref[key], color=line.get_color(), ls=":", lw=1.5, label=f"thin-plate spline, {name}")
-    ax.set_ylabel("held-out RMSE [px]")
+        line, = ax.plot(x, [np.nan if r[key] is None else r[key] * k for r in rounds], style, label=f"model, {name}")
+        ax.axhline(ref[key] * k, color=line.get_color(), ls=":", lw=1.5, label=f"thin-plate spline, {name}")
+    ax.set_ylabel(f"held-out RMSE [{unit}]")
     ax.set_title("held-out error by round (dotted: spline through the same points)")
     bx.plot(x, [r["nis_mean_over_dof"] for r in rounds], "o-", label="NIS / dof")
     bx.plot(x, [r["innovation_lag1_autocorrelation"] for r in rounds], "s-", label="lag-1 autocorrelation")

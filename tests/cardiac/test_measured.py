@@ -101,9 +101,14 @@ def test_degenerate_data_are_named_for_what_they_are():
     still = dataclasses.replace(seq, displacement=np.zeros_like(seq.displacement))
     with pytest.raises(ValueError, match="displacement: the observed points' second differences in time are all zero"):
         measured.build_model(measured.prepare(still, 8))
-    blind = dataclasses.replace(seq, confidence=np.zeros(seq.n_points))
-    with pytest.raises(ValueError, match="confidence: every landmark of the drive has confidence 0"):
-        measured.build_model(measured.prepare(blind, 8))
+    for seen in (0, 2):                                  # too few confident landmarks to hold the rigid motion
+        conf = np.zeros(seq.n_points)
+        conf[measured.prepare(seq, 8).landmarks[:seen]] = 1.0
+        blind = dataclasses.replace(seq, confidence=conf)
+        with pytest.raises(ValueError, match=f"confidence: {seen} of the drive's 16 landmark nodes"):
+            measured.build_model(measured.prepare(blind, 8))
+    conf[measured.prepare(seq, 8).landmarks[[0, 4, 9]]] = 1.0        # three, around the wall: enough
+    measured.build_model(measured.prepare(dataclasses.replace(seq, confidence=conf), 8))
     setup = measured.prepare(seq, 8)
     gappy = seq.displacement.copy()
     gappy[1:, setup.observed] = np.nan                   # the landmarks are seen in frame 0 only
