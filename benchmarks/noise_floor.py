@@ -16,7 +16,8 @@ type-II maximum likelihood (``IteratedSmoother(process_noise="estimate")``): wit
 noise at the second-difference floor (the default) and at the fifth-order figure, with their
 held-out error, NIS/dof and evidence log p(y) of the observed points; and a pressure-driven
 synthetic annulus (no effect) at 5 and 30 kPa with the measurement noise at the floor and at the
-level the sequence was made with.
+level the sequence was made with; each also with the measurement noise's level chosen by type-II
+maximum likelihood (``measurement_noise="estimate"``).
 """
 from __future__ import annotations
 
@@ -65,34 +66,43 @@ def main(argv=None) -> int:
         return 0
     print("\nannulus under a measured pressure (no effect; generating white noise 0.05 px), region map, smoother: "
           "the measurement noise at the floor and at the generating level")
-    print(f"{'stiffness':<12}{'measurement noise':<36}{'floor [px]':>11}{'NIS/dof':>9}{'held-out':>10}"
+    print(f"{'stiffness':<12}{'measurement noise':<36}{'noise [px]':>11}{'NIS/dof':>9}{'held-out':>10}"
           f"{'level [kPa] (95%)':>24}{'log p(y)':>11}")
     mesh = prepare(annulus_sequence(None, n_frames=4), 8).mesh
     for E in (5.0, 30.0):
         mat = Material.uniform(mesh.n_elements, E * 1e3, measured.NOMINAL["nu"])
         s = prepare(annulus_sequence(None, seed=0, drive="pressure", material=mat, peak_pressure=2e3 * E / 10), 8)
-        for label, floor in (("second-difference floor (default)", s.noise_px), ("generating noise", 0.05)):
+        for label, floor, level in (("second-difference floor (default)", s.noise_px, "fixed"),
+                                    ("generating noise", 0.05, "fixed"),
+                                    ("level by type-II ML", s.noise_px, "estimate")):
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", RuntimeWarning)
-                m = run(dataclasses.replace(s, noise_px=floor), (), "pressure", "region", max_iterations=80).metrics
+                m = run(dataclasses.replace(s, noise_px=floor), (), "pressure", "region", max_iterations=80,
+                        measurement_noise=level).metrics
             lo, hi = m["E_level_kPa_95"]
+            floor *= np.sqrt(m.get("measurement_noise_scale", 1.0))
             print(f"{f'{E:g} kPa':<12}{label:<36}{floor:>11.4f}{m['nis_mean_over_dof']:>9.3f}"
                   f"{m['heldout_rmse_px']:>10.4f}{m['E_level_kPa']:>10.2f} ({lo:.2f}-{hi:.2f}){m['log_evidence']:>11.1f}",
                   flush=True)
     print(f"\nsubject_a, {args.landmarks} landmarks per contour, contour+trend drive, active_polar, material fixed, "
           "process-noise level by type-II ML")
-    print(f"{'measurement noise':<42}{'floor [px]':>11}{'Q x':>8}{'held-out':>10}{'NIS/dof':>9}{'log p(y)':>11}{'s':>6}")
-    for label, floor in (("second-difference floor (default)", setup.noise_px),
-                         ("fifth-order difference figure", difference_noise(seq.displacement[:, setup.observed], 5))):
+    print(f"{'measurement noise':<42}{'noise [px]':>11}{'Q x':>8}{'held-out':>10}{'NIS/dof':>9}{'log p(y)':>11}{'s':>6}")
+    for label, floor, level in (("second-difference floor (default)", setup.noise_px, "fixed"),
+                                ("fifth-order difference figure", difference_noise(seq.displacement[:, setup.observed], 5),
+                                 "fixed"),
+                                ("level by type-II ML (R, then Q)", setup.noise_px, "estimate")):
         t0 = time.perf_counter()
         s = dataclasses.replace(setup, noise_px=floor)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
             model, y = measured.build_model(s, ("active_polar",), "contour", "none", drive_trend=True)
-            res = IteratedSmoother(process_noise="estimate").run(model, y)
+            res = IteratedSmoother(process_noise="estimate", measurement_noise=level).run(model, y)
+            if res.measurement_noise_scale != 1.0:
+                model = model.with_measurement_noise(res.measurement_noise_scale)
             _, m = measured.evaluate(s, model, res, 0.0, y)
-        print(f"{label:<42}{floor:>11.4f}{res.process_noise_scale:>8.3g}{m['heldout_rmse_px']:>10.4f}"
-              f"{m['nis_mean_over_dof']:>9.3f}{m['log_evidence']:>11.1f}{time.perf_counter() - t0:>6.0f}", flush=True)
+        print(f"{label:<42}{floor * np.sqrt(res.measurement_noise_scale):>11.4f}{res.process_noise_scale:>8.3g}"
+              f"{m['heldout_rmse_px']:>10.4f}{m['nis_mean_over_dof']:>9.3f}{m['log_evidence']:>11.1f}"
+              f"{time.perf_counter() - t0:>6.0f}", flush=True)
     return 0
 
 

@@ -159,6 +159,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "Hessian (default, free); exact, the inverse exact Hessian of the MAP cost at the final mode "
                         "(2 p + 1 gradient passes more, about 5 min for the 23-parameter region map: the Laplace "
                         "approximation proper where the model misfits its data); smoother only")
+    d.add_argument("--measurement-noise", choices=("fixed", "estimate"), default="fixed",
+                   help="fixed: the measurement noise at the data's noise floor (default); estimate: every fit "
+                        "chooses its level by type-II maximum likelihood (about 3-5 fits each; smoother and the "
+                        "evidence criterion only)")
     d.add_argument("--json", metavar="PATH", help="write the report as JSON")
     d.add_argument("--figures", metavar="DIR", help="write the figures (PNG) into DIR")
     d.add_argument("--export", metavar="DIR", help="write ParaView time series (.pvd + .vtu) into DIR")
@@ -261,6 +265,8 @@ def cmd_dense(args) -> int:
                   prune=not args.no_prune)
     if args.laplace != "gauss-newton":      # only when asked: batch fingerprints of earlier results stay valid
         config["laplace"] = args.laplace
+    if args.measurement_noise != "fixed":   # likewise
+        config["measurement_noise"] = args.measurement_noise
     if args.candidates is not None:
         config["candidates"] = args.candidates
     if _batch_mode(args, len(args.path)):

@@ -373,6 +373,18 @@ class SFEMModel(LinearObservation):
         out._modal_cache = OrderedDict()
         return out
 
+    def with_measurement_noise(self, scale: float) -> "SFEMModel":
+        """This model with every measurement noise covariance (R and each frame's R) multiplied
+        by ``scale`` (> 0, dimensionless). Shares the mesh, matrices and the cache of discretised
+        dynamics with this model; the linearisation cache, which holds R, is its own."""
+        scale = positive("scale", scale)
+        out = copy.copy(self)
+        out.R = self.R * scale
+        if self._R_frames is not None:
+            out._R_frames = self._R_frames * scale
+        out._modal_cache = OrderedDict()
+        return out
+
     def fingerprint(self) -> str:
         """Hash of everything that defines the model (for checkpoints)."""
         h = hashlib.sha256()

@@ -545,7 +545,7 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
                      min_evidence: float = 0.0, max_tries: int = 3, candidates=None,
                      corrections: bool = True, criterion: str = "evidence", folds: int = DEFAULT_FOLDS,
                      min_cv_gain: float = 0.01, selection: str = "best", prune: bool = True,
-                     laplace: str = "gauss-newton") -> LoopResult:
+                     laplace: str = "gauss-newton", measurement_noise: str = "fixed") -> LoopResult:
     """Baseline run, then rounds of ranking and adding effects (module docstring), with the spline
     reference.
 
@@ -601,7 +601,18 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
         or the exact Laplace, the inverse exact Hessian of the MAP cost at the final mode
         (:func:`sfem_filters.cardiac.measured.exact_posterior`, 2 p + 1 more gradient passes; the
         rounds' fits keep Gauss-Newton). Needs ``estimator="smoother"`` and a material map.
+    measurement_noise : {"fixed", "estimate"}
+        ``"estimate"``: every fit chooses the level of its measurement noise by type-II maximum
+        likelihood (:func:`sfem_filters.cardiac.measured.run`) instead of taking the noise floor,
+        so that the evidence compares each model at its own best level. Needs
+        ``estimator="smoother"`` and ``criterion="evidence"`` (the cross-validation's folds would
+        use the floor).
     """
+    if measurement_noise not in ("fixed", "estimate"):
+        raise ValueError(f"measurement_noise: expected 'fixed' or 'estimate', got {measurement_noise!r}")
+    if measurement_noise == "estimate" and (estimator != "smoother" or criterion != "evidence"):
+        raise ValueError("measurement_noise: 'estimate' needs estimator='smoother' and criterion='evidence', got "
+                         f"estimator={estimator!r}, criterion={criterion!r}")
     if criterion not in CRITERIA:
         raise ValueError(f"criterion: expected one of {CRITERIA}, got {criterion!r}")
     if laplace not in LAPLACE:
@@ -634,7 +645,7 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
             raise
         cv_possible = False             # the evidence decides; rounds then report no CV
     opts = {"parameterisation": parameterisation, "max_loops": max_loops, "progress": progress,
-            "estimator": estimator, "max_iterations": max_iterations}
+            "estimator": estimator, "max_iterations": max_iterations, "measurement_noise": measurement_noise}
     start = Variant(drive=drive)
     base = _fit(setup, start, opts)
     last = {}
@@ -769,6 +780,7 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
               "min_evidence": min_evidence, "max_tries": max_tries, "candidates": names,
               "corrections": bool(corrections), "criterion": criterion, "folds": folds,
               "min_cv_gain": min_cv_gain, "selection": selection, "prune": bool(prune), "laplace": laplace,
+              "measurement_noise": measurement_noise,
               "final": rounds[-1].variant.as_json()}
     g = setup.geometry
     held = setup.node_of_point[setup.heldout]
@@ -975,6 +987,9 @@ def _format_report(report: dict) -> str:
             lo, hi = col["E_level_kPa_95"]
             lines.append(f"stiffness level ({key}): {col['E_level_kPa']:.2f} kPa (95%: {lo:.2f}-{hi:.2f} kPa), "
                          "set by the measured pressure")
+    if b.get("measurement_noise_scale") is not None and e.get("measurement_noise_scale") is not None:
+        lines.append(f"{'measurement noise sd / floor (ML)':<34}{np.sqrt(b['measurement_noise_scale']):>12.3f}"
+                     f"{np.sqrt(e['measurement_noise_scale']):>18.3f}")
     smoother = cfg["estimator"] == "smoother"
     label = "iterations (* not converged)" if smoother else "loops (* material not converged)"
     lines.append(f"{label:<34}"

@@ -676,7 +676,7 @@ def run(setup: Setup, effects=(), drive: str = "penalty", parameterisation: str 
         process_scale: float = 1.0, tol: float = 1e-3, progress: bool = False, name: str = "",
         landmark_step_px: float | None = None, beta: float | None = None, model_options: dict | None = None,
         estimator: str = "smoother", max_iterations: int = 20, effect_rates: bool = False,
-        drive_trend: bool = False, spring_scale: float = 1.0) -> Run:
+        drive_trend: bool = False, spring_scale: float = 1.0, measurement_noise: str = "fixed") -> Run:
     """Build the model, estimate and evaluate.
 
     ``estimator`` (:data:`ESTIMATORS`): ``"smoother"``, the iterated smoother with at most
@@ -684,9 +684,17 @@ def run(setup: Setup, effects=(), drive: str = "penalty", parameterisation: str 
     most ``max_loops`` loops and the relative tolerance ``tol``, or ``"roukf"``, Moireau &
     Chapelle's reduced-order UKF in the same cyclic driver (:mod:`sfem_filters.filtering.roukf`). ``beta``, ``model_options``,
     ``effect_rates``, ``drive_trend``, ``spring_scale``: see :func:`build_model`.
+    ``measurement_noise``: ``"fixed"``, the measurement noise at the noise floor (or the file's
+    ``sigma``); ``"estimate"``, its level (one factor on every frame's R) chosen by the smoother's
+    type-II maximum likelihood (:class:`~sfem_filters.filtering.iterated.IteratedSmoother`
+    ``measurement_noise``); the factor is ``metrics["measurement_noise_scale"]``. Smoother only.
     """
     if estimator not in ESTIMATORS:
         raise ValueError(f"estimator: expected one of {ESTIMATORS}, got {estimator!r}")
+    if measurement_noise not in ("fixed", "estimate"):
+        raise ValueError(f"measurement_noise: expected 'fixed' or 'estimate', got {measurement_noise!r}")
+    if measurement_noise == "estimate" and estimator != "smoother":
+        raise ValueError(f"measurement_noise: 'estimate' needs estimator='smoother', got estimator={estimator!r}")
     model, y = build_model(setup, effects, drive, parameterisation, process_scale, landmark_step_px, beta,
                            model_options, effect_rates=effect_rates, drive_trend=drive_trend,
                            spring_scale=spring_scale)
@@ -695,13 +703,18 @@ def run(setup: Setup, effects=(), drive: str = "penalty", parameterisation: str 
         warnings.filterwarnings("ignore", message="cyclic_estimate: the material did not converge")
         warnings.filterwarnings("ignore", message="iterated smoother: stopped by")
         if estimator == "smoother":
-            result = IteratedSmoother(max_iterations=max_iterations).run(model, y, progress=progress,
-                                                                        description=name or "dense")
+            result = IteratedSmoother(max_iterations=max_iterations, measurement_noise=measurement_noise).run(
+                model, y, progress=progress, description=name or "dense")
         else:
             result = cyclic_estimate(model, y, max_loops=max_loops, tol=tol, progress=progress,
                                      description=name or "dense",
                                      engine="roukf" if estimator == "roukf" else "structured")
+    if getattr(result, "measurement_noise_scale", 1.0) != 1.0:
+        model = model.with_measurement_noise(result.measurement_noise_scale)    # the R the result was made with
     U, metrics = evaluate(setup, model, result, time.perf_counter() - t0, y)
+    if measurement_noise == "estimate":
+        metrics["measurement_noise_scale"] = float(result.measurement_noise_scale)
+        metrics["measurement_noise_search"] = list(result.measurement_noise_search)
     return Run(name, model, result, U, metrics, y)
 
 

@@ -55,8 +55,8 @@ from .ljung import LJUNG_MAX_PARAMS, LjungCoupling
 from .marginal import MarginalCheck, laplace_check, log_likelihood, log_posterior
 from .roukf import ROUKFEngine, simplex_points
 from .protocol import (FilterModel, Fingerprinted, Linearisable, LoadResponse, OutputOperators, PerFrameNoise,
-                       PhysicalParameters, ScalableProcessNoise, TransitionDerivatives, check_model, measurement_cov,
-                       scaled_process_noise)
+                       PhysicalParameters, ScalableMeasurementNoise, ScalableProcessNoise, TransitionDerivatives,
+                       check_model, measurement_cov, scaled_measurement_noise, scaled_process_noise)
 from .safeguards import FilterDivergence, Safeguards, nearest_psd
 from .smoother import ForwardPass, SmoothedPass, kalman_forward, rts_reference, smooth, smooth_backward
 from .structured import StructuredEngine, joseph_update
@@ -72,5 +72,6 @@ __all__ = ["ROUKFEngine", "simplex_points", "UKFEngine", "make_ukf", "diagnostic
            "save_checkpoint", "load_checkpoint", "run_fingerprint", "one_cycle_covariance", "IteratedSmoother",
            "SmootherResult", "MapObjective", "iterated_smoother", "LinearisedModel", "linearise", "linearise_dense",
            "smooth", "kalman_forward", "smooth_backward", "rts_reference", "ForwardPass", "SmoothedPass",
-           "Linearisable", "OutputOperators", "ScalableProcessNoise", "scaled_process_noise", "MarginalCheck", "laplace_check", "log_likelihood", "log_posterior",
+           "Linearisable", "OutputOperators", "ScalableProcessNoise", "scaled_process_noise",
+           "ScalableMeasurementNoise", "scaled_measurement_noise", "MarginalCheck", "laplace_check", "log_likelihood", "log_posterior",
            "ProfileHessian", "profile_hessian", "profile_pass", "optimal_trajectory", "gauss_newton_pass", "exact_laplace"]

@@ -61,7 +61,7 @@ from .cyclic import check_observations
 from .history import History
 from .linearised import check_static_parameters, linearise
 from .protocol import (OutputOperators, check_model, measurement_cov, parameter_prior, physical_parameters,
-                       scaled_process_noise)
+                       scaled_measurement_noise, scaled_process_noise)
 from .safeguards import Safeguards
 from .curvature import ProfileHessian, gauss_newton_pass, optimal_trajectory, profile_hessian, profile_pass
 from .smoother import smooth
@@ -236,6 +236,10 @@ class SmootherResult:
     noise_search : list of dict
         With ``process_noise="estimate"``: per scale tried, ``scale``, ``log_evidence`` (log p(y)
         of the model linearised at that scale's mode), ``iterations``, ``converged``; by scale.
+    measurement_noise_scale : float
+        The factor on the model's R the result was computed with (1 unless estimated).
+    measurement_noise_search : list of dict
+        With ``measurement_noise="estimate"``: as ``noise_search``, for the factor on R.
     laplace : str
         Which Hessian ``P_theta`` inverts: ``"gauss-newton"`` or ``"exact"`` (``laplace="exact"``
         and the exact Hessian positive definite at the mode).
@@ -261,6 +265,8 @@ class SmootherResult:
     method: str = "iterated_smoother"
     process_noise_scale: float = 1.0
     noise_search: list = field(default_factory=list)
+    measurement_noise_scale: float = 1.0
+    measurement_noise_search: list = field(default_factory=list)
     laplace: str = "gauss-newton"
     P_theta_gauss_newton: np.ndarray | None = None
     curvature: ProfileHessian | None = None
@@ -365,8 +371,15 @@ class IteratedSmoother:
         run starts from the previous scale's mode. The reported posterior is the one at the best
         ``s`` (plug-in: the uncertainty of ``s`` itself is not propagated). Needs a model with
         ``with_process_noise`` (:class:`~sfem_filters.filtering.protocol.ScalableProcessNoise`).
+    measurement_noise : {"fixed", "estimate"}
+        The same for the measurement noise: ``"estimate"`` chooses one factor on R (every frame's)
+        by the same walk over factors of 4 and the same evidence (needs ``with_measurement_noise``,
+        :class:`~sfem_filters.filtering.protocol.ScalableMeasurementNoise`). Where R is set from
+        a floor that can hold motion as well as noise (the ``dense`` workflow's), the data judge
+        the level. With both ``"estimate"``: R's level first at the model's Q, then Q's level at
+        that R (one sweep of coordinate ascent, each warm-started from the previous mode).
     noise_range : (float, float)
-        Smallest and largest factor on Q tried (0 < low <= 1 <= high).
+        Smallest and largest factor on Q (and on R) tried (0 < low <= 1 <= high).
     noise_tol : float
         Evidence gain (nats, > 0) below which the walk over scales stops.
     laplace : {"gauss-newton", "exact"}
@@ -396,6 +409,7 @@ class IteratedSmoother:
     covariance: bool = True
     safeguards: Safeguards | None = None
     process_noise: str = "fixed"
+    measurement_noise: str = "fixed"
     noise_range: tuple = (4.0 ** -8, 4.0 ** 3)
     noise_tol: float = 0.05
     laplace: str = "gauss-newton"
@@ -413,6 +427,8 @@ class IteratedSmoother:
             raise TypeError(f"safeguards: expected a Safeguards, got {type(self.safeguards).__name__}")
         if self.process_noise not in ("fixed", "estimate"):
             raise ValueError(f"process_noise: expected 'fixed' or 'estimate', got {self.process_noise!r}")
+        if self.measurement_noise not in ("fixed", "estimate"):
+            raise ValueError(f"measurement_noise: expected 'fixed' or 'estimate', got {self.measurement_noise!r}")
         try:
             low, high = (float(v) for v in self.noise_range)
         except (TypeError, ValueError):
@@ -434,7 +450,8 @@ class IteratedSmoother:
 
         ``checkpoint``: a path saved after every accepted iteration; an existing checkpoint of
         the same run is resumed and the run ends exactly as an uninterrupted one would (with
-        ``process_noise="estimate"``, one checkpoint per scale tried, ``<checkpoint>.noise<k>``).
+        ``process_noise="estimate"``, one checkpoint per scale tried, ``<checkpoint>.noise<k>``;
+        with ``measurement_noise="estimate"``, ``<checkpoint>.Rnoise<k>``).
         ``start``: a warm start, a trajectory (n_frames, dim_state) whose material (any frame's,
         model coordinates) is the first iterate instead of the prior mean, for example another
         run's ``states``; the MAP cost, and so the mode, are unchanged. A start where the model
@@ -443,34 +460,53 @@ class IteratedSmoother:
         if start is not None:
             check_model(model)
             start = as_float_array("start", start, shape=(model.n_frames, model.dim_state))
-        if self.process_noise == "estimate":
+        if self.measurement_noise == "estimate":
+            # R's level first, at the model's Q; then, if asked, Q's level at the R chosen
+            inner = replace(self, covariance=self.covariance and self.process_noise == "fixed")
+            first = inner._estimate_noise(model, observations, progress, checkpoint, description, start,
+                                          kind="measurement")
+            result = first
+            if self.process_noise == "estimate":
+                scaled = scaled_measurement_noise(model, first.measurement_noise_scale)
+                cp = None if checkpoint is None else f"{checkpoint}.R{math.log(first.measurement_noise_scale, 4.0):+.4f}"
+                result = self._estimate_noise(scaled, observations, progress, cp, description, first.states)
+                result.measurement_noise_scale = first.measurement_noise_scale
+                result.measurement_noise_search = first.measurement_noise_search
+        elif self.process_noise == "estimate":
             result = self._estimate_noise(model, observations, progress, checkpoint, description, start)
         else:
             result = self._fit(model, observations, progress=progress, checkpoint=checkpoint, description=description,
                                start=start)
         if self.laplace == "exact" and result.theta.size:
-            used = model if result.process_noise_scale == 1.0 else scaled_process_noise(model,
-                                                                                       result.process_noise_scale)
+            used = model
+            if result.measurement_noise_scale != 1.0:
+                used = scaled_measurement_noise(used, result.measurement_noise_scale)
+            if result.process_noise_scale != 1.0:
+                used = scaled_process_noise(used, result.process_noise_scale)
             result = exact_laplace(used, observations, result, safeguards=self.safeguards, progress=progress)
         return result
 
-    def _estimate_noise(self, model, observations, progress, checkpoint, description, start=None) -> SmootherResult:
-        """Type-II maximum likelihood of one factor on Q (``process_noise`` in the class docstring)."""
+    def _estimate_noise(self, model, observations, progress, checkpoint, description, start=None,
+                        kind: str = "process") -> SmootherResult:
+        """Type-II maximum likelihood of one factor on Q (``kind="process"``) or on R
+        (``"measurement"``): ``process_noise`` and ``measurement_noise`` in the class docstring."""
         check_model(model)
         y = check_observations(model, observations)
         kmin = math.ceil(math.log(self.noise_range[0], 4.0) - 1e-9)
         kmax = math.floor(math.log(self.noise_range[1], 4.0) + 1e-9)
-        inner = replace(self, process_noise="fixed", covariance=False)
+        inner = replace(self, process_noise="fixed", measurement_noise="fixed", covariance=False)
+        scaled_noise, symbol, tag = ((scaled_process_noise, "Q", "noise") if kind == "process"
+                                     else (scaled_measurement_noise, "R", "Rnoise"))
         fits, evidence = {}, {}
         bar = None
         if progress:
             from tqdm import tqdm
-            bar = tqdm(desc=f"{description}: process noise level", unit="scale", leave=False)
+            bar = tqdm(desc=f"{description}: {kind} noise level", unit="scale", leave=False)
 
         def at(k, start):
-            cp = None if checkpoint is None else f"{checkpoint}.noise{k:+.4f}"
-            fits[k] = inner._fit(scaled_process_noise(model, 4.0 ** k), y, progress=progress, checkpoint=cp,
-                                 description=f"{description} (Q x {4.0 ** k:.3g})", start=start)
+            cp = None if checkpoint is None else f"{checkpoint}.{tag}{k:+.4f}"
+            fits[k] = inner._fit(scaled_noise(model, 4.0 ** k), y, progress=progress, checkpoint=cp,
+                                 description=f"{description} ({symbol} x {4.0 ** k:.3g})", start=start)
             evidence[k] = fits[k].log_likelihood
             if bar is not None:
                 bar.update(1)
@@ -501,14 +537,17 @@ class IteratedSmoother:
             if bar is not None:
                 bar.close()
         scale = 4.0 ** best
-        chosen, scaled = fits[best], scaled_process_noise(model, scale)
+        chosen, scaled = fits[best], scaled_noise(model, scale)
         guard = self.safeguards if self.safeguards is not None else Safeguards()
         result = self._final(scaled, y, chosen.states, chosen.cost, chosen.records, chosen.stop_reason,
                              chosen.converged, guard) if self.covariance else chosen
-        result.process_noise_scale = scale
-        result.noise_search = [{"scale": 4.0 ** k, "log_evidence": float(evidence[k]),
-                                "iterations": int(fits[k].iterations), "converged": bool(fits[k].converged)}
-                               for k in sorted(evidence)]
+        search = [{"scale": 4.0 ** k, "log_evidence": float(evidence[k]),
+                   "iterations": int(fits[k].iterations), "converged": bool(fits[k].converged)}
+                  for k in sorted(evidence)]
+        if kind == "process":
+            result.process_noise_scale, result.noise_search = scale, search
+        else:
+            result.measurement_noise_scale, result.measurement_noise_search = scale, search
         return result
 
     def _fit(self, model, observations, *, progress: bool = False, checkpoint=None,

@@ -140,6 +140,12 @@ class LinearGaussianModel(LinearObservation):
         out.Q = self.Q * positive("scale", scale)
         return out
 
+    def with_measurement_noise(self, scale: float) -> "LinearGaussianModel":
+        """This model with ``R`` multiplied by ``scale`` (> 0)."""
+        out = copy.copy(self)
+        out.R = self.R * positive("scale", scale)
+        return out
+
     @property
     def estimates_material(self) -> bool:
         return self.dim_theta > 0

@@ -28,8 +28,9 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 __all__ = ["FilterModel", "PerFrameNoise", "Fingerprinted", "PhysicalParameters", "TransitionDerivatives",
-           "LoadResponse", "Linearisable", "OutputOperators", "ScalableProcessNoise", "check_model", "measurement_cov",
-           "model_fingerprint", "physical_parameters", "n_parameters", "parameter_prior", "scaled_process_noise"]
+           "LoadResponse", "Linearisable", "OutputOperators", "ScalableProcessNoise", "ScalableMeasurementNoise", "check_model", "measurement_cov",
+           "model_fingerprint", "physical_parameters", "n_parameters", "parameter_prior", "scaled_process_noise",
+           "scaled_measurement_noise"]
 
 
 @runtime_checkable
@@ -160,6 +161,17 @@ class ScalableProcessNoise(Protocol):
         ``Q`` becomes ``scale * Q``; everything else, the fingerprint aside, is unchanged."""
 
 
+@runtime_checkable
+class ScalableMeasurementNoise(Protocol):
+    """Optional, needed to estimate the measurement noise level from the data
+    (``IteratedSmoother(measurement_noise="estimate")``): no fallback."""
+
+    def with_measurement_noise(self, scale: float) -> object:
+        """The same model with every measurement noise covariance multiplied by ``scale`` (> 0):
+        ``R`` (and each frame's R) becomes ``scale * R``; everything else, the fingerprint aside,
+        is unchanged."""
+
+
 def check_model(model, name: str = "model"):
     """Raise ``TypeError`` naming ``name`` and the missing members unless ``model`` satisfies
     :class:`FilterModel`."""
@@ -202,6 +214,16 @@ def scaled_process_noise(model, scale: float):
                         f"with_process_noise(scale) (sfem_filters.filtering.ScalableProcessNoise), got a "
                         f"{type(model).__name__} without it")
     return model.with_process_noise(scale)
+
+
+def scaled_measurement_noise(model, scale: float):
+    """``model.with_measurement_noise(scale)`` of a :class:`ScalableMeasurementNoise` model;
+    ``TypeError`` naming the model's type otherwise."""
+    if not isinstance(model, ScalableMeasurementNoise):
+        raise TypeError(f"model: estimating the measurement noise level needs a model with "
+                        f"with_measurement_noise(scale) (sfem_filters.filtering.ScalableMeasurementNoise), got a "
+                        f"{type(model).__name__} without it")
+    return model.with_measurement_noise(scale)
 
 
 def n_parameters(model) -> int:

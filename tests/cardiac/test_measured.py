@@ -148,6 +148,29 @@ def test_a_frame_without_data_is_null_in_the_json_and_metres_are_reported_in_mm(
     assert held_out(text_m, "mm") == pytest.approx(held_out(text_px, "px") * s * 1e3, abs=1.5e-3)
     assert held_out(text_m, "mm") > 0.01
 
+
+def test_the_measurement_noise_level_can_be_chosen_by_the_evidence():
+    """A floor four times the generating noise (sd): the type-II ML level brings R back near the
+    truth (a factor on the variance within 4x of 1/16), with more evidence and NIS/dof nearer 1."""
+    seq = annulus_sequence(None, n_frames=8, noise_px=0.05)
+    setup = dataclasses.replace(measured.prepare(seq, 8), noise_px=0.2)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        fixed = measured.run(setup, (), parameterisation="none")
+        est = measured.run(setup, (), parameterisation="none", measurement_noise="estimate")
+    scale = est.metrics["measurement_noise_scale"]
+    assert 1 / 64 <= scale <= 1 / 4
+    assert est.metrics["log_evidence"] > fixed.metrics["log_evidence"]
+    assert abs(est.metrics["nis_mean_over_dof"] - 1) < abs(fixed.metrics["nis_mean_over_dof"] - 1)
+    np.testing.assert_allclose(est.model.R, scale * fixed.model.R)      # the run keeps the R it used
+    assert "measurement_noise_scale" not in fixed.metrics
+    for kw, match in (({"measurement_noise": "auto"}, "measurement_noise: expected 'fixed' or 'estimate'"),
+                      ({"measurement_noise": "estimate", "estimator": "cyclic"}, "needs estimator='smoother'")):
+        with pytest.raises(ValueError, match=match):
+            measured.run(setup, (), parameterisation="none", **kw)
+    with pytest.raises(ValueError, match="measurement_noise: 'estimate' needs estimator='smoother' and criterion"):
+        closing.closing_the_loop(seq, effects=(), criterion="cv", measurement_noise="estimate")
+
 # ------------------------------------------------------------------ geometry
 def test_annulus_geometry_and_landmarks():
     mesh = mesh_from_mask(annulus_mask(), 1e-3)

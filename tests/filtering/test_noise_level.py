@@ -1,4 +1,5 @@
-"""The process noise level estimated by maximum evidence (``IteratedSmoother(process_noise="estimate")``)."""
+"""The process and measurement noise levels estimated by maximum evidence
+(``IteratedSmoother(process_noise="estimate")``, ``measurement_noise="estimate"``)."""
 import numpy as np
 import pytest
 from helpers import BiasModel
@@ -6,13 +7,13 @@ from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from sfem_filters.benchmark.calibration import pinned_problem
-from sfem_filters.filtering import IteratedSmoother, scaled_process_noise
+from sfem_filters.filtering import IteratedSmoother, scaled_measurement_noise, scaled_process_noise
 from sfem_filters.filtering.linear import LinearGaussianModel
 
 
-def _data(rng, n, p, m, frames, q_true_factor):
+def _data(rng, n, p, m, frames, q_true_factor, r_true_factor=1.0):
     """A random stable BiasModel (linear in x and theta: its evidence is exact) and data whose
-    process noise is ``q_true_factor`` times the model's."""
+    process noise is ``q_true_factor`` times the model's, measurement noise ``r_true_factor``."""
     A = rng.standard_normal((n, n))
     A *= 0.9 / max(abs(np.linalg.eigvals(A)))
     G = 0.3 * rng.standard_normal((n, p))
@@ -25,7 +26,7 @@ def _data(rng, n, p, m, frames, q_true_factor):
     for t in range(frames):
         if t:
             x = A @ x + G @ theta + rng.multivariate_normal(np.zeros(n), q_true_factor * Q)
-        y[t] = H @ x + rng.multivariate_normal(np.zeros(m), R)
+        y[t] = H @ x + rng.multivariate_normal(np.zeros(m), r_true_factor * R)
     return model, y
 
 
@@ -53,6 +54,56 @@ def test_estimated_level_is_the_evidence_maximum_and_near_the_truth(seed, log4_f
     np.testing.assert_allclose(est.theta, fixed.theta, rtol=1e-8, atol=1e-10)
     np.testing.assert_allclose(est.P_theta, fixed.P_theta, rtol=1e-6)
     np.testing.assert_allclose(est.log_likelihood, fixed.log_likelihood, rtol=1e-10)
+
+
+@pytest.mark.filterwarnings("ignore:filter inconsistent")
+@settings(max_examples=3, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), log4_factor=st.sampled_from([-2.0, -1.0, 0.0, 1.0, 2.0]))
+def test_estimated_measurement_level_is_the_evidence_maximum_and_near_the_truth(seed, log4_factor):
+    """As for Q: the factor on R chosen is within noise_tol of the best evidence over the grid of
+    factors 4^k (fixed-R runs), within a factor of 4 of the factor the data were made with, and the
+    result is the fixed-R run at that factor."""
+    rng = np.random.default_rng(seed)
+    model, y = _data(rng, 3, 2, 4, 150, 1.0, 4.0 ** log4_factor)
+    est = IteratedSmoother(measurement_noise="estimate", damping=0.0).run(model, y)
+    grid = {k: IteratedSmoother(damping=0.0).run(model.with_measurement_noise(4.0 ** k), y).log_likelihood
+            for k in range(-5, 5)}
+    assert max(d["log_evidence"] for d in est.measurement_noise_search) >= max(grid.values()) - 0.05
+    assert est.process_noise_scale == 1.0 and est.noise_search == []
+    assert abs(np.log(est.measurement_noise_scale) / np.log(4.0) - log4_factor) <= 1.0
+    fixed = IteratedSmoother(damping=0.0).run(model.with_measurement_noise(est.measurement_noise_scale), y)
+    np.testing.assert_allclose(est.theta, fixed.theta, rtol=1e-8, atol=1e-10)
+    np.testing.assert_allclose(est.P_theta, fixed.P_theta, rtol=1e-6)
+    np.testing.assert_allclose(est.log_likelihood, fixed.log_likelihood, rtol=1e-10)
+
+
+@pytest.mark.filterwarnings("ignore:filter inconsistent")
+def test_both_levels_estimated_in_turn_never_lose_evidence_and_find_both():
+    """Data made with R x 16 and Q x 1/16: estimating R alone, then R and Q in turn (Q's walk starts
+    at the R-only mode), the evidence does not fall, and both factors land within 4x of the truth."""
+    rng = np.random.default_rng(3)
+    model, y = _data(rng, 3, 2, 4, 200, 4.0 ** -2, 4.0 ** 2)
+    r_only = IteratedSmoother(measurement_noise="estimate", damping=0.0).run(model, y)
+    both = IteratedSmoother(measurement_noise="estimate", process_noise="estimate", damping=0.0).run(model, y)
+    assert both.log_likelihood >= r_only.log_likelihood - 1e-9
+    assert both.measurement_noise_scale == r_only.measurement_noise_scale
+    assert both.measurement_noise_search == r_only.measurement_noise_search and both.noise_search
+    assert abs(np.log(both.measurement_noise_scale) / np.log(4.0) - 2.0) <= 1.0
+    assert abs(np.log(both.process_noise_scale) / np.log(4.0) + 2.0) <= 1.0
+    fixed = IteratedSmoother(damping=0.0).run(model.with_measurement_noise(both.measurement_noise_scale)
+                                              .with_process_noise(both.process_noise_scale), y)
+    np.testing.assert_allclose(both.log_likelihood, fixed.log_likelihood, rtol=1e-10)
+
+
+def test_with_measurement_noise_scales_r_only_and_changes_the_fingerprint():
+    model, _, _, _ = pinned_problem(0)
+    other = scaled_measurement_noise(model, 4.0)
+    np.testing.assert_array_equal(other.R, 4.0 * model.R)
+    np.testing.assert_array_equal(other.Q, model.Q)
+    assert other.fingerprint() != model.fingerprint()
+    z = np.tile(model.x0, (model.n_frames, 1))
+    np.testing.assert_allclose(other.linearise(z).R, 4.0 * model.linearise(z).R, rtol=1e-12)
+    np.testing.assert_allclose(other.linearise(z).Q, model.linearise(z).Q, rtol=1e-12)
 
 
 def test_pinned_noise_free_truth_gets_a_smaller_q_and_a_tighter_posterior():
@@ -85,6 +136,7 @@ def test_with_process_noise_scales_q_only_and_changes_the_fingerprint():
 
 class _NoScale(LinearGaussianModel):
     with_process_noise = None
+    with_measurement_noise = None
 
 
 def test_estimate_needs_a_scalable_model_and_sane_settings():
@@ -93,7 +145,10 @@ def test_estimate_needs_a_scalable_model_and_sane_settings():
     IteratedSmoother(process_noise="estimate").run(m, np.zeros((3, 1)))
     with pytest.raises(TypeError, match="model: estimating the process noise level needs"):
         IteratedSmoother(process_noise="estimate").run(bare, np.zeros((3, 1)))
+    with pytest.raises(TypeError, match="model: estimating the measurement noise level needs"):
+        IteratedSmoother(measurement_noise="estimate").run(bare, np.zeros((3, 1)))
     for kwargs, match in [(dict(process_noise="auto"), "process_noise: expected 'fixed' or 'estimate'"),
+                          (dict(measurement_noise="auto"), "measurement_noise: expected 'fixed' or 'estimate'"),
                           (dict(noise_range=(2.0, 4.0)), "noise_range: expected 0 < low <= 1 <= high"),
                           (dict(noise_range=3.0), "noise_range: expected two factors"),
                           (dict(noise_tol=0.0), "noise_tol: expected a positive")]:
