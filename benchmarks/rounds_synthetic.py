@@ -60,11 +60,15 @@ def main(argv=None):
     ap.add_argument("--selection", choices=SELECTIONS, default="best",
                     help="how a round picks among significant candidates (closing_the_loop's selection)")
     ap.add_argument("--max-tries", type=int, default=3, help="most significant candidates fitted per round")
+    ap.add_argument("--measurement-noise", choices=("fixed", "estimate"), default="fixed",
+                    help="the measurement noise at the noise floor, or its level by type-II ML in every fit "
+                         "(closing_the_loop's measurement_noise)")
     ap.add_argument("--no-prune", action="store_true",
                     help="no backward steps (closing_the_loop's prune=False, the rule before this option)")
     args = ap.parse_args(argv)
     warnings.simplefilter("ignore", RuntimeWarning)
-    pick = {"selection": args.selection, "max_tries": args.max_tries, "prune": not args.no_prune}
+    pick = {"selection": args.selection, "max_tries": args.max_tries, "prune": not args.no_prune,
+            "measurement_noise": args.measurement_noise}
     print(f"{'case':<30}{'effects added':<32} {'stopped':<25}{'NIS/dof':>8}{'held-out':>9}{'spline':>8}  check",
           flush=True)
     t0 = time.perf_counter()
@@ -117,7 +121,8 @@ def main(argv=None):
         seq = annulus_sequence("active_harmonic", amplitude=harmonic_amplitudes(), seed=0)
         for selection, tries in (("first", 2), ("best", 3)):
             out = closing_the_loop(seq, effects="auto", max_iterations=6, selection=selection, max_tries=tries,
-                                   prune=pick["prune"], candidates=list(DEFAULT_CANDIDATES) + ["active_harmonic"])
+                                   prune=pick["prune"], measurement_noise=pick["measurement_noise"],
+                                   candidates=list(DEFAULT_CANDIDATES) + ["active_harmonic"])
             gap = out.extended.metrics["versus_spline"]["model"]
             fitted = "; ".join(f"round {r.number}: " + ", ".join(f"{t['effect']} {t['evidence_gain']:+.1f}"
                                                                  for t in r.tried if t.get("score") is not None)
