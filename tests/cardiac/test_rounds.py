@@ -267,12 +267,13 @@ def test_a_round_keeps_the_first_passing_candidate_or_the_best_of_those_fitted(s
         assert kept[0]["evidence_gain"] == max(t["evidence_gain"] for t in passed)
 
 
-def _scale_run(E_kpa, seed=0):
+def _scale_run(E_kpa, seed=0, measurement_noise="fixed"):
     seq0 = annulus_sequence(None, n_frames=4, seed=0)
     mesh = measured.prepare(seq0, 8).mesh
     mat = Material.uniform(mesh.n_elements, E_kpa * 1e3, measured.NOMINAL["nu"])
     seq = annulus_sequence(None, seed=seed, drive="pressure", material=mat, peak_pressure=2e3 * E_kpa / 10)
-    return closing.closing_the_loop(seq, effects="auto", drive="pressure", max_iterations=80)
+    return closing.closing_the_loop(seq, effects="auto", drive="pressure", max_iterations=80,
+                                    measurement_noise=measurement_noise)
 
 
 @pytest.mark.slow
@@ -291,6 +292,20 @@ def test_measured_pressure_sets_the_absolute_stiffness(E_kpa):
     final = out.extended.metrics
     lo, hi = final["E_level_kPa_95"]
     assert final["absolute_stiffness"] and lo < E_kpa < hi and final["nis_mean_over_dof"] < 1.4
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("E_kpa", [5.0, 30.0, 100.0])
+def test_with_the_noise_level_estimated_the_scales_are_consistent(E_kpa):
+    """The noise floor counts driven motion as noise (NIS/dof 0.47-0.88 above); with the
+    measurement noise's level chosen by the evidence every scale ends consistent (NIS/dof within
+    0.3 of 1), with no effect added and the final level's interval covering the truth."""
+    out = _scale_run(E_kpa, measurement_noise="estimate")
+    final = out.extended.metrics
+    lo, hi = final["E_level_kPa_95"]
+    assert out.effects == [] and lo < E_kpa < hi
+    assert abs(final["nis_mean_over_dof"] - 1.0) < 0.3
+    assert final["measurement_noise_scale"] <= 1.0
 
 
 def test_a_measured_pressure_makes_the_level_a_parameter_of_every_map():
