@@ -14,6 +14,7 @@ from .cardiac.closing import CRITERIA, LAPLACE, SELECTIONS
 from .cardiac.effects import CATALOGUE, EXPLICIT_ONLY
 from .cardiac.measured import DRIVES, ESTIMATORS, OBSERVE, PARAMETERISATIONS
 from .filtering.engines import ENGINES
+from .filtering.iterated import NOISE_LEVELS
 
 
 def _seeds(text: str) -> list:
@@ -159,7 +160,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "Hessian (default, free); exact, the inverse exact Hessian of the MAP cost at the final mode "
                         "(2 p + 1 gradient passes more, about 5 min for the 23-parameter region map: the Laplace "
                         "approximation proper where the model misfits its data); smoother only")
-    d.add_argument("--measurement-noise", choices=("fixed", "estimate"), default="fixed",
+    d.add_argument("--measurement-noise", choices=NOISE_LEVELS, default="fixed",
                    help="fixed: the measurement noise at the data's noise floor (default); estimate: every fit "
                         "chooses its level by type-II maximum likelihood (about 3-5 fits each; smoother and the "
                         "evidence criterion only)")

@@ -91,6 +91,7 @@ import numpy as np
 
 from .._validate import integer, non_negative, probability
 from ..filtering import diagnostics
+from ..filtering.iterated import NOISE_LEVELS
 from .crossval import DEFAULT_FOLDS, cross_validate, observation_folds, spline_cross_validation
 from .effects import CATALOGUE, EXPLICIT_ONLY, build_effects
 from .measured import (NOMINAL, Run, Setup, equivalent_eigenstrain, exact_posterior, kriged_heldout,
@@ -608,8 +609,8 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
         ``estimator="smoother"`` and ``criterion="evidence"`` (the cross-validation's folds would
         use the floor).
     """
-    if measurement_noise not in ("fixed", "estimate"):
-        raise ValueError(f"measurement_noise: expected 'fixed' or 'estimate', got {measurement_noise!r}")
+    if measurement_noise not in NOISE_LEVELS:
+        raise ValueError(f"measurement_noise: expected one of {NOISE_LEVELS}, got {measurement_noise!r}")
     if measurement_noise == "estimate" and (estimator != "smoother" or criterion != "evidence"):
         raise ValueError("measurement_noise: 'estimate' needs estimator='smoother' and criterion='evidence', got "
                          f"estimator={estimator!r}, criterion={criterion!r}")
@@ -846,12 +847,15 @@ def _round_label(r: dict) -> str:
     return f"{r['round']}-" if r.get("removed") else str(r["round"])
 
 
+_VERSUS_LENGTHS = ("difference", "low", "high", "se", "rmse_a", "rmse_b")
+
+
 def _lengths_scaled(value, factor: float, length: bool = False, versus: bool = False):
     """The report with every length multiplied by ``factor``: the values (and lists of values)
     of keys with ``_px`` in their name, and the ``difference``, ``low`` and ``high`` of a
     ``versus_spline`` entry (``difference``, ``low``, ``high``, ``se``, ``rmse_a``, ``rmse_b``)."""
     if isinstance(value, dict):
-        return {k: _lengths_scaled(v, factor, length or "_px" in k or (versus and k in ("difference", "low", "high", "se", "rmse_a", "rmse_b")),
+        return {k: _lengths_scaled(v, factor, length or "_px" in k or (versus and k in _VERSUS_LENGTHS),
                                    versus or k.startswith("versus_spline"))
                 for k, v in value.items()}
     if isinstance(value, list):

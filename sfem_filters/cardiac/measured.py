@@ -43,7 +43,7 @@ from ..fem.observation import node_observation_matrix
 from ..fem.strain import nodal_strains
 from ..filtering import diagnostics
 from ..filtering.cyclic import cyclic_estimate
-from ..filtering.iterated import IteratedSmoother, exact_laplace
+from ..filtering.iterated import NOISE_LEVELS, IteratedSmoother, exact_laplace
 from ..filtering.marginal import log_posterior
 from ..filtering.protocol import parameter_prior
 from ..geometry import polygon_centroid, radius_by_angle, triangle_double_areas
@@ -691,8 +691,8 @@ def run(setup: Setup, effects=(), drive: str = "penalty", parameterisation: str 
     """
     if estimator not in ESTIMATORS:
         raise ValueError(f"estimator: expected one of {ESTIMATORS}, got {estimator!r}")
-    if measurement_noise not in ("fixed", "estimate"):
-        raise ValueError(f"measurement_noise: expected 'fixed' or 'estimate', got {measurement_noise!r}")
+    if measurement_noise not in NOISE_LEVELS:
+        raise ValueError(f"measurement_noise: expected one of {NOISE_LEVELS}, got {measurement_noise!r}")
     if measurement_noise == "estimate" and estimator != "smoother":
         raise ValueError(f"measurement_noise: 'estimate' needs estimator='smoother', got estimator={estimator!r}")
     model, y = build_model(setup, effects, drive, parameterisation, process_scale, landmark_step_px, beta,

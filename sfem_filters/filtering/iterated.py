@@ -66,7 +66,12 @@ from .safeguards import Safeguards
 from .curvature import ProfileHessian, gauss_newton_pass, optimal_trajectory, profile_hessian, profile_pass
 from .smoother import smooth
 
-__all__ = ["IteratedSmoother", "SmootherResult", "MapObjective", "iterated_smoother", "open_loop", "exact_laplace"]
+__all__ = ["IteratedSmoother", "SmootherResult", "MapObjective", "iterated_smoother", "open_loop", "exact_laplace",
+           "NOISE_LEVELS"]
+
+#: How a noise level is set (``process_noise=``, ``measurement_noise=``): as the model gives it, or
+#: by type-II maximum likelihood.
+NOISE_LEVELS = ("fixed", "estimate")
 
 class _InverseRoot:
     """``x -> L^-1 x`` with ``C = L L^T`` (Cholesky), or the pseudo-inverse square root of a
@@ -425,9 +430,9 @@ class IteratedSmoother:
             raise TypeError(f"covariance: expected True or False, got {self.covariance!r}")
         if self.safeguards is not None and not isinstance(self.safeguards, Safeguards):
             raise TypeError(f"safeguards: expected a Safeguards, got {type(self.safeguards).__name__}")
-        if self.process_noise not in ("fixed", "estimate"):
+        if self.process_noise not in NOISE_LEVELS:
             raise ValueError(f"process_noise: expected 'fixed' or 'estimate', got {self.process_noise!r}")
-        if self.measurement_noise not in ("fixed", "estimate"):
+        if self.measurement_noise not in NOISE_LEVELS:
             raise ValueError(f"measurement_noise: expected 'fixed' or 'estimate', got {self.measurement_noise!r}")
         try:
             low, high = (float(v) for v in self.noise_range)

@@ -30,6 +30,14 @@ def _data(rng, n, p, m, frames, q_true_factor, r_true_factor=1.0):
     return model, y
 
 
+def _assert_same_result(est, fixed):
+    """An estimated level's result is the fixed-level run at that level: material, its covariance
+    and the evidence."""
+    np.testing.assert_allclose(est.theta, fixed.theta, rtol=1e-8, atol=1e-10)
+    np.testing.assert_allclose(est.P_theta, fixed.P_theta, rtol=1e-6)
+    np.testing.assert_allclose(est.log_likelihood, fixed.log_likelihood, rtol=1e-10)
+
+
 @pytest.mark.filterwarnings("ignore:filter inconsistent")
 @settings(max_examples=3, deadline=None)
 @given(seed=st.integers(0, 2**31 - 1), log4_factor=st.sampled_from([-3.0, -1.0, 0.0, 1.0, 2.0]))
@@ -51,9 +59,7 @@ def test_estimated_level_is_the_evidence_maximum_and_near_the_truth(seed, log4_f
     if log4_factor > -3.0:             # a smaller true Q than 4^-3 is hidden by R at this length
         assert abs(np.log(est.process_noise_scale) / np.log(4.0) - log4_factor) <= 1.0
     fixed = IteratedSmoother(damping=0.0).run(model.with_process_noise(est.process_noise_scale), y)
-    np.testing.assert_allclose(est.theta, fixed.theta, rtol=1e-8, atol=1e-10)
-    np.testing.assert_allclose(est.P_theta, fixed.P_theta, rtol=1e-6)
-    np.testing.assert_allclose(est.log_likelihood, fixed.log_likelihood, rtol=1e-10)
+    _assert_same_result(est, fixed)
 
 
 @pytest.mark.filterwarnings("ignore:filter inconsistent")
@@ -72,9 +78,7 @@ def test_estimated_measurement_level_is_the_evidence_maximum_and_near_the_truth(
     assert est.process_noise_scale == 1.0 and est.noise_search == []
     assert abs(np.log(est.measurement_noise_scale) / np.log(4.0) - log4_factor) <= 1.0
     fixed = IteratedSmoother(damping=0.0).run(model.with_measurement_noise(est.measurement_noise_scale), y)
-    np.testing.assert_allclose(est.theta, fixed.theta, rtol=1e-8, atol=1e-10)
-    np.testing.assert_allclose(est.P_theta, fixed.P_theta, rtol=1e-6)
-    np.testing.assert_allclose(est.log_likelihood, fixed.log_likelihood, rtol=1e-10)
+    _assert_same_result(est, fixed)
 
 
 @pytest.mark.filterwarnings("ignore:filter inconsistent")
