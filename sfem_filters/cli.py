@@ -12,7 +12,7 @@ import sys
 from ._io import write_json
 from .cardiac.closing import CRITERIA, LAPLACE, SELECTIONS
 from .cardiac.effects import CATALOGUE, EXPLICIT_ONLY
-from .cardiac.measured import DRIVES, ESTIMATORS, OBSERVE, PARAMETERISATIONS
+from .cardiac.measured import DRIVES, ESTIMATORS, MESHES, OBSERVE, PARAMETERISATIONS
 from .filtering.engines import ENGINES
 from .filtering.iterated import NOISE_LEVELS
 
@@ -164,6 +164,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="fixed: the measurement noise at the data's noise floor (default); estimate: every fit "
                         "chooses its level by type-II maximum likelihood (about 3-5 fits each; smoother and the "
                         "evidence criterion only)")
+    d.add_argument("--mesh", choices=MESHES, default="delaunay",
+                   help="delaunay: Delaunay triangles, whose diagonal in each full pixel cell Qhull picks by the "
+                        "coordinates (default, the README's figures); radial: every diagonal towards the cavity "
+                        "centre, the same mesh wherever the heart lies in the image (pixel lattices only)")
     d.add_argument("--json", metavar="PATH", help="write the report as JSON")
     d.add_argument("--figures", metavar="DIR", help="write the figures (PNG) into DIR")
     d.add_argument("--export", metavar="DIR", help="write ParaView time series (.pvd + .vtu) into DIR")
@@ -268,6 +272,8 @@ def cmd_dense(args) -> int:
         config["laplace"] = args.laplace
     if args.measurement_noise != "fixed":   # likewise
         config["measurement_noise"] = args.measurement_noise
+    if args.mesh != "delaunay":             # likewise
+        config["mesh"] = args.mesh
     if args.candidates is not None:
         config["candidates"] = args.candidates
     if _batch_mode(args, len(args.path)):

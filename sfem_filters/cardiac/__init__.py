@@ -49,6 +49,7 @@ from .frontend import compare_fusion, fusion_setup, observe
 from .measured import (
                        DRIVES,
                        NOMINAL,
+                       MESHES,
                        OBSERVE,
                        PARAMETERISATIONS,
                        Run,
@@ -76,12 +77,13 @@ from .sequence import (
                        example_path,
                        load_sequence,
                        make_sequence,
+                       moved_on_lattice,
                        save_sequence,
 )
 
-__all__ = ["Sequence", "make_sequence", "load_sequence", "save_sequence", "example_path", "LVGeometry",
+__all__ = ["Sequence", "make_sequence", "load_sequence", "save_sequence", "example_path", "moved_on_lattice", "LVGeometry",
            "lv_geometry", "mesh_from_points", "mesh_from_mask", "contour_landmarks", "Effect", "CATALOGUE",
-           "build_effects", "NOMINAL", "PARAMETERISATIONS", "DRIVES", "OBSERVE", "Setup", "Run", "prepare",
+           "build_effects", "NOMINAL", "PARAMETERISATIONS", "DRIVES", "OBSERVE", "MESHES", "Setup", "Run", "prepare",
            "build_model", "run", "evaluate", "noise_floor", "strain_maps", "measured_wall_kinematics",
            "LoopResult", "Round", "Variant", "closing_the_loop", "candidate_loads", "format_report", "log_evidence",
            "removals",

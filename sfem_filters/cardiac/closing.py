@@ -546,7 +546,8 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
                      min_evidence: float = 0.0, max_tries: int = 3, candidates=None,
                      corrections: bool = True, criterion: str = "evidence", folds: int = DEFAULT_FOLDS,
                      min_cv_gain: float = 0.01, selection: str = "best", prune: bool = True,
-                     laplace: str = "gauss-newton", measurement_noise: str = "fixed") -> LoopResult:
+                     laplace: str = "gauss-newton", measurement_noise: str = "fixed",
+                     mesh: str = "delaunay") -> LoopResult:
     """Baseline run, then rounds of ranking and adding effects (module docstring), with the spline
     reference.
 
@@ -557,8 +558,10 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
         exactly those effects (no test).
     drive, parameterisation : str
         See :func:`sfem_filters.cardiac.measured.build_model`.
-    landmarks, observe, holdout_seed :
-        See :func:`sfem_filters.cardiac.measured.prepare`.
+    landmarks, observe, holdout_seed, mesh :
+        See :func:`sfem_filters.cardiac.measured.prepare` (``mesh="radial"``: every diagonal of the
+        pixel lattice towards the cavity centre, so that the heart's position and orientation in
+        the image do not change the mesh).
     estimator : {"smoother", "cyclic", "roukf"}
         The iterated smoother (at most ``max_iterations`` Gauss-Newton steps) or the paper's
         cyclic joint EKF (at most ``max_loops`` loops); see :func:`sfem_filters.cardiac.measured.run`.
@@ -637,7 +640,7 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
     unknown = [n for n in names if n not in CATALOGUE]
     if unknown:
         raise ValueError(f"candidates: unknown effects {unknown}; expected names from {sorted(CATALOGUE)}")
-    setup = prepare(seq, landmarks, observe, holdout_seed)
+    setup = prepare(seq, landmarks, observe, holdout_seed, mesh=mesh)
     try:                                # before any fit: can the observed points be cross-validated?
         observation_folds(setup, folds)
         cv_possible = True
@@ -781,7 +784,7 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
               "min_evidence": min_evidence, "max_tries": max_tries, "candidates": names,
               "corrections": bool(corrections), "criterion": criterion, "folds": folds,
               "min_cv_gain": min_cv_gain, "selection": selection, "prune": bool(prune), "laplace": laplace,
-              "measurement_noise": measurement_noise,
+              "measurement_noise": measurement_noise, "mesh": mesh,
               "final": rounds[-1].variant.as_json()}
     g = setup.geometry
     held = setup.node_of_point[setup.heldout]
@@ -891,7 +894,7 @@ def _format_report(report: dict) -> str:
     b, e = report["baseline"], report["extended"]
     cfg = report["config"]
     lines = [f"{cfg['n_points']} points, {cfg['n_frames']} frames; mesh {cfg['mesh_nodes']} nodes, "
-             f"{cfg['mesh_elements']} triangles; {cfg['n_observed']} observed, {cfg['n_heldout']} held out "
+             f"{cfg['mesh_elements']} triangles ({cfg.get('mesh', 'delaunay')}); {cfg['n_observed']} observed, {cfg['n_heldout']} held out "
              f"({cfg['landmarks']} landmarks per contour, observe {cfg['observe']}, drive {cfg['drive']}, "
              f"material {cfg['parameterisation']}, estimator {cfg['estimator']})",
              f"noise floor {report['noise_floor_px']:.3f} px" + (

@@ -39,6 +39,7 @@ from ..fem.dofs import node_dofs
 from ..fem.elasticity import stiffness_matrix
 from ..fem.loads import penalty_load, penalty_stiffness, pressure_load
 from ..fem.material import Material, Parameterisation
+from ..fem.mesh import lattice_mesh
 from ..fem.observation import node_observation_matrix
 from ..fem.strain import nodal_strains
 from ..filtering import diagnostics
@@ -97,6 +98,8 @@ ESTIMATORS = ("smoother", "cyclic", "roukf")
 DRIVES = ("penalty", "contour", "pressure", "none")
 #: Which points are observed (``observe=``, ``--observe``).
 OBSERVE = ("boundary", "boundary+midwall")
+#: How :func:`prepare` triangulates the points (its ``mesh`` argument).
+MESHES = ("delaunay", "radial")
 
 
 def noise_floor(displacement) -> float:
@@ -134,6 +137,7 @@ class Setup:
     observe: str
     holdout_seed: int
     regions: np.ndarray = field(default=None)   # material region of each element
+    mesh_kind: str = "delaunay"                 # how the points were triangulated (MESHES)
     # image-derived data (sfem_filters.frontend): when set, they replace the sequence's own
     # displacements at the observed points, and add velocity rows (Eq. 13)
     obs_displacement: np.ndarray = field(default=None)   # (F, P, 2) data units, NaN if missing
@@ -145,7 +149,7 @@ class Setup:
 
 
 def prepare(seq: Sequence, landmarks: int = 8, observe: str = "boundary", holdout_seed: int = 0,
-            n_sectors: int = 6) -> Setup:
+            n_sectors: int = 6, mesh: str = "delaunay") -> Setup:
     """Mesh the points and split them into observed and held-out sets.
 
     Parameters
@@ -158,6 +162,15 @@ def prepare(seq: Sequence, landmarks: int = 8, observe: str = "boundary", holdou
         Seed of the mid-wall split.
     n_sectors : int
         Angular sectors of the regional material map (times two transmural layers).
+    mesh : {"delaunay", "radial"}
+        How the points are triangulated. ``"delaunay"`` (the default, every figure in the README
+        so far): a Delaunay triangulation, whose diagonal in each full cell of a pixel lattice is
+        a tie that Qhull breaks by the floating-point coordinates, so the same heart shifted,
+        turned or mirrored in the image gets other diagonals (and other numbers:
+        ``benchmarks/mesh_orientation.py``). ``"radial"``: points on a pixel lattice are meshed
+        by :func:`sfem_filters.fem.mesh.lattice_mesh` with every diagonal pointing towards the
+        cavity centre, the same triangles moved with the heart (points off a lattice: an
+        error). The cells, the boundary, and so the contours, landmarks and sectors are the same.
     """
     if not isinstance(seq, Sequence):
         raise TypeError(f"seq: expected a Sequence (sfem_filters.cardiac.load_sequence(path) reads one), got "
@@ -167,6 +180,9 @@ def prepare(seq: Sequence, landmarks: int = 8, observe: str = "boundary", holdou
     landmarks = integer("landmarks", landmarks, 3)
     n_sectors = integer("n_sectors", n_sectors, 1)
     holdout_seed = integer("holdout_seed", holdout_seed, 0)
+    if mesh not in MESHES:
+        raise ValueError(f"mesh: expected one of {MESHES}, got {mesh!r}")
+    mesh_kind = mesh
     nominal = []
     if seq.units == "m":
         spacing = 1.0
@@ -184,10 +200,22 @@ def prepare(seq: Sequence, landmarks: int = 8, observe: str = "boundary", holdou
     d = np.linalg.norm(pts[:, None] - pts[None], axis=2)
     np.fill_diagonal(d, np.inf)
     lattice = np.median(d.min(axis=1))
-    mesh = mesh_from_points(pts, 1.5 * lattice)
-    if mesh.n_nodes != len(pts):
-        raise ValueError(f"points: {len(pts) - mesh.n_nodes} points lie in no triangle of the tissue mesh "
+    tri_mesh = mesh_from_points(pts, 1.5 * lattice)
+    if tri_mesh.n_nodes != len(pts):
+        raise ValueError(f"points: {len(pts) - tri_mesh.n_nodes} points lie in no triangle of the tissue mesh "
                          "(isolated pixels?); remove them")
+    if mesh == "radial":
+        # the contours, and so the cavity centre, do not depend on the diagonals of full cells
+        try:
+            radial = lattice_mesh(pts, lattice, lv_geometry(tri_mesh).centre)
+        except ValueError as exc:
+            raise ValueError(f"mesh: 'radial' needs points on a square pixel lattice; {exc}") from None
+        if radial.n_nodes != len(pts) or radial.n_elements != tri_mesh.n_elements:
+            raise ValueError(f"mesh: 'radial' meshed {radial.n_elements} triangles on {radial.n_nodes} points where "
+                             f"Delaunay has {tri_mesh.n_elements} on {tri_mesh.n_nodes}: the points are not a pixel "
+                             "lattice's tissue; use mesh='delaunay'")
+        tri_mesh = radial
+    mesh = tri_mesh
     node_of_point = np.arange(len(pts))
     geometry = lv_geometry(mesh)
     shortest = min(len(geometry.endo), len(geometry.epi))
@@ -215,7 +243,7 @@ def prepare(seq: Sequence, landmarks: int = 8, observe: str = "boundary", holdou
     return Setup(seq=seq, spacing=spacing, frame_interval=T, nominal=nominal, mesh=mesh, geometry=geometry,
                  node_of_point=node_of_point, landmarks=lm, observed=observed, heldout=heldout,
                  noise_px=noise_px, n_landmarks=landmarks, observe=observe,
-                 holdout_seed=holdout_seed, regions=2 * sector + layer)
+                 holdout_seed=holdout_seed, regions=2 * sector + layer, mesh_kind=mesh_kind)
 
 
 def _filled(u):

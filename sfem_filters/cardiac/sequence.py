@@ -195,3 +195,74 @@ def example_path(name: str = "subject_a") -> str:
     if not ref.is_file():
         raise ValueError(f"name: no example data set {name!r}")
     return str(ref)
+
+
+def moved_on_lattice(seq: Sequence, quarter_turns: int = 0, mirror: bool = False, shift=(0, 0)) -> Sequence:
+    """The same heart placed otherwise in the image: mirrored, turned, shifted by whole pixels.
+
+    The moves map the pixel lattice onto itself, so that a result that depends only on the
+    heart, not on where it lies in the image, must not change (``benchmarks/mesh_orientation.py``
+    measures how much it does). In this order:
+
+    1. ``mirror``: x -> W - 1 - x (columns reversed, ``mask[:, ::-1]``), vectors (dx, dy) -> (-dx, dy);
+    2. ``quarter_turns`` times ``np.rot90`` of the masks: a pixel (x, y) goes to (y, W - 1 - x),
+       a vector (dx, dy) to (dy, -dx) (a quarter turn anticlockwise as the image is shown);
+    3. ``shift`` (sx, sy) whole pixels: points + (sx, sy), the masks padded on the left and top.
+
+    W is the width of the reference mask (without masks: 1 + the largest x of the points).
+
+    Parameters
+    ----------
+    seq : Sequence
+        In pixels (``units`` "px").
+    quarter_turns : int
+        Number of quarter turns (any integer; taken modulo 4).
+    mirror : bool
+        Mirror first.
+    shift : (int, int)
+        Pixels to the right and down (>= 0).
+
+    Returns
+    -------
+    Sequence
+        Points, displacements and velocities moved, masks moved with them; every other field
+        (noise, confidence, point kinds, pressure, spacing, frame interval) as it was; points keep
+        their order.
+    """
+    if not isinstance(seq, Sequence):
+        raise TypeError(f"seq: expected a Sequence, got {type(seq).__name__}")
+    if seq.units != "px":
+        raise ValueError(f"seq: expected a sequence in pixels (units 'px'), got units {seq.units!r}")
+    if isinstance(quarter_turns, bool) or not isinstance(quarter_turns, (int, np.integer)):
+        raise ValueError(f"quarter_turns: expected an integer, got {quarter_turns!r}")
+    if not isinstance(mirror, (bool, np.bool_)):
+        raise ValueError(f"mirror: expected True or False, got {mirror!r}")
+    try:
+        sx, sy = (int(v) for v in shift)
+        ok = all(float(v) == int(v) for v in shift) and sx >= 0 and sy >= 0
+    except (TypeError, ValueError):
+        ok = False
+    if not ok:
+        raise ValueError(f"shift: expected two whole numbers of pixels >= 0 (right, down), got {shift!r}")
+    d = seq.to_dict()
+    masks = {k: np.asarray(d[k]) for k in ("reference_mask", "frame_masks") if k in d}
+    width = (masks["reference_mask"].shape[1] if "reference_mask" in masks
+             else int(np.floor(np.nanmax(seq.points[:, 0]))) + 1)
+    pts = np.array(seq.points, float)
+    vecs = {k: np.array(d[k], float) for k in ("displacement", "velocity") if k in d}
+    if mirror:
+        pts[:, 0] = width - 1 - pts[:, 0]
+        for v in vecs.values():
+            v[..., 0] = -v[..., 0]
+        masks = {k: m[..., ::-1] for k, m in masks.items()}
+    for _ in range(int(quarter_turns) % 4):
+        pts = np.column_stack([pts[:, 1], width - 1 - pts[:, 0]])
+        vecs = {k: np.stack([v[..., 1], -v[..., 0]], axis=-1) for k, v in vecs.items()}
+        masks = {k: np.rot90(m, axes=(m.ndim - 2, m.ndim - 1)) for k, m in masks.items()}
+        width = masks["reference_mask"].shape[1] if "reference_mask" in masks else int(np.floor(np.nanmax(pts[:, 0]))) + 1
+    pts = pts + np.array([sx, sy], float)
+    pad = ((sy, 0), (sx, 0))
+    masks = {k: np.pad(m, ((0, 0),) * (m.ndim - 2) + pad) for k, m in masks.items()}
+    d.update(seq.extra)
+    d.update(points=pts, **vecs, **{k: np.ascontiguousarray(m) for k, m in masks.items()})
+    return make_sequence(**d)

@@ -7,6 +7,8 @@ import warnings
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from sfem_filters._io import write_json
 from sfem_filters.cardiac import closing, measured
@@ -21,8 +23,10 @@ from sfem_filters.cardiac.sequence import (
     example_path,
     load_sequence,
     make_sequence,
+    moved_on_lattice,
     save_sequence,
 )
+from sfem_filters.fem.elasticity import stiffness_matrix
 from sfem_filters.fem.loads import stress_loads
 from sfem_filters.filtering import diagnostics
 
@@ -94,6 +98,87 @@ def test_set_up_arguments_are_checked_by_name():
     setup = measured.prepare(seq, 8)
     model, _ = measured.build_model(setup, "active_polar", parameterisation="none")
     assert [e.name for e in model.effects] == ["active_polar"]
+
+
+def _move_matrix(quarter_turns, mirror):
+    """The 2 x 2 map of vectors that moved_on_lattice applies (image axes, y down)."""
+    R = np.diag([-1.0, 1.0]) if mirror else np.eye(2)
+    for _ in range(quarter_turns % 4):
+        R = np.array([[0.0, 1.0], [-1.0, 0.0]]) @ R
+    return R
+
+
+@settings(max_examples=12, deadline=None)
+@given(st.integers(0, 3), st.booleans(), st.tuples(st.integers(0, 9), st.integers(0, 9)))
+def test_the_radial_mesh_moves_with_the_heart(quarter_turns, mirror, shift):
+    """The same heart turned, mirrored or shifted on the pixel lattice: with mesh='radial' the
+    stiffness of a uniform material is the same matrix seen in the moved axes (K' = R K R^T, node
+    by node), the landmarks and held-out points are the same points, and the regional map is a
+    relabelling wherever the sectors map onto sectors (no quarter turn). With the default
+    Delaunay mesh the stiffness changes (checked once, below)."""
+    seq = load_sequence(example_path())
+    moved = moved_on_lattice(seq, quarter_turns=quarter_turns, mirror=mirror, shift=shift)
+    a, b = measured.prepare(seq, 8, mesh="radial"), measured.prepare(moved, 8, mesh="radial")
+    R = _move_matrix(quarter_turns, mirror)
+    np.testing.assert_allclose(b.mesh.nodes / b.spacing,
+                               (a.mesh.nodes / a.spacing) @ R.T + (b.mesh.nodes - a.mesh.nodes @ R.T)[0] / b.spacing,
+                               atol=1e-9)
+    Ka = stiffness_matrix(a.mesh, np.full(a.mesh.n_elements, 1e4), np.full(a.mesh.n_elements, 0.45)).toarray()
+    Kb = stiffness_matrix(b.mesh, np.full(b.mesh.n_elements, 1e4), np.full(b.mesh.n_elements, 0.45)).toarray()
+    Rb = np.kron(np.eye(a.mesh.n_nodes), R)
+    np.testing.assert_allclose(Kb, Rb @ Ka @ Rb.T, rtol=0, atol=1e-9 * np.abs(Ka).max())
+    assert np.array_equal(np.sort(a.landmarks), np.sort(b.landmarks))
+    assert np.array_equal(a.heldout, b.heldout)
+    if quarter_turns % 2 == 0:
+        # elements are matched by their (moved) centroids; the labels must map one to one
+        ca = np.rint((a.mesh.centroids / a.spacing) @ R.T * 3).astype(int)
+        cb = np.rint(b.mesh.centroids / b.spacing * 3).astype(int) - np.rint(
+            (b.mesh.nodes[0] / b.spacing - (a.mesh.nodes[0] / a.spacing) @ R.T) * 3).astype(int)
+        index = {tuple(c): i for i, c in enumerate(ca.tolist())}
+        match = np.array([index[tuple(c)] for c in cb.tolist()])
+        pairs = set(zip(a.regions[match].tolist(), b.regions.tolist()))
+        assert len(pairs) == len(np.unique(a.regions))
+
+
+def test_the_default_mesh_does_not_move_with_the_heart_and_bad_mesh_choices_are_named():
+    seq = load_sequence(example_path())
+    a = measured.prepare(seq, 8)
+    b = measured.prepare(moved_on_lattice(seq, shift=(7, 4)), 8)
+    Ka = stiffness_matrix(a.mesh, np.full(a.mesh.n_elements, 1e4), np.full(a.mesh.n_elements, 0.45))
+    Kb = stiffness_matrix(b.mesh, np.full(b.mesh.n_elements, 1e4), np.full(b.mesh.n_elements, 0.45))
+    assert abs(Ka - Kb).max() > 1e-3 * abs(Ka).max()          # other diagonals: another stiffness
+    assert a.mesh_kind == "delaunay" and measured.prepare(seq, 8, mesh="radial").mesh_kind == "radial"
+    with pytest.raises(ValueError, match="mesh: expected one of"):
+        measured.prepare(seq, 8, mesh="lattice")
+    rng = np.random.default_rng(0)
+    off = make_sequence(seq.points + rng.uniform(-0.01, 0.01, seq.points.shape), seq.displacement)
+    with pytest.raises(ValueError, match="mesh: 'radial' needs points on a square pixel lattice"):
+        measured.prepare(off, 8, mesh="radial")
+
+
+def test_moved_on_lattice_keeps_the_motion_on_its_masks():
+    """Every displaced point that lies on its frame's mask before the move lies on it after."""
+    seq = load_sequence(example_path())
+
+    def on_mask(s):
+        where = np.rint(s.points[None] + s.displacement).astype(int)
+        F = s.n_frames
+        rows, cols = where[..., 1].clip(0, s.frame_masks.shape[1] - 1), where[..., 0].clip(0, s.frame_masks.shape[2] - 1)
+        return s.frame_masks[np.arange(F)[:, None], rows, cols]
+
+    before = on_mask(seq)
+    assert 0.5 < before.mean() < 1.0
+    for kw in ({"quarter_turns": 1}, {"quarter_turns": 3, "mirror": True}, {"mirror": True, "shift": (2, 5)}):
+        moved = moved_on_lattice(seq, **kw)
+        assert np.array_equal(on_mask(moved), before), kw
+        assert np.array_equal(moved_on_lattice(moved_on_lattice(seq, quarter_turns=1), quarter_turns=3).points,
+                              seq.points)
+    for kw, match in (({"quarter_turns": 1.5}, "quarter_turns: expected an integer"),
+                      ({"mirror": "yes"}, "mirror: expected True or False"),
+                      ({"shift": (-1, 0)}, "shift: expected two whole numbers"),
+                      ({"shift": (0.5, 0)}, "shift: expected two whole numbers")):
+        with pytest.raises(ValueError, match=match):
+            moved_on_lattice(seq, **kw)
 
 
 def test_degenerate_data_are_named_for_what_they_are():
@@ -521,3 +606,13 @@ def test_dense_final_model_can_report_the_exact_laplace():
     with pytest.raises(ValueError, match="^r: expected a run of the iterated smoother"):
         measured.exact_posterior(ex.setup, dataclasses.replace(e, result=dataclasses.replace(e.result,
                                                                                              method="cyclic")))
+
+
+def test_the_loop_records_and_reports_its_mesh():
+    seq = annulus_sequence(None, n_frames=6, seed=1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        out = closing.closing_the_loop(seq, effects="none", parameterisation="none", mesh="radial")
+    assert out.config["mesh"] == "radial" and out.setup.mesh_kind == "radial"
+    assert "triangles (radial)" in closing.format_report(out)
+    assert json.loads(json.dumps(out.as_json()))["config"]["mesh"] == "radial"

@@ -231,6 +231,14 @@ def test_the_command_line_passes_the_selection_and_rejects_an_unknown_one(capsys
     with pytest.raises(SystemExit):                     # the defaults, passed explicitly
         main(["dense", "example", "--no-progress"])
     assert seen["selection"] == "best" and seen["max_tries"] == 3 and seen["prune"] is True
+    assert "mesh" not in seen and defaults["mesh"].default == "delaunay"
+    seen.clear()
+    with pytest.raises(SystemExit):                     # --mesh radial reaches prepare through the loop
+        main(["dense", "example", "--mesh", "radial", "--no-progress"])
+    assert seen["mesh"] == "radial"
+    with pytest.raises(SystemExit) as err:
+        main(["dense", "example", "--mesh", "lattice"])
+    assert err.value.code == 2 and "--mesh" in capsys.readouterr().err
     with pytest.raises(SystemExit) as err:
         main(["dense", "example", "--selection", "greedy"])
     assert err.value.code == 2 and "--selection" in capsys.readouterr().err

@@ -3,11 +3,14 @@ import numpy as np
 import pytest
 from conftest import jittered_grid_meshes, lattice_point_clouds
 from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy.spatial import ConvexHull, Delaunay
 
+from sfem_filters.fem.elasticity import stiffness_matrix
 from sfem_filters.fem.mesh import (
     TriMesh,
     delaunay_mesh,
+    lattice_mesh,
     mesh_quality,
     rectangle_mesh,
     triangle_angles,
@@ -345,3 +348,109 @@ def test_delaunay_nearly_collinear_hull():
     pts = np.array([[-0.075, 0.017], [-0.073, 0.023], [-0.068, 0.038], [-0.064, 0.0]])
     mesh = delaunay_mesh(pts)
     assert mesh.areas.sum() == pytest.approx(ConvexHull(pts).volume)
+
+
+# --- lattice meshes: one rule for every diagonal -------------------------------------------------
+
+@st.composite
+def lattice_tissue(draw, max_side=14):
+    """Random tissue on a pixel lattice (integer coordinates), a generic centre, a spacing (m).
+
+    The tissue is a random set of lattice points thickened so that most cells are full; the
+    centre is kept off the half-integer lines so that no cell is a tie."""
+    seed = draw(st.integers(0, 2**32 - 1))
+    rng = np.random.default_rng(seed)
+    w, h = draw(st.integers(3, max_side)), draw(st.integers(3, max_side))
+    mask = rng.random((w, h)) < draw(st.floats(0.6, 1.0))
+    mask[[0, 1, 0, 1], [0, 0, 1, 1]] = True                       # at least one full cell
+    ij = np.argwhere(mask).astype(float)
+    centre = np.array([draw(st.integers(-3, max_side + 3)), draw(st.integers(-3, max_side + 3))], float) \
+        + np.array([draw(st.floats(0.01, 0.49)), draw(st.floats(0.01, 0.49))])
+    return ij, centre, draw(st.sampled_from([1e-3, 1.5e-3, 0.7]))
+
+
+#: The eight symmetries of the square lattice, as 2 x 2 integer matrices.
+D4 = [np.array(m) for m in ([[1, 0], [0, 1]], [[0, -1], [1, 0]], [[-1, 0], [0, -1]], [[0, 1], [-1, 0]],
+                            [[-1, 0], [0, 1]], [[1, 0], [0, -1]], [[0, 1], [1, 0]], [[0, -1], [-1, 0]])]
+
+
+@FAST
+@given(lattice_tissue(), st.integers(0, 7), st.tuples(st.integers(-50, 50), st.integers(-50, 50)))
+def test_lattice_mesh_moves_with_its_points(tissue, k, shift):
+    """Turning, mirroring or shifting the points and the centre on the lattice moves the mesh with
+    them, triangle for triangle (a Delaunay triangulation does not: its ties follow the floats)."""
+    ij, centre, h = tissue
+    Rm, t = D4[k], np.array(shift, float)
+    mesh = lattice_mesh(ij * h, h, centre * h)
+    moved = lattice_mesh((ij @ Rm.T + t) * h, h, (centre @ Rm.T + t) * h)
+    back = (np.asarray(moved.nodes) / h - t) @ Rm              # Rm is orthogonal: its inverse is Rm.T
+    want = {frozenset(map(tuple, np.rint(np.asarray(mesh.nodes)[e] / h).astype(int).tolist()))
+            for e in mesh.elements}
+    got = {frozenset(map(tuple, np.rint(back[e]).astype(int).tolist())) for e in moved.elements}
+    assert got == want
+
+
+@FAST
+@given(lattice_tissue())
+def test_lattice_mesh_is_delaunay_but_for_the_diagonals(tissue):
+    """The same nodes, the same number of triangles, the same boundary and area as Delaunay with
+    max_edge 1.5 spacings; every full cell split along the diagonal that points to the centre."""
+    ij, centre, h = tissue
+    mesh = lattice_mesh(ij * h, h, centre * h)
+    ref = delaunay_mesh(ij * h, max_edge=1.5 * h, min_angle_deg=10.0)
+    assert triangle_set(mesh.nodes, mesh.boundary_edges()) == triangle_set(ref.nodes, ref.boundary_edges())
+    assert mesh.n_elements == ref.n_elements
+    assert {tuple(p) for p in np.asarray(mesh.nodes)} == {tuple(p) for p in np.asarray(ref.nodes)}
+    np.testing.assert_allclose(signed_areas(mesh.nodes, mesh.elements).sum(),
+                               signed_areas(ref.nodes, ref.elements).sum(), rtol=1e-12)
+    assert np.all(signed_areas(mesh.nodes, mesh.elements) > 0)
+    # the diagonal of every full cell: the edge of length sqrt(2) spacings shared by two triangles
+    nodes = np.asarray(mesh.nodes) / h
+    edges = np.sort(np.concatenate([mesh.elements[:, [0, 1]], mesh.elements[:, [1, 2]], mesh.elements[:, [2, 0]]]), 1)
+    uniq, counts = np.unique(edges, axis=0, return_counts=True)
+    diag = uniq[(counts == 2) & np.isclose(np.linalg.norm(nodes[uniq[:, 0]] - nodes[uniq[:, 1]], axis=1), np.sqrt(2))]
+    assert len(diag) > 0
+    d = nodes[diag[:, 1]] - nodes[diag[:, 0]]
+    r = 0.5 * (nodes[diag[:, 0]] + nodes[diag[:, 1]]) - centre
+    radial = np.abs(np.sum(d * r, axis=1)) / np.linalg.norm(d, axis=1)
+    other = np.abs(d[:, 0] * r[:, 1] - d[:, 1] * r[:, 0]) / np.linalg.norm(d, axis=1)   # r on the other diagonal
+    assert np.all(radial > other)
+
+
+def test_lattice_mesh_ties_take_one_diagonal_that_a_half_turn_keeps():
+    """A ring centred on a lattice cell's centre: the cells on its axes are ties, split along (1, 1)."""
+    yy, xx = np.mgrid[0:16, 0:16]
+    ring = np.hypot(xx - 7.5, yy - 7.5)
+    ij = np.argwhere((ring >= 4) & (ring <= 7)).astype(float)
+    mesh = lattice_mesh(ij * 1e-3, 1e-3, np.array([7.5, 7.5]) * 1e-3)
+    turned = lattice_mesh((15 - ij) * 1e-3, 1e-3, np.array([7.5, 7.5]) * 1e-3)
+    assert triangle_set(np.rint(np.asarray(mesh.nodes) * 1e3), mesh.elements) == \
+        triangle_set(15 - np.rint(np.asarray(turned.nodes) * 1e3), turned.elements)
+    # a tie cell: lower-left corner (7, 1), centre (7.5, 1.5) on the vertical axis line
+    cell = {(7.0, 1.0), (8.0, 1.0), (8.0, 2.0), (7.0, 2.0)}
+    n = np.rint(np.asarray(mesh.nodes) * 1e3)
+    inside = [set(map(tuple, n[e])) for e in mesh.elements if set(map(tuple, n[e])) <= cell]
+    assert len(inside) == 2 and all({(7.0, 1.0), (8.0, 2.0)} <= t for t in inside)
+
+
+def test_lattice_mesh_stiffness_has_only_rigid_motions_in_its_kernel():
+    yy, xx = np.mgrid[0:12, 0:12]
+    ring = np.hypot(xx - 5.3, yy - 5.8)
+    ij = np.argwhere((ring >= 3) & (ring <= 5.5)).astype(float)
+    mesh = lattice_mesh(ij * 1e-3, 1e-3, np.array([5.3, 5.8]) * 1e-3)
+    K = stiffness_matrix(mesh, np.full(mesh.n_elements, 10e3), np.full(mesh.n_elements, 0.4)).toarray()
+    np.testing.assert_allclose(K, K.T, rtol=0, atol=1e-12 * np.abs(K).max())
+    lam = np.linalg.eigvalsh(K)
+    assert np.sum(lam < 1e-9 * lam.max()) == 3 and lam.min() > -1e-9 * lam.max()
+
+
+@pytest.mark.parametrize("args, match", [
+    ((np.array([[0.0, 0.0], [1e-3, 0.0], [0.0, 1.2e-3]]), 1e-3, [0.0, 0.0]), "points: expected points on an axis-aligned"),
+    ((np.array([[0.0, 0.0], [1e-3, 0.0], [1e-3, 0.0]]), 1e-3, [0.0, 0.0]), "points: expected distinct"),
+    ((np.array([[0.0, 0.0], [1e-3, 0.0], [2e-3, 0.0]]), 1e-3, [0.0, 0.0]), "points: no lattice cell"),
+    ((np.array([[0.0, 0.0], [1e-3, 0.0], [0.0, 1e-3]]), 0.0, [0.0, 0.0]), "spacing"),
+    ((np.array([[0.0, 0.0], [1e-3, 0.0], [0.0, 1e-3]]), 1e-3, [0.0]), "centre"),
+])
+def test_lattice_mesh_rejects_bad_input(args, match):
+    with pytest.raises(ValueError, match=match):
+        lattice_mesh(*args)
