@@ -204,10 +204,12 @@ def prepare(seq: Sequence, landmarks: int = 8, observe: str = "boundary", holdou
     if tri_mesh.n_nodes != len(pts):
         raise ValueError(f"points: {len(pts) - tri_mesh.n_nodes} points lie in no triangle of the tissue mesh "
                          "(isolated pixels?); remove them")
+    # the contours (and so the cavity centre, the radial directions and the wall's nodes) do not
+    # depend on the diagonals of full cells: one geometry serves either mesh
+    geometry = lv_geometry(tri_mesh)
     if mesh == "radial":
-        # the contours, and so the cavity centre, do not depend on the diagonals of full cells
         try:
-            radial = lattice_mesh(pts, lattice, lv_geometry(tri_mesh).centre)
+            radial = lattice_mesh(pts, lattice, geometry.centre)
         except ValueError as exc:
             raise ValueError(f"mesh: 'radial' needs points on a square pixel lattice; {exc}") from None
         if radial.n_nodes != len(pts) or radial.n_elements != tri_mesh.n_elements:
@@ -217,7 +219,6 @@ def prepare(seq: Sequence, landmarks: int = 8, observe: str = "boundary", holdou
         tri_mesh = radial
     mesh = tri_mesh
     node_of_point = np.arange(len(pts))
-    geometry = lv_geometry(mesh)
     shortest = min(len(geometry.endo), len(geometry.epi))
     if landmarks > shortest:
         raise ValueError(f"landmarks: expected at most {shortest} per contour (the shorter contour's points), "

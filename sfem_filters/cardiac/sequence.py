@@ -246,20 +246,21 @@ def moved_on_lattice(seq: Sequence, quarter_turns: int = 0, mirror: bool = False
         raise ValueError(f"shift: expected two whole numbers of pixels >= 0 (right, down), got {shift!r}")
     d = seq.to_dict()
     masks = {k: np.asarray(d[k]) for k in ("reference_mask", "frame_masks") if k in d}
-    width = (masks["reference_mask"].shape[1] if "reference_mask" in masks
-             else int(np.floor(np.nanmax(seq.points[:, 0]))) + 1)
+
+    def width(points):
+        return masks["reference_mask"].shape[1] if "reference_mask" in masks else int(np.floor(points[:, 0].max())) + 1
+
     pts = np.array(seq.points, float)
     vecs = {k: np.array(d[k], float) for k in ("displacement", "velocity") if k in d}
     if mirror:
-        pts[:, 0] = width - 1 - pts[:, 0]
+        pts[:, 0] = width(pts) - 1 - pts[:, 0]
         for v in vecs.values():
             v[..., 0] = -v[..., 0]
         masks = {k: m[..., ::-1] for k, m in masks.items()}
     for _ in range(int(quarter_turns) % 4):
-        pts = np.column_stack([pts[:, 1], width - 1 - pts[:, 0]])
+        pts = np.column_stack([pts[:, 1], width(pts) - 1 - pts[:, 0]])
         vecs = {k: np.stack([v[..., 1], -v[..., 0]], axis=-1) for k, v in vecs.items()}
         masks = {k: np.rot90(m, axes=(m.ndim - 2, m.ndim - 1)) for k, m in masks.items()}
-        width = masks["reference_mask"].shape[1] if "reference_mask" in masks else int(np.floor(np.nanmax(pts[:, 0]))) + 1
     pts = pts + np.array([sx, sy], float)
     pad = ((sy, 0), (sx, 0))
     masks = {k: np.pad(m, ((0, 0),) * (m.ndim - 2) + pad) for k, m in masks.items()}
