@@ -6,6 +6,7 @@ parameterisations, effects), so the command line cannot drift from the library.
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import sys
 
@@ -36,6 +37,16 @@ def _positive_float(text: str) -> float:
     if not v > 0:
         raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}")
     return v
+
+
+def _finite_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
+    return value
 
 
 def _positive_int(text: str) -> int:
@@ -168,6 +179,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="delaunay: Delaunay triangles, whose diagonal in each full pixel cell Qhull picks by the "
                         "coordinates (default, the README's figures); radial: every diagonal towards the cavity "
                         "centre, the same mesh wherever the heart lies in the image (pixel lattices only)")
+    d.add_argument("--angle-origin", type=_finite_float, default=0.0, metavar="DEG",
+                   help="where landmark 0, sector 0 of the regional map and segment 0 start: the angle about the "
+                        "cavity centre in degrees from the image's +x axis towards +y (down), for example the "
+                        "anterior RV insertion (default 0)")
     d.add_argument("--json", metavar="PATH", help="write the report as JSON")
     d.add_argument("--figures", metavar="DIR", help="write the figures (PNG) into DIR")
     d.add_argument("--export", metavar="DIR", help="write ParaView time series (.pvd + .vtu) into DIR")
@@ -274,6 +289,8 @@ def cmd_dense(args) -> int:
         config["measurement_noise"] = args.measurement_noise
     if args.mesh != "delaunay":             # likewise
         config["mesh"] = args.mesh
+    if args.angle_origin != 0.0:            # likewise
+        config["angle_origin_deg"] = args.angle_origin
     if args.candidates is not None:
         config["candidates"] = args.candidates
     if _batch_mode(args, len(args.path)):

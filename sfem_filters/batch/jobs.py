@@ -36,6 +36,10 @@ KINDS = ("compare", "dense")
 #: checkpoints. They are not part of its fingerprint (they do not change its numbers).
 OUTPUTS = ("figures", "export", "checkpoint_dir")
 _TIMING_KEYS = ("seconds",)
+#: What a result holds for a given configuration, input and version; raised whenever the same job
+#: would now compute something else, so that a resumed batch does not mix old results with new
+#: (2: the innovations' whiteness with the symmetric root of S instead of its Cholesky factor).
+RESULTS_SCHEMA = 2
 
 
 def _version() -> str:
@@ -96,8 +100,9 @@ class Job:
                 raise ValueError(f"inputs: no such file {p!r}")
 
     def fingerprint(self) -> str:
-        """SHA-256 of the kind, the configuration, the inputs' contents and the package version."""
-        payload = {"kind": self.kind, "config": self.config, "version": _version(),
+        """SHA-256 of the kind, the configuration, the inputs' contents, the package version and
+        :data:`RESULTS_SCHEMA`."""
+        payload = {"kind": self.kind, "config": self.config, "version": _version(), "schema": RESULTS_SCHEMA,
                    "inputs": [[os.path.basename(p), _file_digest(p)] for p in self.inputs]}
         return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()
 

@@ -128,7 +128,8 @@ _SPAN_TOL = 1e-6
 def candidate_loads(setup: Setup, names=None) -> list:
     """(name, load matrix) of the named catalogue effects (default :data:`DEFAULT_CANDIDATES`), for scoring."""
     names = DEFAULT_CANDIDATES if names is None else names
-    effs = build_effects(names, setup.mesh, setup.geometry, scale=NOMINAL["E"])
+    effs = build_effects(names, setup.mesh, setup.geometry, angle_origin_deg=setup.angle_origin_deg,
+                         scale=NOMINAL["E"])
     return [(e.name, e.loads) for e in effs]
 
 
@@ -547,7 +548,7 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
                      corrections: bool = True, criterion: str = "evidence", folds: int = DEFAULT_FOLDS,
                      min_cv_gain: float = 0.01, selection: str = "best", prune: bool = True,
                      laplace: str = "gauss-newton", measurement_noise: str = "fixed",
-                     mesh: str = "delaunay") -> LoopResult:
+                     mesh: str = "delaunay", angle_origin_deg: float = 0.0) -> LoopResult:
     """Baseline run, then rounds of ranking and adding effects (module docstring), with the spline
     reference.
 
@@ -558,10 +559,11 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
         exactly those effects (no test).
     drive, parameterisation : str
         See :func:`sfem_filters.cardiac.measured.build_model`.
-    landmarks, observe, holdout_seed, mesh :
+    landmarks, observe, holdout_seed, mesh, angle_origin_deg :
         See :func:`sfem_filters.cardiac.measured.prepare` (``mesh="radial"``: every diagonal of the
         pixel lattice towards the cavity centre, so that the heart's position and orientation in
-        the image do not change the mesh).
+        the image do not change the mesh; ``angle_origin_deg``: where landmark 0, sector 0 and
+        segment 0 start, degrees from the image's +x axis towards +y).
     estimator : {"smoother", "cyclic", "roukf"}
         The iterated smoother (at most ``max_iterations`` Gauss-Newton steps) or the paper's
         cyclic joint EKF (at most ``max_loops`` loops); see :func:`sfem_filters.cardiac.measured.run`.
@@ -640,7 +642,7 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
     unknown = [n for n in names if n not in CATALOGUE]
     if unknown:
         raise ValueError(f"candidates: unknown effects {unknown}; expected names from {sorted(CATALOGUE)}")
-    setup = prepare(seq, landmarks, observe, holdout_seed, mesh=mesh)
+    setup = prepare(seq, landmarks, observe, holdout_seed, mesh=mesh, angle_origin_deg=angle_origin_deg)
     try:                                # before any fit: can the observed points be cross-validated?
         observation_folds(setup, folds)
         cv_possible = True
@@ -784,7 +786,8 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
               "min_evidence": min_evidence, "max_tries": max_tries, "candidates": names,
               "corrections": bool(corrections), "criterion": criterion, "folds": folds,
               "min_cv_gain": min_cv_gain, "selection": selection, "prune": bool(prune), "laplace": laplace,
-              "measurement_noise": measurement_noise, "mesh": mesh,
+              "measurement_noise": measurement_noise, "mesh": mesh, "angle_origin_deg": setup.angle_origin_deg,
+              "innovation_whitening": "symmetric",
               "final": rounds[-1].variant.as_json()}
     g = setup.geometry
     held = setup.node_of_point[setup.heldout]
@@ -827,7 +830,7 @@ def versus_spline(setup: Setup, U, spline_U, level: float = 0.95) -> dict | None
     """
     h = setup.heldout
     meas = setup.seq.displacement[:, h]
-    angles = setup.geometry.angle(setup.mesh.nodes[setup.node_of_point[h]])
+    angles = setup.geometry.angle(setup.mesh.nodes[setup.node_of_point[h]]) - np.radians(setup.angle_origin_deg)
     n = max(int(setup.n_landmarks), 2)
     sectors = angular_sectors(angles, n)
     if len(np.unique(sectors)) < 2:
@@ -895,7 +898,9 @@ def _format_report(report: dict) -> str:
     cfg = report["config"]
     lines = [f"{cfg['n_points']} points, {cfg['n_frames']} frames; mesh {cfg['mesh_nodes']} nodes, "
              f"{cfg['mesh_elements']} triangles ({cfg.get('mesh', 'delaunay')}); {cfg['n_observed']} observed, {cfg['n_heldout']} held out "
-             f"({cfg['landmarks']} landmarks per contour, observe {cfg['observe']}, drive {cfg['drive']}, "
+             f"({cfg['landmarks']} landmarks per contour"
+             + (f" from {cfg['angle_origin_deg']:g} deg" if cfg.get("angle_origin_deg", 0.0) else "")
+             + f", observe {cfg['observe']}, drive {cfg['drive']}, "
              f"material {cfg['parameterisation']}, estimator {cfg['estimator']})",
              f"noise floor {report['noise_floor_px']:.3f} px" + (
                  f"; nominal (not in the file): {report['nominal']}" if report["nominal"] else ""),

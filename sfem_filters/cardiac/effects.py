@@ -176,7 +176,8 @@ def segment_labels(mesh: TriMesh, geometry: LVGeometry, n_segments: int = 6, off
     from ``offset_deg`` (degrees, from +x) in the direction of increasing angle."""
     integer("n_segments", n_segments, 2)
     ang = np.degrees(geometry.angle(mesh.centroids)) - float(offset_deg)
-    return np.floor(np.mod(ang, 360.0) / (360.0 / n_segments)).astype(int)
+    # np.mod of a tiny negative angle can round to 360.0 itself: that is segment 0 as well
+    return np.floor(np.mod(ang, 360.0) / (360.0 / n_segments)).astype(int) % int(n_segments)
 
 
 def segmental_active_stress(mesh: TriMesh, geometry: LVGeometry, n_segments: int = 6, offset_deg: float = 0.0,
@@ -341,11 +342,23 @@ CATALOGUE = {
 EXPLICIT_ONLY = ("active_harmonic",)
 
 
-def build_effects(names, mesh: TriMesh, geometry: LVGeometry, **options) -> list:
-    """Effects from configuration names (see :data:`CATALOGUE`): a sequence of names, or one name."""
+#: Catalogue effects whose loads depend on where the angles about the cavity centre start.
+ANGULAR = ("active_segments",)
+
+
+def build_effects(names, mesh: TriMesh, geometry: LVGeometry, angle_origin_deg: float = 0.0, **options) -> list:
+    """Effects from configuration names (see :data:`CATALOGUE`): a sequence of names, or one name.
+
+    ``angle_origin_deg`` (degrees from +x): where segment 0 of the effects in :data:`ANGULAR`
+    starts (their ``offset_deg``); the others do not depend on it (``active_harmonic``'s cosines
+    and sines span the same loads from any origin, but the phases of its amplitudes are counted
+    from +x)."""
     out = []
     for name in ([names] if isinstance(names, str) else names):
         if name not in CATALOGUE:
             raise ValueError(f"effects: unknown effect {name!r}; expected one of {sorted(CATALOGUE)}")
-        out.append(CATALOGUE[name](mesh, geometry, **options))
+        if "offset_deg" in options:
+            raise ValueError("options: the segments' offset_deg is set by angle_origin_deg; pass that instead")
+        extra = {"offset_deg": float(angle_origin_deg)} if name in ANGULAR else {}
+        out.append(CATALOGUE[name](mesh, geometry, **options, **extra))
     return out

@@ -49,7 +49,7 @@ from ..filtering.marginal import log_posterior
 from ..filtering.protocol import parameter_prior
 from ..geometry import polygon_centroid, radius_by_angle, triangle_double_areas
 from ..model import SFEMModel
-from .effects import build_effects
+from .effects import build_effects, segment_labels
 from .myocardium import (
     contour_landmarks,
     lv_geometry,
@@ -138,6 +138,7 @@ class Setup:
     holdout_seed: int
     regions: np.ndarray = field(default=None)   # material region of each element
     mesh_kind: str = "delaunay"                 # how the points were triangulated (MESHES)
+    angle_origin_deg: float = 0.0               # where landmarks, sectors and segments start (deg)
     # image-derived data (sfem_filters.frontend): when set, they replace the sequence's own
     # displacements at the observed points, and add velocity rows (Eq. 13)
     obs_displacement: np.ndarray = field(default=None)   # (F, P, 2) data units, NaN if missing
@@ -149,7 +150,7 @@ class Setup:
 
 
 def prepare(seq: Sequence, landmarks: int = 8, observe: str = "boundary", holdout_seed: int = 0,
-            n_sectors: int = 6, mesh: str = "delaunay") -> Setup:
+            n_sectors: int = 6, mesh: str = "delaunay", angle_origin_deg: float = 0.0) -> Setup:
     """Mesh the points and split them into observed and held-out sets.
 
     Parameters
@@ -171,6 +172,16 @@ def prepare(seq: Sequence, landmarks: int = 8, observe: str = "boundary", holdou
         by :func:`sfem_filters.fem.mesh.lattice_mesh` with every diagonal pointing towards the
         cavity centre, the same triangles moved with the heart (points off a lattice: an
         error). The cells, the boundary, and so the contours, landmarks and sectors are the same.
+    angle_origin_deg : float
+        Where the angles about the cavity centre start (degrees, ``atan2(y, x)`` in the data's
+        axes: x to the right, y down the image, so angles grow clockwise on screen): landmark 0 of
+        each contour, sector 0 of the regional map and segment 0 of ``active_segments``, for
+        example at the anterior right-ventricular insertion, where the clinical segment models
+        start (they count the other way round in the usual view, so only segment 0 need agree).
+        Default 0, +x.
+        With the origin on an anatomical landmark the sectors belong to the heart, not to the
+        image axes: the same heart turned by a quarter turn (``moved_on_lattice(quarter_turns=1)``
+        maps angle a to a - 90) with its origin turned alike gets the same landmarks and sectors.
     """
     if not isinstance(seq, Sequence):
         raise TypeError(f"seq: expected a Sequence (sfem_filters.cardiac.load_sequence(path) reads one), got "
@@ -182,6 +193,7 @@ def prepare(seq: Sequence, landmarks: int = 8, observe: str = "boundary", holdou
     holdout_seed = integer("holdout_seed", holdout_seed, 0)
     if mesh not in MESHES:
         raise ValueError(f"mesh: expected one of {MESHES}, got {mesh!r}")
+    angle_origin_deg = float(as_float_array("angle_origin_deg", angle_origin_deg, shape=()))
     mesh_kind = mesh
     nominal = []
     if seq.units == "m":
@@ -223,7 +235,7 @@ def prepare(seq: Sequence, landmarks: int = 8, observe: str = "boundary", holdou
     if landmarks > shortest:
         raise ValueError(f"landmarks: expected at most {shortest} per contour (the shorter contour's points), "
                          f"got {landmarks}")
-    endo_l, epi_l = contour_landmarks(geometry, mesh, landmarks)
+    endo_l, epi_l = contour_landmarks(geometry, mesh, landmarks, offset_deg=angle_origin_deg)
     lm = np.concatenate([endo_l, epi_l])
     observed = lm
     if observe == "boundary+midwall":
@@ -232,8 +244,9 @@ def prepare(seq: Sequence, landmarks: int = 8, observe: str = "boundary", holdou
         observed = np.union1d(lm, rng.choice(mid, size=len(mid) // 2, replace=False))
     heldout = np.setdiff1d(np.arange(len(pts)), observed)
     # regional map: angular sectors x (inner, outer) halves of the wall
-    c = mesh.centroids - geometry.centre
-    sector = np.floor(np.mod(np.arctan2(c[:, 1], c[:, 0]), 2 * np.pi) / (2 * np.pi / n_sectors)).astype(int)
+    # (the segments of active_segments, counted the same way from the same origin)
+    sector = (segment_labels(mesh, geometry, n_sectors, angle_origin_deg) if n_sectors > 1
+              else np.zeros(mesh.n_elements, int))
     layer = (transmural_depth(mesh, geometry) > 0.5).astype(int)
     try:
         noise_px = noise_floor(seq.displacement[:, observed])
@@ -244,7 +257,8 @@ def prepare(seq: Sequence, landmarks: int = 8, observe: str = "boundary", holdou
     return Setup(seq=seq, spacing=spacing, frame_interval=T, nominal=nominal, mesh=mesh, geometry=geometry,
                  node_of_point=node_of_point, landmarks=lm, observed=observed, heldout=heldout,
                  noise_px=noise_px, n_landmarks=landmarks, observe=observe,
-                 holdout_seed=holdout_seed, regions=2 * sector + layer, mesh_kind=mesh_kind)
+                 holdout_seed=holdout_seed, regions=2 * sector + layer, mesh_kind=mesh_kind,
+                 angle_origin_deg=angle_origin_deg)
 
 
 def _filled(u):
@@ -410,7 +424,8 @@ def build_model(setup: Setup, effects=(), drive: str = "penalty", parameterisati
         sd = np.concatenate([np.full(param.n_E, 0.3), np.full(param.n_params - param.n_E, 1.0)])
         sd[param.level_index] = NOMINAL["E_level_sd"]
         prior_cov = np.diag(sd ** 2)
-    effs = build_effects(effects, mesh, setup.geometry, scale=NOMINAL["E"], process_std=EFFECT_STEP * process_scale,
+    effs = build_effects(effects, mesh, setup.geometry, angle_origin_deg=setup.angle_origin_deg,
+                         scale=NOMINAL["E"], process_std=EFFECT_STEP * process_scale,
                          initial_std=EFFECT_STEP, rate_std=EFFECT_STEP * process_scale if effect_rates else None
                          ) if effects else []
     # initial state: at rest in equilibrium with the frame-0 drive
@@ -625,6 +640,7 @@ def evaluate(setup: Setup, model: SFEMModel, result, seconds: float = 0.0, obser
         "nis_mean_over_dof": nis["nis_mean_over_dof"],
         "nis_fraction_outside_95": nis["nis_fraction_outside_95"],
         "innovation_lag1_autocorrelation": white["lag1"],
+        "innovation_whitening": "symmetric",        # S^-1/2: the lag-1 ignores the observations' order
         "whiteness_Q": white["Q"], "whiteness_p": white["p_value"],
         "nis_z": cons["nis_z"], "lag1_z": cons["lag1_z"], "inconsistent": cons["inconsistent"],
         "loops": int(result.loops), "converged": bool(result.converged),

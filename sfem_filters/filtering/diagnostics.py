@@ -16,7 +16,7 @@ from .._validate import as_float_array, integer, non_negative, positive, probabi
 from .history import History
 from .protocol import LoadResponse, n_parameters
 
-__all__ = ["nis_summary", "innovation_rms", "whitened_innovations", "whiteness", "effect_score", "rank_effects",
+__all__ = ["nis_summary", "innovation_rms", "WHITENINGS", "whitened_innovations", "whiteness", "effect_score", "rank_effects",
            "consistency", "material_drift", "prior_conflict", "chi2_logsf", "chi2_z"]
 
 
@@ -69,8 +69,43 @@ def innovation_rms(history, loop: int | None = None, rows_of_points=None) -> flo
     return float(np.sqrt(np.nanmean(e ** 2)))
 
 
-def whitened_innovations(history, loop: int | None = None) -> np.ndarray:
-    """``L_t^-1 e_t`` with ``S_t = L_t L_t^T``, shape (frames, n_obs), NaN where unobserved."""
+#: Square roots of ``S_t^-1`` that :func:`whitened_innovations` can whiten with.
+WHITENINGS = ("symmetric", "cholesky")
+
+
+def _whiten(S, e, t: int, root: str) -> np.ndarray:
+    """``W e`` with ``W^T W = S^-1``: ``W = S^-1/2`` (symmetric) or ``L^-1`` (``S = L L^T``), S
+    symmetrised first."""
+    S = np.asarray(S, float)
+    if not np.all(np.isfinite(S)):
+        raise ValueError(f"history: expected a finite innovation covariance S at row {t}, got "
+                         f"{int(np.size(S) - np.count_nonzero(np.isfinite(S)))} non-finite entries")
+    S = 0.5 * (S + S.T)
+    lam, U = np.linalg.eigh(S)
+    if not lam[0] > 0:
+        raise ValueError(f"history: expected a positive definite innovation covariance S at row {t}, got smallest "
+                         f"eigenvalue {lam[0]:.3g}")
+    if root == "cholesky":
+        return sla.solve_triangular(np.linalg.cholesky(S), e, lower=True)
+    return U @ ((U.T @ e) / np.sqrt(lam))
+
+
+def whitened_innovations(history, loop: int | None = None, root: str = "symmetric") -> np.ndarray:
+    """Innovations in units of their own covariance, ``W_t e_t`` with ``W_t^T W_t = S_t^-1``.
+
+    Shape (frames, n_obs), NaN where unobserved. ``root="symmetric"`` (the default) whitens by
+    ``W_t = S_t^-1/2``, the symmetric square root, which commutes with any orthogonal change of
+    observation coordinates ``T`` (``(T S T^T)^-1/2 T = T S^-1/2``): the whitened vectors move
+    with the observations, so statistics that pair row i at two times (:func:`whiteness`,
+    :func:`consistency`) do not change when the observations are listed in another order, or
+    turned or mirrored together. ``"cholesky"`` whitens by the inverse Cholesky factor,
+    ``L_t^-1`` with ``S_t = L_t L_t^T``, what this module did before: its row i mixes only the
+    observations listed up to i, so those statistics depend on the order (kept to reproduce
+    figures made with it). Within one frame both give the
+    same NIS, ``|W_t e_t|^2 = e_t^T S_t^-1 e_t``.
+    """
+    if root not in WHITENINGS:
+        raise ValueError(f"root: expected one of {', '.join(map(repr, WHITENINGS))}, got {root!r}")
     rows = _rows(history, loop)
     out = np.full((len(rows), len(history.innovation[0])), np.nan)
     for k, r in enumerate(rows):
@@ -78,29 +113,33 @@ def whitened_innovations(history, loop: int | None = None) -> np.ndarray:
         mask = ~np.isnan(e)
         if mask.any():
             S = np.asarray(history.S[r], float)[np.ix_(mask, mask)]
-            out[k, mask] = sla.solve_triangular(np.linalg.cholesky(S), e[mask], lower=True)
+            out[k, mask] = _whiten(S, e[mask], int(r), root)
     return out
 
 
-def whiteness(history, loop: int | None = None, max_lag: int = 5) -> dict:
+def _lag_correlation(v, k: int) -> tuple:
+    """Pooled lag-``k`` autocorrelation of whitened innovations ``v`` (frames, n_obs) over the rows
+    observed at both times, and how many products it pools."""
+    a, b = v[:-k], v[k:]
+    ok = ~np.isnan(a) & ~np.isnan(b)
+    return float(np.sum(a[ok] * b[ok]) / np.sqrt(np.sum(a[ok] ** 2) * np.sum(b[ok] ** 2))), int(ok.sum())
+
+
+def whiteness(history, loop: int | None = None, max_lag: int = 5, root: str = "symmetric") -> dict:
     """Pooled autocorrelation of the whitened innovations over time, with a portmanteau test.
 
     ``rho_k = sum_t sum_i v_{t,i} v_{t+k,i} / sum_t sum_i v_{t,i}^2`` over the rows observed at
-    both times. For a consistent filter the sequence is white: ``N_k rho_k^2`` are
-    approximately chi2(1), so ``Q = sum_k N_k rho_k^2 ~ chi2(max_lag)``.
+    both times, ``v`` the innovations whitened by ``root`` (:func:`whitened_innovations`; the
+    default symmetric root makes ``rho_k`` independent of the order of the observations). For a
+    consistent filter the sequence is white: ``N_k rho_k^2`` are approximately chi2(1), so
+    ``Q = sum_k N_k rho_k^2 ~ chi2(max_lag)``.
     """
     max_lag = integer("max_lag", max_lag, 1)
     _rows(history, loop, min_frames=3)
-    v = whitened_innovations(history, loop)
+    v = whitened_innovations(history, loop, root)
     T = len(v)
     max_lag = int(min(max_lag, T - 2))
-    rho, n = [], []
-    for k in range(1, max_lag + 1):
-        a, b = v[:-k], v[k:]
-        ok = ~np.isnan(a) & ~np.isnan(b)
-        rho.append(float(np.sum(a[ok] * b[ok]) / np.sqrt(np.sum(a[ok] ** 2) * np.sum(b[ok] ** 2))))
-        n.append(int(ok.sum()))
-    rho, n = np.array(rho), np.array(n)
+    rho, n = (np.array(c) for c in zip(*(_lag_correlation(v, k) for k in range(1, max_lag + 1))))
     Q = float(np.sum(n * rho ** 2))
     return {"lags": np.arange(1, max_lag + 1), "autocorrelation": rho, "Q": Q,
             "p_value": float(stats.chi2.sf(Q, max_lag)), "lag1": float(rho[0]) if len(rho) else np.nan}
@@ -252,23 +291,20 @@ def rank_effects(model, history, candidates, loop: int | None = None, time_cours
     return sorted(out, key=lambda d: -d["score"])
 
 
-def consistency(history, loop: int | None = None, threshold: float = 3.0) -> dict:
+def consistency(history, loop: int | None = None, threshold: float = 3.0, root: str = "symmetric") -> dict:
     """Flag an inconsistent filter from its innovations alone.
 
     Two standardised checks, each ~N(0, 1) for a consistent filter: the summed NIS against
     chi2 of the summed dof (Wilson-Hilferty z), and the pooled lag-1 autocorrelation of the
-    whitened innovations times sqrt(N). ``inconsistent`` when either exceeds ``threshold`` in
-    magnitude.
+    whitened innovations times sqrt(N) (``root``: :func:`whitened_innovations`). ``inconsistent``
+    when either exceeds ``threshold`` in magnitude.
     """
     threshold = positive("threshold", threshold)
     _rows(history, loop, min_frames=2)
     s = nis_summary(history, loop)
     z_nis = chi2_z(float(np.sum(s["nis"])), int(np.sum(s["dof"])))
-    v = whitened_innovations(history, loop)
-    a, b = v[:-1], v[1:]
-    ok = ~np.isnan(a) & ~np.isnan(b)
-    lag1 = float(np.sum(a[ok] * b[ok]) / np.sqrt(np.sum(a[ok] ** 2) * np.sum(b[ok] ** 2)))
-    z_white = lag1 * np.sqrt(ok.sum())
+    lag1, n = _lag_correlation(whitened_innovations(history, loop, root), 1)
+    z_white = lag1 * np.sqrt(n)
     return {"nis_z": z_nis, "lag1": lag1, "lag1_z": float(z_white),
             "inconsistent": bool(max(abs(z_nis), abs(z_white)) > threshold)}
 

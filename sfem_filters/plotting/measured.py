@@ -25,7 +25,8 @@ def dense_residual_maps(loop: LoopResult, path: str):
     res = [(meas[:, h] - r.U[:, h]) * k for r in runs]
     mag = [np.linalg.norm(r, axis=2) for r in res]
     worst = int(np.nanargmax(np.sqrt(np.nanmean(mag[0] ** 2, axis=1))))
-    ang = setup.geometry.angle(setup.mesh.nodes[setup.node_of_point[h]])
+    origin = float(getattr(setup, "angle_origin_deg", 0.0))
+    ang = np.mod(setup.geometry.angle(setup.mesh.nodes[setup.node_of_point[h]]) - np.radians(origin), 2 * np.pi)
     order = np.argsort(ang)
     vmax = np.nanpercentile(mag[0], 99)
     fig, axes = plt.subplots(2, 2, figsize=(11, 8.5), constrained_layout=True)
@@ -47,7 +48,7 @@ def dense_residual_maps(loop: LoopResult, path: str):
         im = ax2.imshow(m[:, order].T, aspect="auto", cmap="magma", vmin=0, vmax=vmax, origin="lower",
                         extent=(-0.5, len(m) - 0.5, 0, 360))
         ax2.set_xlabel("frame")
-        ax2.set_ylabel("angle about the cavity centre [deg]")
+        ax2.set_ylabel("angle about the cavity centre [deg]" + (f"\nfrom {origin:g} deg" if origin else ""))
         ax2.set_title(f"|held-out residual| (RMSE {np.sqrt(np.nanmean(m ** 2)):.3f} {unit})")
     fig.colorbar(q, ax=axes[0, :], label=f"|residual| [{unit}]", shrink=0.8)
     fig.colorbar(im, ax=axes[1, :], label=f"|residual| [{unit}]", shrink=0.8)

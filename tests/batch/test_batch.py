@@ -19,6 +19,7 @@ from hypothesis import strategies as st
 
 from sfem_filters.batch import Job, ResultStore, compare_jobs, dense_jobs, describe_record, merge_timing, run_batch, \
     run_job, split_timing
+from sfem_filters.batch import jobs as jobs_module
 from sfem_filters.batch.runner import _client
 from sfem_filters.benchmark import format_summary, format_table, summarise, wilson_interval
 from sfem_filters.benchmark.comparison import ROWS
@@ -115,7 +116,7 @@ def test_job_validation_names_the_argument(tmp_path):
         run_batch(compare_jobs([0]), tmp_path, scheduler="cluster")
 
 
-def test_fingerprint_covers_configuration_and_input_contents_not_outputs(tmp_path):
+def test_fingerprint_covers_configuration_and_input_contents_not_outputs(tmp_path, monkeypatch):
     a = compare_jobs([0])[0]
     assert a.fingerprint() == compare_jobs([0], figures=str(tmp_path))[0].fingerprint()
     assert a.fingerprint() != compare_jobs([0], refine=2)[0].fingerprint()
@@ -126,8 +127,11 @@ def test_fingerprint_covers_configuration_and_input_contents_not_outputs(tmp_pat
     fp1 = j1.fingerprint()
     f.write_bytes(b"two")
     assert j1.fingerprint() != fp1
-    assert dense_jobs([str(f)], landmarks=16)[0].fingerprint() != j1.fingerprint()
+    fp_now = j1.fingerprint()
+    assert dense_jobs([str(f)], landmarks=16)[0].fingerprint() != fp_now
     assert [j.name for j in dense_jobs([str(f), str(f)])] == ["s", "s-2"]
+    monkeypatch.setattr(jobs_module, "RESULTS_SCHEMA", jobs_module.RESULTS_SCHEMA + 1)
+    assert j1.fingerprint() != fp_now                   # a result computed otherwise is not reused
 
 
 # --- running batches ---------------------------------------------------------------------------

@@ -131,13 +131,62 @@ def test_the_radial_mesh_moves_with_the_heart(quarter_turns, mirror, shift):
     assert np.array_equal(a.heldout, b.heldout)
     if quarter_turns % 2 == 0:
         # elements are matched by their (moved) centroids; the labels must map one to one
-        ca = np.rint((a.mesh.centroids / a.spacing) @ R.T * 3).astype(int)
-        cb = np.rint(b.mesh.centroids / b.spacing * 3).astype(int) - np.rint(
-            (b.mesh.nodes[0] / b.spacing - (a.mesh.nodes[0] / a.spacing) @ R.T) * 3).astype(int)
-        index = {tuple(c): i for i, c in enumerate(ca.tolist())}
-        match = np.array([index[tuple(c)] for c in cb.tolist()])
+        match = _matched_elements(a, b, R)
         pairs = set(zip(a.regions[match].tolist(), b.regions.tolist()))
         assert len(pairs) == len(np.unique(a.regions))
+
+
+def _matched_elements(a, b, R):
+    """Index into a's elements of each of b's, matched by their moved centroids."""
+    ca = np.rint((a.mesh.centroids / a.spacing) @ R.T * 3).astype(int)
+    cb = np.rint(b.mesh.centroids / b.spacing * 3).astype(int) - np.rint(
+        (b.mesh.nodes[0] / b.spacing - (a.mesh.nodes[0] / a.spacing) @ R.T) * 3).astype(int)
+    index = {tuple(c): i for i, c in enumerate(ca.tolist())}
+    return np.array([index[tuple(c)] for c in cb.tolist()])
+
+
+@settings(max_examples=8, deadline=None)
+@given(st.integers(1, 3), st.floats(0.0, 360.0, allow_nan=False, exclude_max=True))
+def test_an_angle_origin_turned_with_the_heart_gives_the_same_landmarks_sectors_and_segments(quarter_turns, origin):
+    """A quarter turn of the image maps the angle a about the cavity centre to a - 90 degrees. With
+    the origin turned alike (as an anatomical origin, the RV insertion, would be), landmark k is the
+    same point, every element is in the same sector (not merely a relabelling), and the six
+    segments' active-stress loads are the same loads seen in the turned axes, column by column.
+    With the origin left where it was, the sectors are others (a quarter turn) or relabelled (a
+    half turn)."""
+    seq = load_sequence(example_path())
+    moved = moved_on_lattice(seq, quarter_turns=quarter_turns)
+    a = measured.prepare(seq, 8, mesh="radial", angle_origin_deg=origin)
+    b = measured.prepare(moved, 8, mesh="radial", angle_origin_deg=origin - 90.0 * quarter_turns)
+    assert a.angle_origin_deg == origin and b.angle_origin_deg == origin - 90.0 * quarter_turns
+    assert np.array_equal(a.landmarks, b.landmarks)
+    R = _move_matrix(quarter_turns, False)
+    match = _matched_elements(a, b, R)
+    assert np.array_equal(a.regions[match], b.regions)
+    Ga = build_effects(["active_segments"], a.mesh, a.geometry, angle_origin_deg=a.angle_origin_deg)[0].loads
+    Gb = build_effects(["active_segments"], b.mesh, b.geometry, angle_origin_deg=b.angle_origin_deg)[0].loads
+    Rb = np.kron(np.eye(a.mesh.n_nodes), R)
+    np.testing.assert_allclose(Gb, Rb @ Ga, rtol=0, atol=1e-9 * np.abs(Ga).max())
+    fixed = measured.prepare(moved, 8, mesh="radial", angle_origin_deg=origin)
+    assert not np.array_equal(a.regions[match], fixed.regions)
+    with pytest.raises(ValueError, match=r"angle_origin_deg: expected finite values"):
+        measured.prepare(seq, 8, angle_origin_deg=np.nan)
+    with pytest.raises(ValueError, match=r"angle_origin_deg: expected shape \(\)"):
+        measured.prepare(seq, 8, angle_origin_deg=[0.0, 90.0])
+
+
+def test_the_angle_origin_counts_from_where_it_says():
+    """Angles grow from +x towards +y: an origin one sector (60 degrees) on puts every element one
+    sector back, and one landmark gap (45 degrees for 8) on makes landmark k the old landmark k+1."""
+    seq = load_sequence(example_path())
+    a = measured.prepare(seq, 8)
+    b = measured.prepare(seq, 8, angle_origin_deg=60.0)
+    assert np.array_equal(b.regions // 2, (a.regions // 2 - 1) % 6)
+    assert np.array_equal(b.regions % 2, a.regions % 2)
+    c = measured.prepare(seq, 8, angle_origin_deg=45.0)
+    for part in (slice(0, 8), slice(8, 16)):            # endocardium, then epicardium
+        assert np.array_equal(c.landmarks[part], np.roll(a.landmarks[part], -1))
+    assert np.array_equal(measured.prepare(seq, 8, angle_origin_deg=360.0).regions, a.regions)
 
 
 def test_the_default_mesh_does_not_move_with_the_heart_and_bad_mesh_choices_are_named():

@@ -235,7 +235,11 @@ def test_the_command_line_passes_the_selection_and_rejects_an_unknown_one(capsys
     seen.clear()
     with pytest.raises(SystemExit):                     # --mesh radial reaches prepare through the loop
         main(["dense", "example", "--mesh", "radial", "--no-progress"])
-    assert seen["mesh"] == "radial"
+    assert seen["mesh"] == "radial" and "angle_origin_deg" not in seen
+    seen.clear()
+    with pytest.raises(SystemExit):                     # --angle-origin reaches prepare through the loop
+        main(["dense", "example", "--angle-origin", "-37.5", "--no-progress"])
+    assert seen["angle_origin_deg"] == -37.5 and defaults["angle_origin_deg"].default == 0.0
     with pytest.raises(SystemExit) as err:
         main(["dense", "example", "--mesh", "lattice"])
     assert err.value.code == 2 and "--mesh" in capsys.readouterr().err
@@ -488,7 +492,7 @@ def test_removals_take_out_one_term_at_a_time(annulus):
     """Every term beyond the start is taken out once: an effect (also replaced by each effect it
     strictly contains), a drive change, a trend, one factor of the springs or of the noise."""
     mesh, geometry = annulus
-    su = SimpleNamespace(mesh=mesh, geometry=geometry)
+    su = SimpleNamespace(mesh=mesh, geometry=geometry, angle_origin_deg=0.0)
     loads = dict(closing.candidate_loads(su))
     start = closing.Variant()
     assert closing.removals(start, start, loads) == []
@@ -632,7 +636,7 @@ def test_the_material_map_is_a_correction_and_a_backward_step(annulus, monkeypat
     passes (``material:basis``); a smooth or fixed map gets no such correction; the backward step
     returns to the configured map; the fit runs with the variant's map."""
     mesh, geometry = annulus
-    loads = dict(closing.candidate_loads(SimpleNamespace(mesh=mesh, geometry=geometry)))
+    loads = dict(closing.candidate_loads(SimpleNamespace(mesh=mesh, geometry=geometry, angle_origin_deg=0.0)))
     metrics = {"lag1_z": 0.0, "nis_z": 0.0}
     cur = SimpleNamespace(variant=closing.Variant(), run=SimpleNamespace(metrics=metrics))
     for configured, expected in (("region", "basis"), ("element", "basis"), ("basis", None), ("none", None)):
