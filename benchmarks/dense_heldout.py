@@ -4,7 +4,8 @@
 
 ``sfem-filters dense example --landmarks N`` with each estimator (``--estimator cyclic``, the
 previous default, 3 loops; ``--estimator smoother``, the default now): the baseline and the
-extended model (one round: the effect the score test ranks first), held-out RMSE with its radial and
+extended model (one round: of the effects the score test ranks best, the one the round keeps,
+by default the largest evidence gain of the three best-ranked), held-out RMSE with its radial and
 circumferential parts, NIS / dof and the lag-1 autocorrelation of the innovations, loops or
 iterations, wall time.
 """
