@@ -94,7 +94,7 @@ from ..filtering import diagnostics
 from ..filtering.iterated import NOISE_LEVELS
 from .crossval import DEFAULT_FOLDS, cross_validate, observation_folds, spline_cross_validation
 from .effects import CATALOGUE, EXPLICIT_ONLY, build_effects
-from .measured import (NOMINAL, Run, Setup, equivalent_eigenstrain, exact_posterior, kriged_heldout,
+from .measured import (NOMINAL, Run, Setup, angle_from_origin, equivalent_eigenstrain, exact_posterior, kriged_heldout,
                        measured_wall_kinematics, prepare, run)
 from .reference import angular_sectors, rmse_difference, spline_reference
 from .sequence import Sequence
@@ -787,7 +787,7 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
               "corrections": bool(corrections), "criterion": criterion, "folds": folds,
               "min_cv_gain": min_cv_gain, "selection": selection, "prune": bool(prune), "laplace": laplace,
               "measurement_noise": measurement_noise, "mesh": mesh, "angle_origin_deg": setup.angle_origin_deg,
-              "innovation_whitening": "symmetric",
+              "innovation_whitening": diagnostics.DEFAULT_WHITENING,
               "final": rounds[-1].variant.as_json()}
     g = setup.geometry
     held = setup.node_of_point[setup.heldout]
@@ -830,7 +830,7 @@ def versus_spline(setup: Setup, U, spline_U, level: float = 0.95) -> dict | None
     """
     h = setup.heldout
     meas = setup.seq.displacement[:, h]
-    angles = setup.geometry.angle(setup.mesh.nodes[setup.node_of_point[h]]) - np.radians(setup.angle_origin_deg)
+    angles = angle_from_origin(setup, setup.mesh.nodes[setup.node_of_point[h]])
     n = max(int(setup.n_landmarks), 2)
     sectors = angular_sectors(angles, n)
     if len(np.unique(sectors)) < 2:

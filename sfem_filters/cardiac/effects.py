@@ -353,12 +353,12 @@ def build_effects(names, mesh: TriMesh, geometry: LVGeometry, angle_origin_deg: 
     starts (their ``offset_deg``); the others do not depend on it (``active_harmonic``'s cosines
     and sines span the same loads from any origin, but the phases of its amplitudes are counted
     from +x)."""
+    if "offset_deg" in options:
+        raise ValueError("options: the segments' offset_deg is set by angle_origin_deg; pass that instead")
     out = []
     for name in ([names] if isinstance(names, str) else names):
         if name not in CATALOGUE:
             raise ValueError(f"effects: unknown effect {name!r}; expected one of {sorted(CATALOGUE)}")
-        if "offset_deg" in options:
-            raise ValueError("options: the segments' offset_deg is set by angle_origin_deg; pass that instead")
         extra = {"offset_deg": float(angle_origin_deg)} if name in ANGULAR else {}
         out.append(CATALOGUE[name](mesh, geometry, **options, **extra))
     return out

@@ -536,6 +536,12 @@ def kriged_heldout(setup: Setup, U) -> dict:
                            setup.geometry.radial[held], setup.geometry.circumferential[held])
 
 
+def angle_from_origin(setup: Setup, xy) -> np.ndarray:
+    """Angle (rad, in [0, 2 pi)) of points ``xy`` (m) about the cavity centre, counted from the
+    set-up's ``angle_origin_deg`` as its landmarks and sectors are."""
+    return np.mod(setup.geometry.angle(xy) - np.radians(setup.angle_origin_deg), 2 * np.pi)
+
+
 def region_label(setup: Setup, element: int) -> str:
     """Where an element lies: its sector of the regional map and its half of the wall (or its
     number, for a set-up without regions)."""
@@ -640,7 +646,7 @@ def evaluate(setup: Setup, model: SFEMModel, result, seconds: float = 0.0, obser
         "nis_mean_over_dof": nis["nis_mean_over_dof"],
         "nis_fraction_outside_95": nis["nis_fraction_outside_95"],
         "innovation_lag1_autocorrelation": white["lag1"],
-        "innovation_whitening": "symmetric",        # S^-1/2: the lag-1 ignores the observations' order
+        "innovation_whitening": diagnostics.DEFAULT_WHITENING,
         "whiteness_Q": white["Q"], "whiteness_p": white["p_value"],
         "nis_z": cons["nis_z"], "lag1_z": cons["lag1_z"], "inconsistent": cons["inconsistent"],
         "loops": int(result.loops), "converged": bool(result.converged),

@@ -16,7 +16,7 @@ from .._validate import as_float_array, integer, non_negative, positive, probabi
 from .history import History
 from .protocol import LoadResponse, n_parameters
 
-__all__ = ["nis_summary", "innovation_rms", "WHITENINGS", "whitened_innovations", "whiteness", "effect_score", "rank_effects",
+__all__ = ["nis_summary", "innovation_rms", "WHITENINGS", "DEFAULT_WHITENING", "whitened_innovations", "whiteness", "effect_score", "rank_effects",
            "consistency", "material_drift", "prior_conflict", "chi2_logsf", "chi2_z"]
 
 
@@ -69,8 +69,10 @@ def innovation_rms(history, loop: int | None = None, rows_of_points=None) -> flo
     return float(np.sqrt(np.nanmean(e ** 2)))
 
 
-#: Square roots of ``S_t^-1`` that :func:`whitened_innovations` can whiten with.
+#: Square roots of ``S_t^-1`` that :func:`whitened_innovations` can whiten with; the first is
+#: the default (``DEFAULT_WHITENING``), which results record beside their whiteness figures.
 WHITENINGS = ("symmetric", "cholesky")
+DEFAULT_WHITENING = WHITENINGS[0]
 
 
 def _whiten(S, e, t: int, root: str) -> np.ndarray:
@@ -90,7 +92,7 @@ def _whiten(S, e, t: int, root: str) -> np.ndarray:
     return U @ ((U.T @ e) / np.sqrt(lam))
 
 
-def whitened_innovations(history, loop: int | None = None, root: str = "symmetric") -> np.ndarray:
+def whitened_innovations(history, loop: int | None = None, root: str = DEFAULT_WHITENING) -> np.ndarray:
     """Innovations in units of their own covariance, ``W_t e_t`` with ``W_t^T W_t = S_t^-1``.
 
     Shape (frames, n_obs), NaN where unobserved. ``root="symmetric"`` (the default) whitens by
@@ -101,8 +103,7 @@ def whitened_innovations(history, loop: int | None = None, root: str = "symmetri
     turned or mirrored together. ``"cholesky"`` whitens by the inverse Cholesky factor,
     ``L_t^-1`` with ``S_t = L_t L_t^T``, what this module did before: its row i mixes only the
     observations listed up to i, so those statistics depend on the order (kept to reproduce
-    figures made with it). Within one frame both give the
-    same NIS, ``|W_t e_t|^2 = e_t^T S_t^-1 e_t``.
+    figures made with it). Within one frame both give the same NIS, ``|W_t e_t|^2 = e_t^T S_t^-1 e_t``.
     """
     if root not in WHITENINGS:
         raise ValueError(f"root: expected one of {', '.join(map(repr, WHITENINGS))}, got {root!r}")
@@ -125,7 +126,7 @@ def _lag_correlation(v, k: int) -> tuple:
     return float(np.sum(a[ok] * b[ok]) / np.sqrt(np.sum(a[ok] ** 2) * np.sum(b[ok] ** 2))), int(ok.sum())
 
 
-def whiteness(history, loop: int | None = None, max_lag: int = 5, root: str = "symmetric") -> dict:
+def whiteness(history, loop: int | None = None, max_lag: int = 5, root: str = DEFAULT_WHITENING) -> dict:
     """Pooled autocorrelation of the whitened innovations over time, with a portmanteau test.
 
     ``rho_k = sum_t sum_i v_{t,i} v_{t+k,i} / sum_t sum_i v_{t,i}^2`` over the rows observed at
@@ -291,7 +292,7 @@ def rank_effects(model, history, candidates, loop: int | None = None, time_cours
     return sorted(out, key=lambda d: -d["score"])
 
 
-def consistency(history, loop: int | None = None, threshold: float = 3.0, root: str = "symmetric") -> dict:
+def consistency(history, loop: int | None = None, threshold: float = 3.0, root: str = DEFAULT_WHITENING) -> dict:
     """Flag an inconsistent filter from its innovations alone.
 
     Two standardised checks, each ~N(0, 1) for a consistent filter: the summed NIS against

@@ -4,6 +4,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..cardiac.closing import LoopResult, length_display
+from ..cardiac.measured import angle_from_origin
 from ..cardiac.myocardium import polar_strains
 from ..fem.strain import nodal_strains
 from ..filtering.diagnostics import nis_summary
@@ -25,8 +26,8 @@ def dense_residual_maps(loop: LoopResult, path: str):
     res = [(meas[:, h] - r.U[:, h]) * k for r in runs]
     mag = [np.linalg.norm(r, axis=2) for r in res]
     worst = int(np.nanargmax(np.sqrt(np.nanmean(mag[0] ** 2, axis=1))))
-    origin = float(getattr(setup, "angle_origin_deg", 0.0))
-    ang = np.mod(setup.geometry.angle(setup.mesh.nodes[setup.node_of_point[h]]) - np.radians(origin), 2 * np.pi)
+    origin = setup.angle_origin_deg
+    ang = angle_from_origin(setup, setup.mesh.nodes[setup.node_of_point[h]])
     order = np.argsort(ang)
     vmax = np.nanpercentile(mag[0], 99)
     fig, axes = plt.subplots(2, 2, figsize=(11, 8.5), constrained_layout=True)
