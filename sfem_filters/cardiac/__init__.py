@@ -70,6 +70,7 @@ from .myocardium import (
                        lv_geometry,
                        mesh_from_mask,
                        mesh_from_points,
+                       tissue_mesh,
 )
 from .reference import angular_sectors, contour_interpolant, residual_spline, rmse_difference, spline_reference
 from .sequence import (
@@ -82,7 +83,7 @@ from .sequence import (
 )
 
 __all__ = ["Sequence", "make_sequence", "load_sequence", "save_sequence", "example_path", "moved_on_lattice", "LVGeometry",
-           "lv_geometry", "mesh_from_points", "mesh_from_mask", "contour_landmarks", "Effect", "CATALOGUE",
+           "lv_geometry", "mesh_from_points", "tissue_mesh", "mesh_from_mask", "contour_landmarks", "Effect", "CATALOGUE",
            "build_effects", "NOMINAL", "PARAMETERISATIONS", "DRIVES", "OBSERVE", "MESHES", "Setup", "Run", "prepare",
            "build_model", "run", "evaluate", "noise_floor", "strain_maps", "measured_wall_kinematics",
            "LoopResult", "Round", "Variant", "closing_the_loop", "candidate_loads", "format_report", "log_evidence",

@@ -33,6 +33,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse.linalg as spla
+from scipy.spatial import cKDTree
 
 from .._validate import as_float_array, integer, positive
 from ..fem.dofs import node_dofs
@@ -53,9 +54,9 @@ from .effects import build_effects, segment_labels
 from .myocardium import (
     contour_landmarks,
     lv_geometry,
-    mesh_from_points,
     polar_strain_operator,
     polar_strains,
+    tissue_mesh,
     transmural_depth,
 )
 from .reference import contour_interpolant, heldout_errors, residual_spline
@@ -209,13 +210,8 @@ def prepare(seq: Sequence, landmarks: int = 8, observe: str = "boundary", holdou
         T = NOMINAL["frame_interval"]
         nominal.append("frame_interval")
     pts = seq.points * spacing
-    d = np.linalg.norm(pts[:, None] - pts[None], axis=2)
-    np.fill_diagonal(d, np.inf)
-    lattice = np.median(d.min(axis=1))
-    tri_mesh = mesh_from_points(pts, 1.5 * lattice)
-    if tri_mesh.n_nodes != len(pts):
-        raise ValueError(f"points: {len(pts) - tri_mesh.n_nodes} points lie in no triangle of the tissue mesh "
-                         "(isolated pixels?); remove them")
+    tri_mesh, _ = tissue_mesh(pts)
+    lattice = float(np.median(cKDTree(pts).query(pts, k=2)[0][:, 1]))
     # the contours (and so the cavity centre, the radial directions and the wall's nodes) do not
     # depend on the diagonals of full cells: one geometry serves either mesh
     geometry = lv_geometry(tri_mesh)

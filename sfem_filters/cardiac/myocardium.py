@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 import scipy.sparse as sp
+from scipy.spatial import Delaunay, cKDTree
 from skimage.measure import label
 
 from .._validate import as_float_array, as_mask, integer, positive
@@ -20,7 +21,8 @@ from ..fem.strain import nodal_strain_operator
 from ..geometry import polygon_centroid, radius_by_angle, signed_area
 
 
-def mesh_from_points(points, max_edge: float, inside=None, min_angle_deg: float = 10.0) -> TriMesh:
+def mesh_from_points(points, max_edge: float, inside=None, min_angle_deg: float = 10.0,
+                     interior_min_angle_deg: float | None = None) -> TriMesh:
     """Delaunay mesh of tissue points, keeping triangles that lie in the tissue.
 
     Parameters
@@ -32,8 +34,9 @@ def mesh_from_points(points, max_edge: float, inside=None, min_angle_deg: float 
         longer edges and are removed (1.5 pixel spacings suits a pixel lattice).
     inside : callable, optional
         ``inside(xy) -> bool array``: an extra test of triangle centroids (for example a mask).
-    min_angle_deg : float
-        Quality bound passed to :func:`sfem_filters.mesh.delaunay_mesh`.
+    min_angle_deg, interior_min_angle_deg : float
+        Quality bounds passed to :func:`sfem_filters.fem.mesh.delaunay_mesh` (the hull's slivers
+        are peeled; an interior triangle below the second, default the first, is an error).
 
     Returns
     -------
@@ -41,7 +44,93 @@ def mesh_from_points(points, max_edge: float, inside=None, min_angle_deg: float 
         Nodes are the given points in their order when every point is used; points that end up
         in no triangle are dropped (check ``mesh.n_nodes``).
     """
-    return delaunay_mesh(points, keep=inside, min_angle_deg=min_angle_deg, max_edge=max_edge)
+    return delaunay_mesh(points, keep=inside, min_angle_deg=min_angle_deg, max_edge=max_edge,
+                         interior_min_angle_deg=interior_min_angle_deg)
+
+
+def tissue_mesh(points, edge_factor: float = 1.5, max_factor: float = 4.0,
+                min_angle_deg: float = 10.0, interior_min_angle_deg: float = 1.0) -> tuple:
+    """Mesh an annular slice's tissue points, on a pixel lattice or scattered, using every point.
+
+    The longest admissible edge starts at ``edge_factor`` times the median nearest-neighbour
+    distance ``h`` (on a pixel lattice, 1.5 spacings: the cells and their diagonals, nothing that
+    bridges the cavity). Scattered material points (tracked features, jittered samples) leave
+    some points in no such triangle, or holes inside the wall; the bound then grows through the
+    Delaunay triangles' longest edges, smallest first, until every point lies in a triangle and
+    the mesh is an annulus (one outer contour, one cavity: :func:`lv_geometry`), at most to
+    ``max_factor * h``. The cavity is many spacings across, so it is not bridged first.
+
+    Parameters
+    ----------
+    points : (n, 2) array
+        Tissue points in metres, distinct.
+    edge_factor : float
+        First bound on the edge length, in median nearest-neighbour distances.
+    max_factor : float
+        Largest bound tried, in the same unit; beyond it the points are reported as not forming
+        one annular wall.
+    min_angle_deg : float
+        Quality bound of :func:`sfem_filters.fem.mesh.delaunay_mesh`: slivers on the hull are
+        peeled.
+    interior_min_angle_deg : float
+        Smallest angle accepted inside the wall, degrees: scattered points give interior
+        slivers that no triangulation of them avoids (a pixel lattice has none).
+
+    Returns
+    -------
+    mesh : TriMesh
+        Nodes in the order of ``points``.
+    max_edge : float
+        The edge bound used, m.
+    """
+    pts = as_float_array("points", points, shape=(None, 2))
+    if len(pts) < 3:
+        raise ValueError(f"points: expected at least 3 tissue points, got {len(pts)}")
+    edge_factor = positive("edge_factor", edge_factor)
+    max_factor = positive("max_factor", max_factor)
+    dist, _ = cKDTree(pts).query(pts, k=2)
+    h = float(np.median(dist[:, 1]))
+    if not h > 0:
+        raise ValueError("points: expected distinct points, got duplicates (median nearest-neighbour distance 0)")
+    tri = Delaunay(pts).simplices
+    q = pts[tri]
+    longest = np.linalg.norm(q - q[:, [1, 2, 0]], axis=2).max(axis=1)
+    bounds = np.concatenate([[edge_factor * h],
+                             np.unique(longest[(longest > edge_factor * h) & (longest <= max_factor * h)])])
+    last = ["no bound tried"]
+
+    def annulus(i):
+        try:
+            mesh = mesh_from_points(pts, bounds[i], min_angle_deg=min_angle_deg,
+                                    interior_min_angle_deg=interior_min_angle_deg)
+            if mesh.n_nodes != len(pts):
+                raise ValueError(f"{len(pts) - mesh.n_nodes} points lie in no triangle")
+            lv_geometry(mesh)
+        except ValueError as exc:
+            last[0] = str(exc)
+            return None
+        return mesh
+
+    # a ladder of at most 16 bounds, then bisection below the first that works: more triangles
+    # only close gaps, until the cavity itself is bridged far above these bounds
+    ladder = np.unique(np.round(np.geomspace(1, len(bounds), min(16, len(bounds)))).astype(int) - 1)
+    lo = -1
+    for hi in ladder:
+        mesh = annulus(hi)
+        if mesh is None:
+            lo = hi
+            continue
+        while hi - lo > 1:
+            mid = (lo + hi) // 2
+            found = annulus(mid)
+            if found is None:
+                lo = mid
+            else:
+                hi, mesh = mid, found
+        return mesh, float(bounds[hi])
+    raise ValueError(f"points: no edge bound up to {max_factor} median point spacings ({max_factor * h:.3g} m) meshes "
+                     f"every point into one annular wall (at the largest: {last[0]}); expected the tissue points of a "
+                     "short-axis slice, without isolated points or gaps wider than that")
 
 
 def mask_inside(mask, spacing: float, origin=(0.0, 0.0)):

@@ -212,7 +212,8 @@ def mesh_quality(mesh: TriMesh) -> dict:
             "max_area_m2": float(area.max())}
 
 
-def delaunay_mesh(points, keep=None, min_angle_deg: float = 5.0, max_edge: float | None = None) -> TriMesh:
+def delaunay_mesh(points, keep=None, min_angle_deg: float = 5.0, max_edge: float | None = None,
+                  interior_min_angle_deg: float | None = None) -> TriMesh:
     """Mesh arbitrary points by Delaunay triangulation (scipy), then check quality.
 
     Parameters
@@ -229,6 +230,10 @@ def delaunay_mesh(points, keep=None, min_angle_deg: float = 5.0, max_edge: float
     max_edge : float, optional
         Triangles with an edge longer than this (metres) are removed first (they bridge a
         cavity or a concavity of the tissue).
+    interior_min_angle_deg : float, optional
+        The bound for triangles inside the tissue, which are not peeled (default
+        ``min_angle_deg``): scattered points give Delaunay slivers that no triangulation of
+        those points avoids; a lower bound here accepts them while the hull is still peeled.
 
     Returns
     -------
@@ -242,6 +247,10 @@ def delaunay_mesh(points, keep=None, min_angle_deg: float = 5.0, max_edge: float
     min_angle_deg = float(min_angle_deg)
     if not 0 <= min_angle_deg < 60:
         raise ValueError(f"min_angle_deg: expected an angle in [0, 60) degrees, got {min_angle_deg!r}")
+    interior = min_angle_deg if interior_min_angle_deg is None else float(interior_min_angle_deg)
+    if not 0 <= interior <= min_angle_deg:
+        raise ValueError(f"interior_min_angle_deg: expected an angle in [0, min_angle_deg={min_angle_deg}] degrees, "
+                         f"got {interior_min_angle_deg!r}")
     try:
         tri = Delaunay(pts).simplices
     except Exception as exc:  # scipy's QhullError: all points collinear, or too few distinct
@@ -260,18 +269,19 @@ def delaunay_mesh(points, keep=None, min_angle_deg: float = 5.0, max_edge: float
                              "points: no triangle of acceptable quality is left")
         flat = np.abs(triangle_double_areas(pts, tri)) <= 1e-12 * scale
         angles = np.where(flat, 0.0, triangle_angles_deg(pts, tri).min(axis=1))
-        bad = flat | (angles < min_angle_deg)
-        if not bad.any():
-            break
         # Slivers and flat triangles on the hull are artefacts of Delaunay: peel those that
         # touch the boundary, layer by layer; a bad triangle that never reaches the boundary
         # lies inside the tissue and is a real quality problem.
-        peel = bad & _touches_boundary(tri)
-        if not peel.any():
+        peel = (flat | (angles < min_angle_deg)) & _touches_boundary(tri)
+        if peel.any():
+            tri = tri[~peel]
+            continue
+        bad = flat | (angles < interior)
+        if bad.any():
             raise ValueError(
                 f"points: the triangulation has an interior triangle with a {angles[bad].min():.2f} "
-                f"degree angle (min_angle_deg={min_angle_deg}); add or move points")
-        tri = tri[~peel]
+                f"degree angle (min_angle_deg={interior}); add or move points")
+        break
     used = np.unique(tri)
     remap = -np.ones(len(pts), np.int64)
     remap[used] = np.arange(len(used))

@@ -18,6 +18,8 @@ from sfem_filters.cardiac.myocardium import (
     contour_landmarks,
     lv_geometry,
     mesh_from_mask,
+    mesh_from_points,
+    tissue_mesh,
 )
 from sfem_filters.cardiac.sequence import (
     example_path,
@@ -326,6 +328,61 @@ def test_subject_a_mesh_matches_the_issue_facts():
     assert su.mesh.n_nodes == 332
     assert len(su.geometry.endo) + len(su.geometry.epi) == 155          # 155 of 332 touch the boundary
     assert len(su.observed) == 16 and len(su.heldout) == 316
+
+
+def _ring_points(r_in, r_out, n=None, size=64):
+    yy, xx = np.mgrid[0:size, 0:size].astype(float)
+    c = (size - 1) / 2.0
+    r = np.hypot(xx - c, yy - c)
+    keep = (r >= r_in) & (r <= r_out)
+    return np.column_stack([xx[keep], yy[keep]]) * 1e-3
+
+
+def _area(mesh):
+    a, b, c = (mesh.nodes[mesh.elements[:, k]] for k in range(3))
+    return 0.5 * np.abs((b - a)[:, 0] * (c - a)[:, 1] - (b - a)[:, 1] * (c - a)[:, 0]).sum()
+
+
+def test_tissue_mesh_on_a_pixel_lattice_is_the_fixed_bound_mesh():
+    pts = _ring_points(9.0, 15.0)
+    mesh, bound = tissue_mesh(pts)
+    ref = mesh_from_points(pts, 1.5e-3)
+    assert bound == pytest.approx(1.5e-3)
+    np.testing.assert_array_equal(mesh.elements, ref.elements)
+    np.testing.assert_array_equal(mesh.nodes, pts)
+
+
+@settings(max_examples=10, deadline=None)
+@given(jitter=st.floats(0.1, 0.35), seed=st.integers(0, 2 ** 16), r_in=st.floats(6.0, 12.0),
+       wall=st.floats(3.0, 8.0))
+def test_scattered_tissue_points_are_meshed_into_one_annulus_using_every_point(jitter, seed, r_in, wall):
+    """Points off a lattice (tracked material points) leave gaps at the lattice's bound; the bound
+    grows until every point is a node and the wall is one annulus, with the cavity not bridged."""
+    pts = _ring_points(r_in, r_in + wall)
+    pts = pts + np.random.default_rng(seed).uniform(-jitter, jitter, pts.shape) * 1e-3
+    mesh, bound = tissue_mesh(pts)
+    assert mesh.n_nodes == len(pts)
+    np.testing.assert_array_equal(mesh.nodes, pts)                       # the points' order is kept
+    g = lv_geometry(mesh)
+    assert bound < 4 * 1e-3 * 1.01 and bound < 2 * r_in * 1e-3          # far below the cavity's width
+    lattice = mesh_from_points(_ring_points(r_in, r_in + wall), 1.5e-3)
+    assert 0.7 * _area(lattice) < _area(mesh) < 1.15 * _area(lattice)    # the wall, not the cavity
+    r = np.linalg.norm(mesh.nodes[g.endo] - g.centre, axis=1)
+    assert r.max() < (r_in + 2.5) * 1e-3                                 # the cavity is a hole
+
+
+def test_points_that_do_not_form_one_wall_are_named():
+    pts = _ring_points(9.0, 15.0)
+    two = np.vstack([pts, pts + [0.2, 0.0]])                             # two walls 200 mm apart
+    with pytest.raises(ValueError, match="points: no edge bound up to 4.0 median point spacings"):
+        tissue_mesh(two)
+    disc = _ring_points(-1.0, 8.0)                                       # no cavity
+    with pytest.raises(ValueError, match="one annular wall"):
+        tissue_mesh(disc)
+    with pytest.raises(ValueError, match="points: expected at least 3"):
+        tissue_mesh(pts[:2])
+    with pytest.raises(ValueError, match="edge_factor: expected"):
+        tissue_mesh(pts, edge_factor=-1)
 
 
 def test_mask_with_two_pieces_is_rejected():

@@ -315,6 +315,11 @@ def test_delaunay_rejects_interior_sliver():
                                          r"with a 0\.\d+ degree angle \(min_angle_deg=5\.0\)"):
         delaunay_mesh(pts)
     assert delaunay_mesh(pts, min_angle_deg=0.1).n_nodes == len(pts)
+    # the interior bound alone accepts it, while the hull keeps the stricter bound
+    kept = delaunay_mesh(pts, interior_min_angle_deg=0.1)
+    assert kept.n_nodes == len(pts) and len(kept.elements) == len(delaunay_mesh(pts, min_angle_deg=0.1).elements)
+    with pytest.raises(ValueError, match=r"interior_min_angle_deg: expected an angle in \[0, min_angle_deg=5.0\]"):
+        delaunay_mesh(pts, interior_min_angle_deg=6.0)
 
 
 @pytest.mark.parametrize("points, match", [
