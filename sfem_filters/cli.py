@@ -56,6 +56,13 @@ def _positive_int(text: str) -> int:
     return v
 
 
+def _landmarks(text: str) -> int:
+    v = int(text)
+    if v < 3:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 3 (landmarks per contour), got {text!r}")
+    return v
+
+
 def _folds(text: str) -> int:
     v = int(text)
     if v < 2:
@@ -131,7 +138,7 @@ def build_parser() -> argparse.ArgumentParser:
                         + ", ".join(EXPLICIT_ONLY) + ", which are tried only when named here)")
     d.add_argument("--drive", choices=DRIVES, default="penalty",
                    help="what drives the model besides its effects (default penalty)")
-    d.add_argument("--landmarks", type=_positive_int, default=8, help="observed landmarks per contour (default 8)")
+    d.add_argument("--landmarks", type=_landmarks, default=8, help="observed landmarks per contour (default 8)")
     d.add_argument("--observe", choices=OBSERVE, default="boundary",
                    help="observe the landmarks only, or also a seeded half of the mid-wall points")
     d.add_argument("--holdout-seed", type=int, default=0, help="seed of the mid-wall split (default 0)")

@@ -556,7 +556,8 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
     ----------
     effects : "auto", "none" or a sequence (or comma-separated string) of effect names
         ``auto`` runs the rounds; ``none`` only the baseline; names: the baseline and one run with
-        exactly those effects (no test).
+        exactly those effects (no test); an empty sequence is ``none``. Unknown names are an error
+        before any fit.
     drive, parameterisation : str
         See :func:`sfem_filters.cardiac.measured.build_model`.
     landmarks, observe, holdout_seed, mesh, angle_origin_deg :
@@ -642,6 +643,14 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
     unknown = [n for n in names if n not in CATALOGUE]
     if unknown:
         raise ValueError(f"candidates: unknown effects {unknown}; expected names from {sorted(CATALOGUE)}")
+    if isinstance(effects, str) and effects not in ("auto", "none"):
+        effects = [e.strip() for e in effects.split(",") if e.strip()]
+    if not isinstance(effects, str):    # checked before any fit, not after the baseline's
+        effects = list(effects)
+        unknown = [e for e in effects if e not in CATALOGUE]
+        if unknown:
+            raise ValueError(f"effects: expected 'auto', 'none' or names from {sorted(CATALOGUE)}, got {unknown}")
+        effects = effects or "none"     # an empty sequence: no effect, as "none"
     setup = prepare(seq, landmarks, observe, holdout_seed, mesh=mesh, angle_origin_deg=angle_origin_deg)
     try:                                # before any fit: can the observed points be cross-validated?
         observation_folds(setup, folds)
@@ -675,8 +684,6 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
         return Round(number, variant, added, replaced, trial, ranking, threshold, tried, log_evidence(trial),
                      cv if cv is not None or not cv_possible else round_cross_validation(setup, variant, trial, folds))
     loads = dict(candidate_loads(setup, names))
-    if isinstance(effects, str) and effects not in ("auto", "none"):
-        effects = [e.strip() for e in effects.split(",") if e.strip()]
     first = diagnostics.rank_effects(base.model, base.result.history, list(loads.items()))
     if effects == "none":
         stop = "none"

@@ -149,12 +149,35 @@ def make_sequence(points, displacement, **optional) -> Sequence:
     units = str(np.asarray(optional.get("units", "px")))
     if units not in ("px", "m"):
         raise ValueError(f"units: expected 'px' or 'm', got {units!r}")
+    if kw.get("reference_mask") is not None and kw.get("frame_masks") is not None \
+            and kw["frame_masks"].shape[1:] != kw["reference_mask"].shape:
+        raise ValueError(f"frame_masks: expected images of the reference_mask's shape {kw['reference_mask'].shape}, "
+                         f"got {kw['frame_masks'].shape[1:]}")
+    if kw.get("reference_mask") is not None and units == "px":
+        _check_points_on_mask(pts, kw["reference_mask"])
     if units == "m" and kw.get("pixel_spacing") is not None:
         raise ValueError("pixel_spacing: given, but units is 'm' (points already in metres)")
     kw["units"] = units
     kw["provenance"] = str(np.asarray(optional.get("provenance", "")))
     return Sequence(points=pts, displacement=disp,
                     extra={k: optional[k] for k in unknown}, **kw)
+
+
+def _check_points_on_mask(points, mask) -> None:
+    """Most points (pixels: x = column, y = row) must fall on the reference mask's tissue pixels.
+
+    Points on the border may lie up to half a pixel outside it (contour points), so half of all
+    points is the bound: a mask from another image, or points shifted or transposed against it,
+    falls far below it."""
+    c = np.round(points[:, 0]).astype(int)
+    r = np.round(points[:, 1]).astype(int)
+    inside = (r >= 0) & (r < mask.shape[0]) & (c >= 0) & (c < mask.shape[1])
+    on = np.zeros(len(points), bool)
+    on[inside] = mask[r[inside], c[inside]]
+    if on.sum() < 0.5 * len(points):
+        raise ValueError(f"reference_mask: expected the points (pixels, x = column, y = row) on its tissue pixels, "
+                         f"got {int(on.sum())} of {len(points)} on them ({int((~inside).sum())} outside its "
+                         f"{mask.shape[0]} x {mask.shape[1]} image); are the points and the mask in the same pixel frame?")
 
 
 def load_sequence(path) -> Sequence:

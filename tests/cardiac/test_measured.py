@@ -61,10 +61,34 @@ def test_sequence_round_trip(tmp_path):
      r"confidence: expected values in \[0, 1\]"),
     (dict(points=np.array([["a", "b"]] * 5), displacement=np.zeros((3, 5, 2))), "points: expected numbers"),
     (dict(points=np.ones((5, 2)), displacement=np.zeros((3, 5, 2)), units="mm"), "units: expected 'px' or 'm'"),
+    (dict(points=np.ones((5, 2)) + 100, displacement=np.zeros((3, 5, 2)), reference_mask=np.ones((8, 8), bool)),
+     r"reference_mask: expected the points .* got 0 of 5 on them \(5 outside its 8 x 8 image\)"),
+    (dict(points=np.ones((5, 2)), displacement=np.zeros((3, 5, 2)), reference_mask=np.ones((8, 8), bool),
+          frame_masks=np.ones((3, 8, 9), bool)), r"frame_masks: expected images of the reference_mask's shape \(8, 8\)"),
 ])
 def test_bad_sequences_are_named(kwargs, match):
     with pytest.raises(ValueError, match=match):
         make_sequence(**kwargs)
+
+
+def test_points_shifted_or_transposed_against_their_mask_are_named():
+    seq = load_sequence(example_path())
+    kw = seq.to_dict()
+    make_sequence(**kw)                                                  # as shipped: every point on the mask
+    for moved in (seq.points + [0.0, 20.0], seq.points[:, ::-1] + [0.0, 7.0]):
+        with pytest.raises(ValueError, match="reference_mask: expected the points"):
+            make_sequence(**{**kw, "points": moved})
+    make_sequence(**{**kw, "points": moved, "units": "m"})               # metres: no pixel frame to compare
+
+
+def test_bad_effect_names_and_landmark_counts_fail_before_any_fit():
+    seq = load_sequence(example_path())
+    for effects in ("active_polar,glue", ["glue"]):
+        with pytest.raises(ValueError, match=r"effects: expected 'auto', 'none' or names from"):
+            closing.closing_the_loop(seq, effects=effects)
+    proc = subprocess.run([sys.executable, "-m", "sfem_filters.cli", "dense", "example", "--landmarks", "2"],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2 and "--landmarks: expected an integer >= 3" in proc.stderr
 
 
 def test_malformed_files_give_clear_errors_and_cli_exit_2(tmp_path):
