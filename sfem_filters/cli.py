@@ -382,7 +382,7 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return {"compare": cmd_compare, "dense": cmd_dense, "observe": cmd_observe}[args.command](args)
-    except (ValueError, TypeError, OSError, ImportError) as exc:
+    except (ValueError, TypeError, OSError, ImportError, MemoryError) as exc:
         print(f"sfem-filters {args.command}: error: {exc}", file=sys.stderr)
         return 2
 

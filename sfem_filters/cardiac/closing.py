@@ -886,6 +886,11 @@ def length_display(units: str) -> tuple:
     return ("mm", 1e3) if units == "m" else ("px", 1.0)
 
 
+def _number(value, width: int) -> str:
+    """A report's figure to 3 decimals, or '-' where it is undefined (None or not finite)."""
+    return f"{'-':>{width}}" if value is None or not np.isfinite(value) else f"{value:>{width}.3f}"
+
+
 def format_report(result: "LoopResult") -> str:
     """Text summary of :func:`closing_the_loop`.
 
@@ -996,7 +1001,7 @@ def _format_report(report: dict) -> str:
                        ("shear_strain_rms_peak_model", "2 E_rc at peak, RMS (model)"),
                        ("shear_strain_error_rms_peak", "  error vs measured, RMS"),
                        ("shear_strain_correlation_peak", "  correlation with measured")):
-        lines.append(f"{label:<34}{b[key]:>12.3f}{e[key]:>18.3f}")
+        lines.append(f"{label:<34}{_number(b[key], 12)}{_number(e[key], 18)}")
         if key == "heldout_rmse_circumferential_px":
             lines.append(f"{'  model + spline of its residual':<34}{b['residual_spline']['heldout_rmse_px']:>12.3f}"
                          f"{e['residual_spline']['heldout_rmse_px']:>18.3f}")

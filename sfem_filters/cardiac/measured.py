@@ -691,8 +691,10 @@ def evaluate(setup: Setup, model: SFEMModel, result, seconds: float = 0.0, obser
     shear_model = strain_maps(setup, U)[peak, :, 2]
     metrics.update({"shear_strain_rms_peak_model": float(np.sqrt(np.mean(shear_model ** 2))),
                     "shear_strain_error_rms_peak": float(np.sqrt(np.mean((shear_model - shear_data) ** 2))),
+                    # undefined (null in the JSON, '-' in the report) where either field is constant,
+                    # as at a peak frame 0, where every strain is zero; not a correlation of 0
                     "shear_strain_correlation_peak": float(np.corrcoef(shear_model, shear_data)[0, 1])
-                    if np.std(shear_model) > 0 and np.std(shear_data) > 0 else 0.0})
+                    if np.std(shear_model) > 1e-12 and np.std(shear_data) > 1e-12 else float("nan")})
     if smoother:
         metrics["log_evidence"] = float(result.log_likelihood)
     elif observations is not None:

@@ -189,6 +189,12 @@ def load_sequence(path) -> Sequence:
     path = os.fspath(path)
     if not os.path.exists(path):
         raise ValueError(f"path: no such file {path!r}")
+    with open(path, "rb") as f:
+        magic = f.read(4)
+    if magic != b"PK\x03\x04":                   # np.load would read a text file as a pickle
+        what = "an .npy array (save it with numpy.savez)" if magic[:2] == b"\x93N" else \
+            f"{len(magic)} bytes" if len(magic) < 4 else "not a zip archive"
+        raise ValueError(f"{path}: not a readable .npz sequence file (an .npz is a zip archive of arrays; this is {what})")
     try:
         with np.load(path, allow_pickle=False) as f:
             data = {k: f[k] for k in f.files}

@@ -64,7 +64,7 @@ from .protocol import (OutputOperators, check_model, measurement_cov, parameter_
                        scaled_measurement_noise, scaled_process_noise)
 from .safeguards import Safeguards
 from .curvature import ProfileHessian, gauss_newton_pass, optimal_trajectory, profile_hessian, profile_pass
-from .smoother import smooth
+from .smoother import check_memory, smooth
 
 __all__ = ["IteratedSmoother", "SmootherResult", "MapObjective", "iterated_smoother", "open_loop", "exact_laplace",
            "NOISE_LEVELS"]
@@ -462,8 +462,9 @@ class IteratedSmoother:
         run's ``states``; the MAP cost, and so the mode, are unchanged. A start where the model
         cannot step falls back to the prior mean.
         """
+        check_model(model)
+        check_memory(model.dim_state, model.n_frames)     # before any pass, not when the kill comes
         if start is not None:
-            check_model(model)
             start = as_float_array("start", start, shape=(model.n_frames, model.dim_state))
         if self.measurement_noise == "estimate":
             # R's level first, at the model's Q; then, if asked, Q's level at the R chosen

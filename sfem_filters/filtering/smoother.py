@@ -23,6 +23,7 @@ Memory: the prior covariance of every frame is kept for the backward pass (n^2 f
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -34,7 +35,7 @@ from .linearised import LinearisedModel
 from .structured import joseph_update
 
 __all__ = ["LinearisedEngine", "ForwardPass", "SmoothedPass", "kalman_forward", "smooth_backward", "smooth",
-           "rts_reference"]
+           "rts_reference", "available_memory", "check_memory"]
 
 LOG_2PI = float(np.log(2.0 * np.pi))
 
@@ -142,6 +143,58 @@ class SmoothedPass:
         if name == "forward":
             raise AttributeError(name)
         return getattr(self.forward, name)
+
+
+#: Peak memory of a smoothing run in units of the stored prior covariances: the filter's own
+#: covariance, the backward pass's information matrix and the model's dense operators come on top
+#: (the resident peaks of the README's whole runs: 2.0-3.0 times, the interpreter included).
+PEAK_FACTOR = 3.0
+
+
+def available_memory() -> float | None:
+    """Bytes available to new allocations (Linux: ``MemAvailable`` of /proc/meminfo), or None
+    where the system does not say."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return float(line.split()[1]) * 1024.0
+    except (OSError, ValueError, IndexError):
+        return None
+    return None
+
+
+def check_memory(n: int, frames: int, available: float | None = None) -> None:
+    """Refuse a forward pass whose stored covariances cannot fit, warn where the run's peak may not.
+
+    The backward pass needs the prior covariance of every frame: ``(frames + 1) n^2`` floats
+    (8 bytes each). More than the available memory is a :class:`MemoryError` that says how much
+    and what to reduce, instead of the operating system killing the process midway; more than a
+    :data:`PEAK_FACTOR` share of it is a ``RuntimeWarning``.
+
+    Parameters
+    ----------
+    n : int
+        State dimension (kinematics, effect states and parameters).
+    frames : int
+        Frames of the pass.
+    available : float, optional
+        Bytes available (default :func:`available_memory`; nothing is checked where unknown).
+    """
+    available = available_memory() if available is None else float(available)
+    if available is None:
+        return
+    stored = 8.0 * (frames + 1) * float(n) ** 2
+    gb = 1e-9
+    what = (f"the smoother keeps an {n} x {n} covariance for each of {frames + 1} frames ({stored * gb:.1f} GB; "
+            f"about {PEAK_FACTOR * stored * gb:.1f} GB at the run's peak)")
+    advice = ("reduce the state (fewer nodes, for example every other pixel of the tissue; fewer material "
+              "parameters) or the frames, or run where more memory is free")
+    if stored > available:
+        raise MemoryError(f"observations: {what}, more than the {available * gb:.1f} GB available; {advice}")
+    if PEAK_FACTOR * stored > available:
+        warnings.warn(f"{what}, while {available * gb:.1f} GB are available: the run may run out of memory; {advice}",
+                      RuntimeWarning, stacklevel=2)
 
 
 def kalman_forward(lin: LinearisedModel, observations, theta_mean=None, theta_cov=None, *, safeguards=None,

@@ -96,7 +96,14 @@ def test_malformed_files_give_clear_errors_and_cli_exit_2(tmp_path):
     truncated.write_bytes(open(example_path(), "rb").read()[:5000])
     missing = tmp_path / "missing.npz"
     np.savez(missing, points=np.ones((5, 2)))
-    for path, match in ((truncated, "not a readable .npz"), (missing, r"missing required key\(s\) \['displacement'\]"),
+    text = tmp_path / "notes.npz"
+    text.write_text("points, displacement\n1, 2\n")
+    array = tmp_path / "array.npz"
+    with open(array, "wb") as f:
+        np.save(f, np.ones(3))
+    for path, match in ((text, r"not a readable .npz sequence file \(an .npz is a zip archive of arrays; this is not a zip"),
+                        (array, "this is an .npy array"),
+                        (truncated, "not a readable .npz"), (missing, r"missing required key\(s\) \['displacement'\]"),
                         (tmp_path / "nope.npz", "no such file")):
         with pytest.raises(ValueError, match=match):
             load_sequence(path)
@@ -274,6 +281,22 @@ def test_degenerate_data_are_named_for_what_they_are():
     gappy[1:, setup.observed] = np.nan                   # the landmarks are seen in frame 0 only
     with pytest.raises(ValueError, match="displacement: none of the 16 observed points has data in 3 consecutive"):
         measured.prepare(dataclasses.replace(seq, displacement=gappy), 8)
+
+
+def test_an_undefined_shear_correlation_is_null_not_zero(tmp_path):
+    """Data that only translate have no shear: the correlation of the model's with it is undefined,
+    null in the JSON and '-' in the report, not a correlation of 0."""
+    seq = annulus_sequence(None, n_frames=6)
+    t = np.arange(seq.n_frames)
+    shift = np.column_stack([0.3 * np.sin(t), 0.2 * np.cos(1.3 * t) - 0.2])       # px, rigid
+    seq = dataclasses.replace(seq, displacement=np.repeat(shift[:, None, :], seq.points.shape[0], axis=1))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        out = closing.closing_the_loop(seq, effects="none", parameterisation="none")
+    report = json.loads(open(write_json(tmp_path / "r.json", out.as_json())).read())
+    assert report["baseline"]["shear_strain_correlation_peak"] is None
+    line = next(r for r in closing.format_report(out).splitlines() if r.startswith("  correlation with measured"))
+    assert line.split()[-2:] == ["-", "-"]
 
 
 def test_a_frame_without_data_is_null_in_the_json_and_metres_are_reported_in_mm(tmp_path):

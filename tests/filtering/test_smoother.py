@@ -27,7 +27,8 @@ from sfem_filters.filtering import (
     smooth,
 )
 from sfem_filters.filtering.iterated import open_loop
-from sfem_filters.filtering.smoother import kalman_forward
+from sfem_filters.filtering import smoother as smoother_module
+from sfem_filters.filtering.smoother import PEAK_FACTOR, check_memory, kalman_forward
 
 
 def _spd(rng, k, scale=1.0):
@@ -263,6 +264,32 @@ def test_bad_inputs_are_named(pinned):
     est.Q[-1, -1] = 1e-4
     with pytest.raises(ValueError, match="expected static parameters"):
         IteratedSmoother().run(est, pinned.observations)
+
+
+def test_a_run_too_large_for_the_memory_is_refused_before_any_pass(pinned, monkeypatch):
+    """(frames + 1) n^2 floats are kept for the backward pass: beyond the available memory a named
+    MemoryError says how much, beyond a PEAK_FACTOR share of it a warning, else nothing."""
+    n, T = 1000, 24
+    stored = 8.0 * (T + 1) * n ** 2
+    with pytest.raises(MemoryError, match=r"observations: the smoother keeps an 1000 x 1000 covariance for each of "
+                                          r"25 frames \(0\.2 GB; about 0\.6 GB at the run's peak\), more than the "
+                                          r"0\.1 GB available; reduce the state"):
+        check_memory(n, T, available=0.5 * stored)
+    with pytest.warns(RuntimeWarning, match="the run may run out of memory"):
+        check_memory(n, T, available=0.5 * (1 + PEAK_FACTOR) * stored)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        check_memory(n, T, available=1.01 * PEAK_FACTOR * stored)
+    if os.path.exists("/proc/meminfo"):
+        assert smoother_module.available_memory() > 0
+    m = benchmark_model(pinned, "joint_ekf", parameterisation=Parameterisation.per_region(pinned.middle))
+    need = 8.0 * (m.n_frames + 1) * m.dim_state ** 2
+    monkeypatch.setattr(smoother_module, "available_memory", lambda: 0.9 * need)
+    passes = []
+    monkeypatch.setattr(smoother_module, "kalman_forward", lambda *a, **k: passes.append(1))
+    with pytest.raises(MemoryError, match="observations: the smoother keeps"):
+        IteratedSmoother().run(m, pinned.observations)
+    assert not passes
 
 
 def test_forward_pass_profile_equals_log_likelihood_terms(pinned):
