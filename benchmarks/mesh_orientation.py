@@ -100,8 +100,9 @@ def main(argv=None) -> int:
     print("spread over the moves (largest - smallest):")
     for m in args.meshes:
         sel = [r for r in rows if r["mesh"] == m]
-        spread = {k: max(r[k] for r in sel) - min(r[k] for r in sel) for k in KEYS}
-        mean = {k: np.mean([r[k] for r in sel]) for k in KEYS}
+        # nan-aware: an undefined figure (a NaN correlation) must not depend on the rows' order
+        spread = {k: np.nanmax([r[k] for r in sel]) - np.nanmin([r[k] for r in sel]) for k in KEYS}
+        mean = {k: np.nanmean([r[k] for r in sel]) for k in KEYS}
         print(f"  {m:<8} held-out {spread['heldout_rmse_px']:.4f} px ({100 * spread['heldout_rmse_px'] / mean['heldout_rmse_px']:.1f}%), "
               f"NIS/dof {spread['nis_mean_over_dof']:.4f}, MAP cost {spread['map_cost']:.3f}, "
               f"log p(y) {spread['log_evidence']:.3f} nats, E_rc corr {spread['shear_strain_correlation_peak']:.4f}, "

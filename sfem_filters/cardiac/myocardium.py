@@ -58,7 +58,9 @@ def tissue_mesh(points, edge_factor: float = 1.5, max_factor: float = 4.0,
     some points in no such triangle, or holes inside the wall; the bound then grows through the
     Delaunay triangles' longest edges, smallest first, until every point lies in a triangle and
     the mesh is an annulus (one outer contour, one cavity: :func:`lv_geometry`), at most to
-    ``max_factor * h``. The cavity is many spacings across, so it is not bridged first.
+    ``max_factor * h``. The cavity is many spacings across, so it is not bridged first. Points on
+    a square lattice (pixel centres) keep the first bound: there a point left out is an isolated
+    pixel, and a gap a hole in the wall, which are errors, not reasons to bridge concavities.
 
     Parameters
     ----------
@@ -88,15 +90,24 @@ def tissue_mesh(points, edge_factor: float = 1.5, max_factor: float = 4.0,
         raise ValueError(f"points: expected at least 3 tissue points, got {len(pts)}")
     edge_factor = positive("edge_factor", edge_factor)
     max_factor = positive("max_factor", max_factor)
+    if max_factor < edge_factor:
+        raise ValueError(f"max_factor: expected at least edge_factor={edge_factor}, got {max_factor}")
     dist, _ = cKDTree(pts).query(pts, k=2)
+    if np.any(dist[:, 1] == 0):
+        raise ValueError(f"points: expected distinct points, got {int(np.sum(dist[:, 1] == 0))} with a duplicate")
     h = float(np.median(dist[:, 1]))
-    if not h > 0:
-        raise ValueError("points: expected distinct points, got duplicates (median nearest-neighbour distance 0)")
-    tri = Delaunay(pts).simplices
+    try:
+        tri = Delaunay(pts).simplices
+    except Exception as exc:  # scipy's QhullError: all points collinear, or too few distinct
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise ValueError(f"points: cannot be triangulated (collinear or degenerate point set; Qhull: {first})") from None
     q = pts[tri]
     longest = np.linalg.norm(q - q[:, [1, 2, 0]], axis=2).max(axis=1)
-    bounds = np.concatenate([[edge_factor * h],
-                             np.unique(longest[(longest > edge_factor * h) & (longest <= max_factor * h)])])
+    bounds = np.array([edge_factor * h])
+    origin = pts[np.argmin(pts[:, 0] + pts[:, 1])]
+    on_lattice = np.allclose((pts - origin) / h, np.round((pts - origin) / h), atol=1e-6)
+    if not on_lattice:       # a pixel lattice keeps its one bound: an isolated pixel or a hole is an error
+        bounds = np.concatenate([bounds, np.unique(longest[(longest > edge_factor * h) & (longest <= max_factor * h)])])
     last = ["no bound tried"]
 
     def annulus(i):
@@ -128,6 +139,9 @@ def tissue_mesh(points, edge_factor: float = 1.5, max_factor: float = 4.0,
             else:
                 hi, mesh = mid, found
         return mesh, float(bounds[hi])
+    if on_lattice:
+        raise ValueError(f"points: at {edge_factor} spacings of their pixel lattice the tissue mesh is not one annular "
+                         f"wall with every point a node ({last[0]}); remove isolated pixels, fill holes in the wall")
     raise ValueError(f"points: no edge bound up to {max_factor} median point spacings ({max_factor * h:.3g} m) meshes "
                      f"every point into one annular wall (at the largest: {last[0]}); expected the tissue points of a "
                      "short-axis slice, without isolated points or gaps wider than that")

@@ -39,6 +39,7 @@ from dataclasses import dataclass, field, fields
 from importlib import resources
 
 import numpy as np
+from scipy.ndimage import binary_dilation
 
 from .._validate import as_float_array, as_mask, positive
 
@@ -164,19 +165,21 @@ def make_sequence(points, displacement, **optional) -> Sequence:
 
 
 def _check_points_on_mask(points, mask) -> None:
-    """Most points (pixels: x = column, y = row) must fall on the reference mask's tissue pixels.
+    """Most points (pixels: x = column, y = row) must fall on or next to the reference mask's tissue.
 
-    Points on the border may lie up to half a pixel outside it (contour points), so half of all
-    points is the bound: a mask from another image, or points shifted or transposed against it,
-    falls far below it."""
+    Border points (the contours ``sfem-filters observe`` tracks) lie on the half-pixel boundary
+    between tissue and background, so a point counts when its pixel or one of the 8 around it is
+    tissue; half of all points is the bound. A mask from another image, or points shifted or
+    transposed against it, falls far below it."""
+    near = binary_dilation(mask, structure=np.ones((3, 3), bool))
     c = np.round(points[:, 0]).astype(int)
     r = np.round(points[:, 1]).astype(int)
     inside = (r >= 0) & (r < mask.shape[0]) & (c >= 0) & (c < mask.shape[1])
     on = np.zeros(len(points), bool)
-    on[inside] = mask[r[inside], c[inside]]
+    on[inside] = near[r[inside], c[inside]]
     if on.sum() < 0.5 * len(points):
-        raise ValueError(f"reference_mask: expected the points (pixels, x = column, y = row) on its tissue pixels, "
-                         f"got {int(on.sum())} of {len(points)} on them ({int((~inside).sum())} outside its "
+        raise ValueError(f"reference_mask: expected the points (pixels, x = column, y = row) on or next to its tissue "
+                         f"pixels, got {int(on.sum())} of {len(points)} there ({int((~inside).sum())} outside its "
                          f"{mask.shape[0]} x {mask.shape[1]} image); are the points and the mask in the same pixel frame?")
 
 
@@ -191,7 +194,7 @@ def load_sequence(path) -> Sequence:
         raise ValueError(f"path: no such file {path!r}")
     with open(path, "rb") as f:
         magic = f.read(4)
-    if magic != b"PK\x03\x04":                   # np.load would read a text file as a pickle
+    if magic not in (b"PK\x03\x04", b"PK\x05\x06"):  # a zip (or an empty one); np.load would read text as a pickle
         what = "an .npy array (save it with numpy.savez)" if magic[:2] == b"\x93N" else \
             f"{len(magic)} bytes" if len(magic) < 4 else "not a zip archive"
         raise ValueError(f"{path}: not a readable .npz sequence file (an .npz is a zip archive of arrays; this is {what})")

@@ -280,7 +280,8 @@ def delaunay_mesh(points, keep=None, min_angle_deg: float = 5.0, max_edge: float
         if bad.any():
             raise ValueError(
                 f"points: the triangulation has an interior triangle with a {angles[bad].min():.2f} "
-                f"degree angle (min_angle_deg={interior}); add or move points")
+                f"degree angle ({'min_angle_deg' if interior_min_angle_deg is None else 'interior_min_angle_deg'}"
+                f"={interior}); add or move points")
         break
     used = np.unique(tri)
     remap = -np.ones(len(pts), np.int64)

@@ -151,17 +151,42 @@ class SmoothedPass:
 PEAK_FACTOR = 3.0
 
 
+#: (limit, usage) files of the process's memory control group: cgroup v2, then v1.
+CGROUP_FILES = (("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory.current"),
+                ("/sys/fs/cgroup/memory/memory.limit_in_bytes", "/sys/fs/cgroup/memory/memory.usage_in_bytes"))
+
+
+def _read_number(path: str) -> float | None:
+    try:
+        with open(path) as f:
+            text = f.read().strip()
+        return float(text) if text and text != "max" else None
+    except (OSError, ValueError):
+        return None
+
+
 def available_memory() -> float | None:
-    """Bytes available to new allocations (Linux: ``MemAvailable`` of /proc/meminfo), or None
-    where the system does not say."""
+    """Bytes available to new allocations, or None where the system does not say.
+
+    The smaller of the machine's ``MemAvailable`` (Linux /proc/meminfo) and what the process's
+    control group still allows (cgroup v2 ``memory.max - memory.current``, v1
+    ``memory.limit_in_bytes - memory.usage_in_bytes``), as in a container or a batch slot. A Dask
+    worker's own ``memory_limit`` is not seen here."""
+    found = []
     try:
         with open("/proc/meminfo") as f:
             for line in f:
                 if line.startswith("MemAvailable:"):
-                    return float(line.split()[1]) * 1024.0
+                    found.append(float(line.split()[1]) * 1024.0)
+                    break
     except (OSError, ValueError, IndexError):
-        return None
-    return None
+        pass
+    for limit, used in CGROUP_FILES:
+        cap, now = _read_number(limit), _read_number(used)
+        if cap is not None and now is not None and cap < 2.0 ** 60:     # v1 writes a huge number for none
+            found.append(max(cap - now, 0.0))
+            break
+    return min(found) if found else None
 
 
 def check_memory(n: int, frames: int, available: float | None = None) -> None:
@@ -186,15 +211,15 @@ def check_memory(n: int, frames: int, available: float | None = None) -> None:
         return
     stored = 8.0 * (frames + 1) * float(n) ** 2
     gb = 1e-9
-    what = (f"the smoother keeps an {n} x {n} covariance for each of {frames + 1} frames ({stored * gb:.1f} GB; "
+    what = (f"the smoother keeps a {n} x {n} covariance for each of {frames + 1} frames ({stored * gb:.1f} GB; "
             f"about {PEAK_FACTOR * stored * gb:.1f} GB at the run's peak)")
     advice = ("reduce the state (fewer nodes, for example every other pixel of the tissue; fewer material "
               "parameters) or the frames, or run where more memory is free")
     if stored > available:
-        raise MemoryError(f"observations: {what}, more than the {available * gb:.1f} GB available; {advice}")
+        raise MemoryError(f"model: {what}, more than the {available * gb:.1f} GB available; {advice}")
     if PEAK_FACTOR * stored > available:
         warnings.warn(f"{what}, while {available * gb:.1f} GB are available: the run may run out of memory; {advice}",
-                      RuntimeWarning, stacklevel=2)
+                      RuntimeWarning, stacklevel=3)
 
 
 def kalman_forward(lin: LinearisedModel, observations, theta_mean=None, theta_cov=None, *, safeguards=None,

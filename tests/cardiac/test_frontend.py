@@ -5,7 +5,7 @@ import os
 import numpy as np
 
 from sfem_filters.cardiac import annulus, frontend, measured
-from sfem_filters.cardiac.sequence import load_sequence, make_sequence
+from sfem_filters.cardiac.sequence import example_path, load_sequence, make_sequence
 from sfem_filters.cli import main
 from sfem_filters.filtering import cyclic_estimate
 from sfem_filters.imaging.confidence import velocity_coherence
@@ -99,6 +99,17 @@ def test_observe_command_writes_a_loadable_sequence_and_figures(tmp_path):
     assert np.all((s.confidence[:, border] >= 0) & (s.confidence[:, border] <= 1))
     assert np.all(s.velocity_sigma[:, ~border] > 0)
     assert sorted(os.listdir(figs)) == ["tracked_contours.png", "velocity_lpc.png"]
+
+
+def test_observe_on_masks_alone_writes_border_points_that_load_with_their_mask(tmp_path):
+    """Without velocity images every point is a border point, on the half-pixel boundary of the
+    mask: the sequence must still load with its reference mask (the shipped slice's masks)."""
+    out = tmp_path / "seq.npz"
+    assert main(["observe", str(example_path()), "--out", str(out)]) == 0
+    s = load_sequence(out)
+    assert s.reference_mask is not None and np.all(s.point_kind < 2)
+    c, r = np.round(s.points).astype(int).T
+    assert 0.2 < np.mean(s.reference_mask[r, c]) < 0.8      # many of them round off the tissue itself
 
 
 def test_observe_command_user_errors_exit_2(tmp_path, capsys):

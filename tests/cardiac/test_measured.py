@@ -62,7 +62,7 @@ def test_sequence_round_trip(tmp_path):
     (dict(points=np.array([["a", "b"]] * 5), displacement=np.zeros((3, 5, 2))), "points: expected numbers"),
     (dict(points=np.ones((5, 2)), displacement=np.zeros((3, 5, 2)), units="mm"), "units: expected 'px' or 'm'"),
     (dict(points=np.ones((5, 2)) + 100, displacement=np.zeros((3, 5, 2)), reference_mask=np.ones((8, 8), bool)),
-     r"reference_mask: expected the points .* got 0 of 5 on them \(5 outside its 8 x 8 image\)"),
+     r"reference_mask: expected the points .* got 0 of 5 there \(5 outside its 8 x 8 image\)"),
     (dict(points=np.ones((5, 2)), displacement=np.zeros((3, 5, 2)), reference_mask=np.ones((8, 8), bool),
           frame_masks=np.ones((3, 8, 9), bool)), r"frame_masks: expected images of the reference_mask's shape \(8, 8\)"),
 ])
@@ -81,11 +81,21 @@ def test_points_shifted_or_transposed_against_their_mask_are_named():
     make_sequence(**{**kw, "points": moved, "units": "m"})               # metres: no pixel frame to compare
 
 
-def test_bad_effect_names_and_landmark_counts_fail_before_any_fit():
+def test_bad_effect_names_and_landmark_counts_fail_before_any_fit(monkeypatch):
     seq = load_sequence(example_path())
+    fits = []
+    real_fit = closing._fit
+    monkeypatch.setattr(closing, "_fit", lambda *a, **k: fits.append(a[1]) or real_fit(*a, **k))
     for effects in ("active_polar,glue", ["glue"]):
         with pytest.raises(ValueError, match=r"effects: expected 'auto', 'none' or names from"):
             closing.closing_the_loop(seq, effects=effects)
+    assert fits == []                                                    # refused before the baseline's fit
+    short = make_sequence(**{**seq.to_dict(), "displacement": seq.displacement[:8],
+                             "frame_masks": seq.frame_masks[:8]})
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        out = closing.closing_the_loop(short, effects=[], parameterisation="none")
+    assert [v.effects for v in fits] == [()] and out.as_json()["stop_reason"] == "none"   # [] is "none"
     proc = subprocess.run([sys.executable, "-m", "sfem_filters.cli", "dense", "example", "--landmarks", "2"],
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2 and "--landmarks: expected an integer >= 3" in proc.stderr
@@ -420,16 +430,28 @@ def test_scattered_tissue_points_are_meshed_into_one_annulus_using_every_point(j
 
 def test_points_that_do_not_form_one_wall_are_named():
     pts = _ring_points(9.0, 15.0)
-    two = np.vstack([pts, pts + [0.2, 0.0]])                             # two walls 200 mm apart
+    jitter = np.random.default_rng(0).uniform(-0.2e-3, 0.2e-3, pts.shape)
+    two = np.vstack([pts, pts + [0.2, 0.0]]) + np.vstack([jitter, jitter])  # two walls 200 mm apart
     with pytest.raises(ValueError, match="points: no edge bound up to 4.0 median point spacings"):
         tissue_mesh(two)
-    disc = _ring_points(-1.0, 8.0)                                       # no cavity
-    with pytest.raises(ValueError, match="one annular wall"):
-        tissue_mesh(disc)
+    # on a pixel lattice the bound stays at 1.5 spacings: no cavity, an isolated pixel, a hole are errors
+    disc = _ring_points(-1.0, 8.0)
+    stray = np.vstack([pts, [[0.0, 0.0]]])
+    holed = np.delete(pts, np.argmin(np.abs(np.linalg.norm(pts - 31.5e-3, axis=1) - 12e-3)), axis=0)
+    for bad, why in ((disc, "inner boundary loops"), (stray, "1 points lie in no triangle"), (holed, "")):
+        with pytest.raises(ValueError, match=f"points: at 1.5 spacings of their pixel lattice the tissue mesh is not one "
+                                             f"annular wall with every point a node \\(.*{why}"):
+            tissue_mesh(bad)
     with pytest.raises(ValueError, match="points: expected at least 3"):
         tissue_mesh(pts[:2])
+    with pytest.raises(ValueError, match="points: expected distinct points, got 2 with a duplicate"):
+        tissue_mesh(np.vstack([pts, pts[:1]]))
+    with pytest.raises(ValueError, match="points: cannot be triangulated"):
+        tissue_mesh(np.column_stack([np.arange(5.0), np.zeros(5)]))
     with pytest.raises(ValueError, match="edge_factor: expected"):
         tissue_mesh(pts, edge_factor=-1)
+    with pytest.raises(ValueError, match="max_factor: expected at least edge_factor=1.5, got 1.0"):
+        tissue_mesh(pts, max_factor=1.0)
 
 
 def test_mask_with_two_pieces_is_rejected():

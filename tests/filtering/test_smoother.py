@@ -271,7 +271,7 @@ def test_a_run_too_large_for_the_memory_is_refused_before_any_pass(pinned, monke
     MemoryError says how much, beyond a PEAK_FACTOR share of it a warning, else nothing."""
     n, T = 1000, 24
     stored = 8.0 * (T + 1) * n ** 2
-    with pytest.raises(MemoryError, match=r"observations: the smoother keeps an 1000 x 1000 covariance for each of "
+    with pytest.raises(MemoryError, match=r"model: the smoother keeps a 1000 x 1000 covariance for each of "
                                           r"25 frames \(0\.2 GB; about 0\.6 GB at the run's peak\), more than the "
                                           r"0\.1 GB available; reduce the state"):
         check_memory(n, T, available=0.5 * stored)
@@ -287,9 +287,22 @@ def test_a_run_too_large_for_the_memory_is_refused_before_any_pass(pinned, monke
     monkeypatch.setattr(smoother_module, "available_memory", lambda: 0.9 * need)
     passes = []
     monkeypatch.setattr(smoother_module, "kalman_forward", lambda *a, **k: passes.append(1))
-    with pytest.raises(MemoryError, match="observations: the smoother keeps"):
+    with pytest.raises(MemoryError, match="model: the smoother keeps"):
         IteratedSmoother().run(m, pinned.observations)
     assert not passes
+
+
+def test_available_memory_is_capped_by_the_control_group(tmp_path, monkeypatch):
+    limit, used = tmp_path / "memory.max", tmp_path / "memory.current"
+    used.write_text("1000000000\n")
+    monkeypatch.setattr(smoother_module, "CGROUP_FILES", ((str(limit), str(used)),))
+    limit.write_text("max\n")                                        # no limit: the machine's figure
+    machine = smoother_module.available_memory()
+    limit.write_text("3000000000\n")                                 # 2 GB left in the group
+    capped = smoother_module.available_memory()
+    assert capped == (2e9 if machine is None else min(machine, 2e9))
+    limit.write_text("900000000\n")                                  # over its limit already: nothing left
+    assert smoother_module.available_memory() == 0.0
 
 
 def test_forward_pass_profile_equals_log_likelihood_terms(pinned):
