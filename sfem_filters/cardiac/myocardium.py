@@ -12,11 +12,11 @@ from dataclasses import dataclass
 import numpy as np
 
 import scipy.sparse as sp
-from scipy.spatial import Delaunay, cKDTree
+from scipy.spatial import cKDTree
 from skimage.measure import label
 
 from .._validate import as_float_array, as_mask, integer, positive
-from ..fem.mesh import TriMesh, check_mesh, delaunay_mesh, mesh_quality
+from ..fem.mesh import TriMesh, check_mesh, delaunay_mesh, delaunay_triangles, mesh_quality
 from ..fem.strain import nodal_strain_operator
 from ..geometry import polygon_centroid, radius_by_angle, signed_area
 
@@ -96,11 +96,7 @@ def tissue_mesh(points, edge_factor: float = 1.5, max_factor: float = 4.0,
     if np.any(dist[:, 1] == 0):
         raise ValueError(f"points: expected distinct points, got {int(np.sum(dist[:, 1] == 0))} with a duplicate")
     h = float(np.median(dist[:, 1]))
-    try:
-        tri = Delaunay(pts).simplices
-    except Exception as exc:  # scipy's QhullError: all points collinear, or too few distinct
-        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise ValueError(f"points: cannot be triangulated (collinear or degenerate point set; Qhull: {first})") from None
+    tri = delaunay_triangles(pts)
     q = pts[tri]
     longest = np.linalg.norm(q - q[:, [1, 2, 0]], axis=2).max(axis=1)
     bounds = np.array([edge_factor * h])

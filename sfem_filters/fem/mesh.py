@@ -212,6 +212,18 @@ def mesh_quality(mesh: TriMesh) -> dict:
             "max_area_m2": float(area.max())}
 
 
+def delaunay_triangles(points) -> np.ndarray:
+    """Delaunay triangles (m, 3) of points (n, 2) (scipy's Qhull), a named error where none exist.
+
+    Collinear or otherwise degenerate point sets raise ``ValueError`` naming ``points`` instead
+    of Qhull's own exception."""
+    try:
+        return Delaunay(np.asarray(points, float)).simplices
+    except Exception as exc:  # scipy's QhullError: all points collinear, or too few distinct
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise ValueError(f"points: cannot be triangulated (collinear or degenerate point set; Qhull: {first})") from None
+
+
 def delaunay_mesh(points, keep=None, min_angle_deg: float = 5.0, max_edge: float | None = None,
                   interior_min_angle_deg: float | None = None) -> TriMesh:
     """Mesh arbitrary points by Delaunay triangulation (scipy), then check quality.
@@ -251,11 +263,7 @@ def delaunay_mesh(points, keep=None, min_angle_deg: float = 5.0, max_edge: float
     if not 0 <= interior <= min_angle_deg:
         raise ValueError(f"interior_min_angle_deg: expected an angle in [0, min_angle_deg={min_angle_deg}] degrees, "
                          f"got {interior_min_angle_deg!r}")
-    try:
-        tri = Delaunay(pts).simplices
-    except Exception as exc:  # scipy's QhullError: all points collinear, or too few distinct
-        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise ValueError(f"points: cannot be triangulated (collinear or degenerate point set; Qhull: {first})") from None
+    tri = delaunay_triangles(pts)
     if max_edge is not None:
         q = pts[tri]
         longest = np.linalg.norm(q - q[:, [1, 2, 0]], axis=2).max(axis=1)
