@@ -33,7 +33,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse.linalg as spla
-from scipy.spatial import cKDTree
 
 from .._validate import as_float_array, integer, positive
 from ..fem.dofs import node_dofs
@@ -210,8 +209,7 @@ def prepare(seq: Sequence, landmarks: int = 8, observe: str = "boundary", holdou
         T = NOMINAL["frame_interval"]
         nominal.append("frame_interval")
     pts = seq.points * spacing
-    tri_mesh, _ = tissue_mesh(pts)
-    lattice = float(np.median(cKDTree(pts).query(pts, k=2)[0][:, 1]))
+    tri_mesh, _, lattice = tissue_mesh(pts)
     # the contours (and so the cavity centre, the radial directions and the wall's nodes) do not
     # depend on the diagonals of full cells: one geometry serves either mesh
     geometry = lv_geometry(tri_mesh)

@@ -16,7 +16,7 @@ from scipy.spatial import cKDTree
 from skimage.measure import label
 
 from .._validate import as_float_array, as_mask, integer, positive
-from ..fem.mesh import TriMesh, check_mesh, delaunay_mesh, delaunay_triangles, mesh_quality
+from ..fem.mesh import TriMesh, check_mesh, delaunay_mesh, delaunay_triangles, lattice_offset, mesh_quality
 from ..fem.strain import nodal_strain_operator
 from ..geometry import polygon_centroid, radius_by_angle, signed_area
 
@@ -84,6 +84,8 @@ def tissue_mesh(points, edge_factor: float = 1.5, max_factor: float = 4.0,
         Nodes in the order of ``points``.
     max_edge : float
         The edge bound used, m.
+    spacing : float
+        The median nearest-neighbour distance ``h``, m (on a pixel lattice, its spacing).
     """
     pts = as_float_array("points", points, shape=(None, 2))
     if len(pts) < 3:
@@ -100,8 +102,7 @@ def tissue_mesh(points, edge_factor: float = 1.5, max_factor: float = 4.0,
     q = pts[tri]
     longest = np.linalg.norm(q - q[:, [1, 2, 0]], axis=2).max(axis=1)
     bounds = np.array([edge_factor * h])
-    origin = pts[np.argmin(pts[:, 0] + pts[:, 1])]
-    on_lattice = np.allclose((pts - origin) / h, np.round((pts - origin) / h), atol=1e-6)
+    on_lattice = lattice_offset(pts, h)[0] <= 1e-6
     if not on_lattice:       # a pixel lattice keeps its one bound: an isolated pixel or a hole is an error
         bounds = np.concatenate([bounds, np.unique(longest[(longest > edge_factor * h) & (longest <= max_factor * h)])])
     last = ["no bound tried"]
@@ -134,7 +135,7 @@ def tissue_mesh(points, edge_factor: float = 1.5, max_factor: float = 4.0,
                 lo = mid
             else:
                 hi, mesh = mid, found
-        return mesh, float(bounds[hi])
+        return mesh, float(bounds[hi]), h
     if on_lattice:
         raise ValueError(f"points: at {edge_factor} spacings of their pixel lattice the tissue mesh is not one annular "
                          f"wall with every point a node ({last[0]}); remove isolated pixels, fill holes in the wall")

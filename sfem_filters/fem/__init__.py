@@ -32,13 +32,14 @@ from .elasticity import (assemble, element_mass, element_stiffness, element_stif
                          strain_displacement)
 from .loads import penalty_load, penalty_stiffness, pressure_load, stress_loads
 from .material import Material, Parameterisation, correlated_prior
-from .mesh import TriMesh, check_mesh, delaunay_mesh, delaunay_triangles, lattice_mesh, mesh_quality, rectangle_mesh, triangle_angles
+from .mesh import (TriMesh, check_mesh, delaunay_mesh, delaunay_triangles, lattice_mesh, lattice_offset, mesh_quality,
+                   rectangle_mesh, triangle_angles)
 from .observation import locate_points, node_observation_matrix, point_observation_matrix
 from .statespace import ModalSystem, continuous_matrices, discretize_zoh, reference_sensitivity
 from .strain import element_strains, nodal_average, nodal_strains
 
 __all__ = ["TriMesh", "check_mesh", "rectangle_mesh", "delaunay_mesh", "delaunay_triangles", "lattice_mesh",
-           "mesh_quality", "triangle_angles",
+           "lattice_offset", "mesh_quality", "triangle_angles",
            "plane_strain_matrix", "plane_strain_matrix_dnu", "strain_displacement", "element_stiffness",
            "element_mass", "assemble", "stiffness_matrix", "mass_matrix", "element_stiffness_derivatives",
            "rayleigh_damping", "pressure_load", "stress_loads", "penalty_stiffness", "penalty_load",

@@ -297,6 +297,18 @@ def delaunay_mesh(points, keep=None, min_angle_deg: float = 5.0, max_edge: float
     return TriMesh(pts[used], remap[tri])
 
 
+def lattice_offset(points, spacing: float) -> tuple:
+    """How far points (n, 2) lie from an axis-aligned square lattice of ``spacing`` (both m).
+
+    Returns the largest distance of a point from its nearest lattice node, in spacings (per
+    axis), and the integer lattice indices (n, 2) of those nodes, counted from the points' lower
+    corner (the lattice's origin is taken from the points themselves)."""
+    pts = np.asarray(points, float)
+    grid = (pts - pts.min(axis=0)) / spacing
+    ij = np.rint(grid).astype(np.int64)
+    return float(np.abs(grid - ij).max()), ij
+
+
 def lattice_mesh(points, spacing: float, centre, max_offset: float = 1e-6) -> TriMesh:
     """Mesh the points of an axis-aligned square lattice, every diagonal chosen by one rule.
 
@@ -343,10 +355,7 @@ def lattice_mesh(points, spacing: float, centre, max_offset: float = 1e-6) -> Tr
     c = as_float_array("centre", centre, shape=(2,))
     if len(pts) < 3:
         raise ValueError(f"points: expected at least 3 points, got {len(pts)}")
-    origin = pts.min(axis=0)
-    grid = (pts - origin) / h
-    ij = np.rint(grid).astype(np.int64)
-    off = float(np.abs(grid - ij).max())
+    off, ij = lattice_offset(pts, h)
     if off > max_offset:
         raise ValueError(f"points: expected points on an axis-aligned square lattice of spacing {h:g} m, got a "
                          f"point {off:.3g} spacings off it")
@@ -365,7 +374,7 @@ def lattice_mesh(points, spacing: float, centre, max_offset: float = 1e-6) -> Tr
     cells = np.stack(np.meshgrid(np.arange(shape[0] - 1), np.arange(shape[1] - 1), indexing="ij"),
                      axis=-1).reshape(-1, 2)
     full = n_present == 4
-    r = origin + (cells[full] + 0.5) * h - c
+    r = pts.min(axis=0) + (cells[full] + 0.5) * h - c      # the lattice's origin, as lattice_offset's
     radial_11 = r[:, 0] * r[:, 1] >= -1e-9 * h * h          # ties (on an axis line) take (1, 1)
     k = corners[full]
     tri_11 = np.concatenate([k[radial_11][:, [0, 1, 2]], k[radial_11][:, [0, 2, 3]]])

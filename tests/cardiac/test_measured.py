@@ -402,9 +402,9 @@ def _area(mesh):
 
 def test_tissue_mesh_on_a_pixel_lattice_is_the_fixed_bound_mesh():
     pts = _ring_points(9.0, 15.0)
-    mesh, bound = tissue_mesh(pts)
+    mesh, bound, spacing = tissue_mesh(pts)
     ref = mesh_from_points(pts, 1.5e-3)
-    assert bound == pytest.approx(1.5e-3)
+    assert bound == pytest.approx(1.5e-3) and spacing == pytest.approx(1e-3)
     np.testing.assert_array_equal(mesh.elements, ref.elements)
     np.testing.assert_array_equal(mesh.nodes, pts)
 
@@ -417,8 +417,8 @@ def test_scattered_tissue_points_are_meshed_into_one_annulus_using_every_point(j
     grows until every point is a node and the wall is one annulus, with the cavity not bridged."""
     pts = _ring_points(r_in, r_in + wall)
     pts = pts + np.random.default_rng(seed).uniform(-jitter, jitter, pts.shape) * 1e-3
-    mesh, bound = tissue_mesh(pts)
-    assert mesh.n_nodes == len(pts)
+    mesh, bound, spacing = tissue_mesh(pts)
+    assert mesh.n_nodes == len(pts) and bound >= 1.5 * spacing
     np.testing.assert_array_equal(mesh.nodes, pts)                       # the points' order is kept
     g = lv_geometry(mesh)
     assert bound < 4 * 1e-3 * 1.01 and bound < 2 * r_in * 1e-3          # far below the cavity's width
