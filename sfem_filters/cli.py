@@ -79,12 +79,13 @@ def _names(text: str) -> list:
     return names
 
 
-def _batch_options(p, unit: str) -> None:
+def _batch_options(p, unit: str, workers_help: str = "") -> None:
     p.add_argument("--scheduler", metavar="local|serial|ADDRESS",
                    help=f"run the {unit}s as a batch: 'local' (default with more than one {unit}: a Dask LocalCluster, "
                         "one worker process per core, one thread each), 'serial' (this process) or the address of a "
                         "running Dask scheduler, e.g. tcp://host:8786 (a cluster, or SLURM through dask-jobqueue)")
-    p.add_argument("--workers", type=_positive_int, help="worker processes of --scheduler local (default: one per core)")
+    p.add_argument("--workers", type=_positive_int,
+                   help="worker processes of --scheduler local (default: one per core)" + workers_help)
     p.add_argument("--batch-dir", metavar="DIR",
                    help="result folder of a batch: a JSON per job and table.csv; jobs with a result there for the "
                         "same configuration are skipped, so a rerun resumes (default out/batch/<command>-<config hash>)")
@@ -194,7 +195,9 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--figures", metavar="DIR", help="write the figures (PNG) into DIR")
     d.add_argument("--export", metavar="DIR", help="write ParaView time series (.pvd + .vtu) into DIR")
     d.add_argument("--no-progress", action="store_true", help="no progress bar")
-    _batch_options(d, "file")
+    _batch_options(d, "file", "; with one file, the fits of each round made side by side, one process each on one "
+                              "BLAS thread, the same figures whatever the number (default: one per core, as far as "
+                              "the memory holds them)")
 
     o = sub.add_parser("observe", help="images or masks -> confidence-weighted observation sequence",
                        description="Shape-track the myocardial borders of a mask (or segmented image) sequence "
@@ -313,7 +316,8 @@ def cmd_dense(args) -> int:
         return 1 if report.failed or not report.records else 0
     path = args.path[0]
     seq = load_sequence(example_path() if path == "example" else path)
-    out = closing_the_loop(seq, progress=not args.no_progress, **config)
+    # --workers changes how fast, not what: it is not part of the configuration (nor a batch fingerprint)
+    out = closing_the_loop(seq, progress=not args.no_progress, workers=args.workers, **config)
     print(format_report(out))
     if args.figures:
         from .plotting.measured import dense_figures

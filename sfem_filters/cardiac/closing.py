@@ -81,17 +81,31 @@ differences from the spline come with a 95% interval (:func:`versus_spline`: a j
 angular sectors of the held-out points, whose errors are alike within a gap between landmarks),
 so that a report says whether a difference is more than the luck of which points were held out.
 :func:`closing_the_loop` returns all rounds as a :class:`LoopResult`.
+
+The fits of a round (its significant candidates, its corrections, its backward steps) do not
+depend on each other, so ``workers=N`` makes them side by side in N processes
+(:func:`fit_workers`; ``sfem-filters dense`` uses one per core). Every fit runs on one BLAS thread
+either way, and the search reads the fits in the order it would have made them, so the rounds
+take the same path and the report has the same figures whatever N (tested bit for bit). Workers
+are started afresh (``spawn``), so a script that passes ``workers > 1`` needs the usual
+``if __name__ == "__main__":`` guard.
 """
 from __future__ import annotations
 
+import multiprocessing
+import os
 import re
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+from threadpoolctl import threadpool_limits
+from tqdm.auto import tqdm
 
 from .._validate import integer, non_negative, probability
 from ..filtering import diagnostics
 from ..filtering.iterated import NOISE_LEVELS
+from ..filtering.smoother import PEAK_FACTOR, available_memory
 from .crossval import DEFAULT_FOLDS, cross_validate, observation_folds, spline_cross_validation
 from .effects import CATALOGUE, EXPLICIT_ONLY, build_effects
 from .measured import (NOMINAL, Run, Setup, angle_from_origin, equivalent_eigenstrain, exact_posterior, kriged_heldout,
@@ -100,7 +114,7 @@ from .reference import angular_sectors, rmse_difference, spline_reference
 from .sequence import Sequence
 
 __all__ = ["LoopResult", "Round", "Variant", "closing_the_loop", "candidate_loads", "spans", "log_evidence", "format_report",
-           "removals",
+           "removals", "fit_workers", "usable_cores",
            "versus_spline", "SELECTIONS",
            "DRIVE_CORRECTIONS", "time_courses", "CRITERIA", "round_cross_validation", "DEFAULT_CANDIDATES", "LAPLACE",
            "length_display"]
@@ -410,9 +424,88 @@ def round_cross_validation(setup: Setup, variant: Variant, r: Run, folds: int = 
 def _fit(setup, variant: Variant, opts) -> Run:
     if variant.material is not None:
         opts = {**opts, "parameterisation": variant.material}
-    return run(setup, variant.effects, variant.drive, name=variant.label(variant.drive), effect_rates=variant.effect_rates,
-               drive_trend=variant.drive_trend, process_scale=variant.process_scale,
-               spring_scale=variant.spring_scale, **opts)
+    # one BLAS thread per fit, whether the fits run one after the other or side by side: the
+    # threads' order of summation is then the same, and so is every figure (measured: a second
+    # BLAS thread does not make a fit of the shipped slice faster, benchmarks/rounds_parallel.py)
+    with threadpool_limits(limits=1):
+        return run(setup, variant.effects, variant.drive, name=variant.label(variant.drive),
+                   effect_rates=variant.effect_rates, drive_trend=variant.drive_trend,
+                   process_scale=variant.process_scale, spring_scale=variant.spring_scale, **opts)
+
+
+def _fit_job(setup, variant: Variant, opts, cv_folds) -> tuple:
+    """One fit of the rounds and, when the criterion is cross-validation, its cross-validation:
+    ``(run, cv or None)``. Module level, so that a worker process can run it."""
+    trial = _fit(setup, variant, opts)
+    return trial, (round_cross_validation(setup, variant, trial, cv_folds) if cv_folds else None)
+
+
+def usable_cores() -> int:
+    """Cores this process may run on (its CPU affinity where the system tells it, else all)."""
+    try:
+        return max(len(os.sched_getaffinity(0)), 1)
+    except AttributeError:                  # not on Linux
+        return max(os.cpu_count() or 1, 1)
+
+
+def fit_workers(workers, n_state: int, n_frames: int, available: float | None = None) -> int:
+    """How many fits of the rounds run side by side (:func:`closing_the_loop` ``workers``).
+
+    ``None`` (automatic): one per usable core (:func:`usable_cores`), but no more than the
+    available memory holds at a fit's estimated peak (:data:`~sfem_filters.filtering.smoother.PEAK_FACTOR`
+    times the ``(n_frames + 1) n_state^2`` stored covariances of 8 bytes) beside the fit this
+    process has just made; at least 1. An integer >= 1 is taken as given.
+    """
+    if workers is not None:
+        return integer("workers", workers, 1)
+    n = usable_cores()
+    available = available_memory() if available is None else float(available)
+    if available is not None:
+        peak = PEAK_FACTOR * 8.0 * (n_frames + 1) * float(n_state) ** 2
+        n = min(n, int(available // peak) if peak > 0 else n)
+    return max(n, 1)
+
+
+class _Fits:
+    """The rounds' fits, one after the other (``workers=1``) or side by side in worker processes.
+
+    Results are used in the order the serial search would make them, so the rounds take the same
+    path either way; with several workers a batch of fits whose outcome is not needed (after the
+    first accepted one, ``selection="first"``) may have run for nothing.
+    """
+
+    def __init__(self, setup, opts, workers: int, cv_folds, progress: bool):
+        self.setup, self.opts, self.workers, self.cv_folds = setup, opts, workers, cv_folds
+        self.progress = progress
+        self.pool = None
+        if workers > 1:
+            # worker processes start afresh ("spawn"): no copy of this process's BLAS threads or locks
+            self.pool = ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"))
+            self.quiet = {**opts, "progress": False}        # one bar for the batch instead of one per worker
+
+    def run(self, variants, label: str = "fits"):
+        """Yield ``(run, cv)`` for each variant, in the given order."""
+        variants = list(variants)
+        if self.pool is None or len(variants) < 2:
+            for v in variants:
+                yield _fit_job(self.setup, v, self.opts, self.cv_folds)
+            return
+        futures = [self.pool.submit(_fit_job, self.setup, v, self.quiet, self.cv_folds) for v in variants]
+        bar = tqdm(total=len(futures), desc=f"{label} ({self.workers} workers)", unit="fit", disable=not self.progress,
+                   leave=False)
+        try:
+            for f in futures:
+                out = f.result()
+                bar.update(1)
+                yield out
+        finally:
+            bar.close()
+            for f in futures:
+                f.cancel()
+
+    def close(self) -> None:
+        if self.pool is not None:
+            self.pool.shutdown(wait=True, cancel_futures=True)
 
 
 #: Corrections of the drive the rounds may make: from the drive in use to the one tried instead.
@@ -548,7 +641,7 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
                      corrections: bool = True, criterion: str = "evidence", folds: int = DEFAULT_FOLDS,
                      min_cv_gain: float = 0.01, selection: str = "best", prune: bool = True,
                      laplace: str = "gauss-newton", measurement_noise: str = "fixed",
-                     mesh: str = "delaunay", angle_origin_deg: float = 0.0) -> LoopResult:
+                     mesh: str = "delaunay", angle_origin_deg: float = 0.0, workers: int | None = 1) -> LoopResult:
     """Baseline run, then rounds of ranking and adding effects (module docstring), with the spline
     reference.
 
@@ -614,7 +707,15 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
         so that the evidence compares each model at its own best level. Needs
         ``estimator="smoother"`` and ``criterion="evidence"`` (the cross-validation's folds would
         use the floor).
+    workers : int or None
+        How many fits of a round (its candidates, corrections, backward steps) run side by side, each
+        in its own process on one BLAS thread (:func:`fit_workers`; ``None``: one per core, as far as
+        the memory holds them). The rounds take the same path and give the same figures whatever the
+        number: the fits are the same and are judged in the same order. The baseline is one fit.
+        Default 1 (this process only, as inside a batch job whose workers are already busy).
     """
+    if workers is not None:
+        workers = integer("workers", workers, 1)
     if measurement_noise not in NOISE_LEVELS:
         raise ValueError(f"measurement_noise: expected one of {NOISE_LEVELS}, got {measurement_noise!r}")
     if measurement_noise == "estimate" and (estimator != "smoother" or criterion != "evidence"):
@@ -663,14 +764,33 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
             "estimator": estimator, "max_iterations": max_iterations, "measurement_noise": measurement_noise}
     start = Variant(drive=drive)
     base = _fit(setup, start, opts)
+    fits = _Fits(setup, opts, fit_workers(workers, base.model.dim_state, seq.n_frames) if effects == "auto" else 1,
+                 folds if criterion == "cv" else None, progress)
+    try:
+        return _rounds(seq, setup, start, base, fits, opts, effects=effects, drive=drive, landmarks=landmarks,
+                       observe=observe, holdout_seed=holdout_seed, parameterisation=parameterisation,
+                       max_loops=max_loops, progress=progress, estimator=estimator, max_iterations=max_iterations,
+                       max_rounds=max_rounds, alpha=alpha, min_evidence=min_evidence, max_tries=max_tries,
+                       names=names, corrections=corrections, criterion=criterion, folds=folds,
+                       min_cv_gain=min_cv_gain, selection=selection, prune=prune, laplace=laplace,
+                       measurement_noise=measurement_noise, mesh=mesh, cv_possible=cv_possible)
+    finally:
+        fits.close()
+
+
+def _rounds(seq, setup, start, base, fits, opts, *, effects, drive, landmarks, observe, holdout_seed,
+            parameterisation, max_loops, progress, estimator, max_iterations, max_rounds, alpha, min_evidence,
+            max_tries, names, corrections, criterion, folds, min_cv_gain, selection, prune, laplace,
+            measurement_noise, mesh, cv_possible) -> LoopResult:
+    """The rounds of :func:`closing_the_loop` after its baseline fit (``fits`` makes the others)."""
     last = {}
     rounds = [Round(0, start, None, (), base, log_evidence=log_evidence(base),
                     cv=round_cross_validation(setup, start, base, folds) if cv_possible else None)]
 
-    def judged(cur: Round, variant: Variant, trial: Run) -> tuple:
-        """(gain, kept?, entry, cv) of a fitted candidate under the criterion."""
+    def judged(cur: Round, trial: Run, cv) -> tuple:
+        """(gain, kept?, entry) of a fitted candidate under the criterion (``cv``: its
+        cross-validation, made with the fit when the criterion is ``"cv"``)."""
         gain = log_evidence(trial) - cur.log_evidence
-        cv = round_cross_validation(setup, variant, trial, folds) if criterion == "cv" else None
         entry = {"evidence_gain": float(gain)}
         if criterion == "cv":
             cv_gain = cur.cv["rmse_px"] - cv["rmse_px"]
@@ -678,7 +798,7 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
             gain, ok = cv_gain, bool(np.isfinite(cv_gain) and cv_gain > min_cv_gain * cur.cv["rmse_px"])
         else:
             ok = bool(np.isfinite(gain) and gain > min_evidence)
-        return float(gain), ok, entry, cv
+        return float(gain), ok, entry
 
     def kept(number, variant, added, replaced, trial, ranking, threshold, tried, cv) -> Round:
         return Round(number, variant, added, replaced, trial, ranking, threshold, tried, log_evidence(trial),
@@ -689,10 +809,10 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
         stop = "none"
     elif effects != "auto":
         chosen = start.with_(effects=tuple(effects))
-        ext = _fit(setup, chosen, opts)
+        ext, cv = next(fits.run([chosen]))
         rounds.append(kept(1, chosen, ",".join(chosen.effects), (), ext, first, np.nan,
                            [{"effect": ",".join(chosen.effects), "score": None,
-                             "evidence_gain": log_evidence(ext) - rounds[0].log_evidence, "accepted": True}], None))
+                             "evidence_gain": log_evidence(ext) - rounds[0].log_evidence, "accepted": True}], cv))
         stop = "given"
     else:
         stop, tests, rejected = "max_rounds", 0, set()
@@ -712,17 +832,23 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
             tests += sum(r.get("n_tests", 1) for r in ranking)
             threshold = -np.log10(alpha / max(tests, 1))
             tried, accepted, best = [], None, None
+            # the candidates the search fits, in its order: the significant ones not fitted before,
+            # at most max_tries (with selection "first", only up to the first that is kept)
+            plan, planned = [], set()
             for cand in ranking:
-                if cand["score"] <= threshold or len(tried) >= max_tries:
+                if cand["score"] <= threshold or len(plan) >= max_tries:
                     break
                 replaced = tuple(e for e in cur.effects if spans(loads[cand["effect"]], loads[e]))
                 new = tuple(e for e in cur.effects if e not in replaced) + (cand["effect"],)
                 variant = cur.variant.with_(effects=new)
-                if _key(variant) in seen:
+                if _key(variant) in seen or _key(variant) in planned:
                     continue
+                planned.add(_key(variant))
+                plan.append((cand, replaced, variant))
+            outcomes = fits.run([v for _, _, v in plan], f"round {number}")
+            for (cand, replaced, variant), (trial, cv) in zip(plan, outcomes):
                 seen.add(_key(variant))
-                trial = _fit(setup, variant, opts)
-                gain, ok, entry, cv = judged(cur, variant, trial)
+                gain, ok, entry = judged(cur, trial, cv)
                 tried.append({"effect": cand["effect"], "score": cand["score"], "test": cand.get("test", "per frame"),
                               **entry, "accepted": False})
                 if not ok:
@@ -730,6 +856,7 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
                 elif best is None or gain > best[0]:
                     best = (gain, cand["effect"], replaced, variant, trial, len(tried) - 1, cv)
                 if best is not None and selection == "first":
+                    outcomes.close()
                     break
             if best is not None:
                 gain, name, replaced, variant, trial, k, cv = best
@@ -741,12 +868,15 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
                 # is kept if the criterion improves
                 # (a correction that fails here is tried again on a later round's model)
                 best = None
+                plan = []
                 for name, variant in _corrections(cur, parameterisation):
                     if _key(variant) in seen:
                         continue
                     seen.add(_key(variant))
-                    trial = _fit(setup, variant, opts)
-                    gain, ok, entry, cv = judged(cur, variant, trial)
+                    plan.append((name, variant))
+                for (name, variant), (trial, cv) in zip(plan, fits.run([v for _, v in plan],
+                                                                       f"round {number}, corrections")):
+                    gain, ok, entry = judged(cur, trial, cv)
                     tried.append({"effect": name, "score": None, **entry, "accepted": False})
                     if ok and (best is None or gain > best[0]):
                         best = (gain, name, variant, trial, len(tried) - 1, cv)
@@ -764,12 +894,15 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
                 # backward steps: take out the earlier term whose removal improves the criterion most
                 cur = rounds[-1]
                 best = None
+                plan = []
                 for name, variant in removals(cur.variant, start, loads):
                     if _key(variant) in seen:
                         continue
                     seen.add(_key(variant))
-                    trial = _fit(setup, variant, opts)
-                    gain, ok, entry, cv = judged(cur, variant, trial)
+                    plan.append((name, variant))
+                for (name, variant), (trial, cv) in zip(plan, fits.run([v for _, v in plan],
+                                                                       f"round {number}, backward")):
+                    gain, ok, entry = judged(cur, trial, cv)
                     cur.backward.append({"removed": name, **entry, "accepted": False})
                     if ok and (best is None or gain > best[0]):
                         best = (gain, name, variant, trial, len(cur.backward) - 1, cv)

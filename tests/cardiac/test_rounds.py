@@ -8,6 +8,7 @@ import pytest
 from scipy import sparse
 from scipy.sparse.linalg import spsolve
 
+from sfem_filters.batch import split_timing
 from sfem_filters.cardiac import annulus_sequence, closing, measured
 from hypothesis import given, settings, strategies as st
 
@@ -240,6 +241,11 @@ def test_the_command_line_passes_the_selection_and_rejects_an_unknown_one(capsys
     with pytest.raises(SystemExit):                     # --angle-origin reaches prepare through the loop
         main(["dense", "example", "--angle-origin", "-37.5", "--no-progress"])
     assert seen["angle_origin_deg"] == -37.5 and defaults["angle_origin_deg"].default == 0.0
+    assert seen["workers"] is None and defaults["workers"].default == 1     # the command: one per core
+    seen.clear()
+    with pytest.raises(SystemExit):                     # with one file, --workers runs the rounds' fits side by side
+        main(["dense", "example", "--workers", "2", "--no-progress"])
+    assert seen["workers"] == 2
     with pytest.raises(SystemExit) as err:
         main(["dense", "example", "--mesh", "lattice"])
     assert err.value.code == 2 and "--mesh" in capsys.readouterr().err
@@ -277,6 +283,35 @@ def test_a_round_keeps_the_first_passing_candidate_or_the_best_of_those_fitted(s
     else:
         assert len(tried) == 3, tried                      # all three significant on this sequence
         assert kept[0]["evidence_gain"] == max(t["evidence_gain"] for t in passed)
+
+
+@pytest.mark.parametrize("selection", ["first", "best"])
+def test_fits_side_by_side_take_the_same_path_and_give_the_same_figures(selection):
+    """``workers=2`` fits a round's candidates and backward steps in two processes: the same rounds,
+    the same candidates tried (with ``first`` none reported after the first kept, though more ran),
+    and every figure of the report the same to the last bit."""
+    seq = annulus_sequence(["active_polar", "cavity_pressure"], amplitude=[(0.15, -0.3), (0.5,)], n_frames=5, seed=1)
+    kw = dict(candidates=["active_polar", "cavity_pressure", "active_radial"], parameterisation="none", max_rounds=2,
+              max_iterations=3, corrections=False, selection=selection, max_tries=3, folds=9)
+    one, two = (closing.closing_the_loop(seq, workers=w, **kw) for w in (1, 2))
+    assert [r.added for r in two.rounds] == [r.added for r in one.rounds]
+    assert len(two.rounds) > 2 or two.rounds[1].backward        # a round and a backward step (or its try)
+    # every figure but the wall times (the one thing that depends on the run, not the data)
+    assert split_timing(two.as_json())[0] == split_timing(one.as_json())[0]
+
+
+def test_fit_workers_one_per_core_as_far_as_the_memory_holds():
+    per_fit = closing.PEAK_FACTOR * 8.0 * (20 + 1) * 1000.0 ** 2           # a fit's estimated peak, bytes
+    cores = closing.usable_cores()
+    assert closing.fit_workers(None, 1000, 20, available=1e15) == cores
+    assert closing.fit_workers(None, 1000, 20, available=2.5 * per_fit) == min(cores, 2)
+    assert closing.fit_workers(None, 1000, 20, available=0.5 * per_fit) == 1     # never fewer than one
+    assert closing.fit_workers(3, 1000, 20, available=0.0) == 3                 # given: taken as given
+    for bad in (0, -1, 1.5, "2"):
+        with pytest.raises((ValueError, TypeError), match="workers"):
+            closing.fit_workers(bad, 1000, 20)
+    with pytest.raises((ValueError, TypeError), match="workers"):
+        closing.closing_the_loop(annulus_sequence(None, n_frames=4, seed=0), workers=0)
 
 
 def _scale_run(E_kpa, seed=0, measurement_noise="fixed"):
