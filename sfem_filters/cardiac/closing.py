@@ -95,7 +95,9 @@ from __future__ import annotations
 import multiprocessing
 import os
 import re
+import warnings
 from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -477,31 +479,47 @@ class _Fits:
     def __init__(self, setup, opts, workers: int, cv_folds, progress: bool):
         self.setup, self.opts, self.workers, self.cv_folds = setup, opts, workers, cv_folds
         self.progress = progress
+        self.quiet = {**opts, "progress": False}            # one bar for a batch of fits, not one per worker
         self.pool = None
         if workers > 1:
-            # worker processes start afresh ("spawn"): no copy of this process's BLAS threads or locks
-            self.pool = ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"))
-            self.quiet = {**opts, "progress": False}        # one bar for the batch instead of one per worker
+            try:
+                # worker processes start afresh ("spawn"): no copy of this process's BLAS threads or locks
+                self.pool = ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"))
+            except (OSError, ImportError) as exc:           # no process semaphores here (some sandboxes)
+                self._serial(exc)
+
+    def _serial(self, exc) -> None:
+        warnings.warn(f"closing_the_loop: the fits run one after the other instead of in {self.workers} worker "
+                      f"processes ({type(exc).__name__}: {exc})", RuntimeWarning, stacklevel=4)
+        if self.pool is not None:
+            self.pool.shutdown(wait=False, cancel_futures=True)
+        self.pool = None
 
     def run(self, variants, label: str = "fits"):
-        """Yield ``(run, cv)`` for each variant, in the given order."""
+        """Yield ``(run, cv)`` for each variant, in the given order. A pool that cannot start or
+        breaks (a worker killed, for example for memory) is a warning, and the fits not yet
+        returned are made here; an error of a fit itself is raised as it is."""
         variants = list(variants)
-        if self.pool is None or len(variants) < 2:
-            for v in variants:
-                yield _fit_job(self.setup, v, self.opts, self.cv_folds)
-            return
-        futures = [self.pool.submit(_fit_job, self.setup, v, self.quiet, self.cv_folds) for v in variants]
-        bar = tqdm(total=len(futures), desc=f"{label} ({self.workers} workers)", unit="fit", disable=not self.progress,
-                   leave=False)
-        try:
-            for f in futures:
-                out = f.result()
-                bar.update(1)
-                yield out
-        finally:
-            bar.close()
-            for f in futures:
-                f.cancel()
+        done = 0
+        if self.pool is not None and len(variants) > 1:
+            bar = tqdm(total=len(variants), desc=f"{label} ({self.workers} workers)", unit="fit",
+                       disable=not self.progress, leave=False)
+            futures = []
+            try:
+                futures = [self.pool.submit(_fit_job, self.setup, v, self.quiet, self.cv_folds) for v in variants]
+                for f in futures:
+                    out = f.result()
+                    bar.update(1)
+                    done += 1
+                    yield out
+            except (BrokenProcessPool, OSError) as exc:
+                self._serial(exc)
+            finally:
+                bar.close()
+                for f in futures:
+                    f.cancel()
+        for v in variants[done:]:
+            yield _fit_job(self.setup, v, self.opts, self.cv_folds)
 
     def close(self) -> None:
         if self.pool is not None:

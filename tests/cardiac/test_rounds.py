@@ -1,5 +1,7 @@
 """Closing the loop in rounds (issue 14): the spline yardstick, the absolute stiffness under a
 measured pressure, the regional and transmural effects, and rounds on data with a known answer."""
+from concurrent.futures import Future
+from concurrent.futures.process import BrokenProcessPool
 from types import SimpleNamespace
 
 import inspect
@@ -298,6 +300,42 @@ def test_fits_side_by_side_take_the_same_path_and_give_the_same_figures(selectio
     assert len(two.rounds) > 2 or two.rounds[1].backward        # a round and a backward step (or its try)
     # every figure but the wall times (the one thing that depends on the run, not the data)
     assert split_timing(two.as_json())[0] == split_timing(one.as_json())[0]
+
+
+def test_a_pool_that_cannot_start_or_breaks_leaves_the_fits_to_this_process(monkeypatch):
+    """No process semaphores, or a worker killed midway: a warning, and the fits not yet returned
+    are made here, in order (an error of a fit itself is not caught: it is the fit's)."""
+    monkeypatch.setattr(closing, "_fit_job", lambda setup, v, opts, cv: (v, None))
+
+    class NoPool:
+        def __init__(self, *args, **kw):
+            raise OSError("no semaphores")
+
+    monkeypatch.setattr(closing, "ProcessPoolExecutor", NoPool)
+    with pytest.warns(RuntimeWarning, match="one after the other"):
+        fits = closing._Fits(None, {}, 2, None, False)
+    assert fits.pool is None and [r for r, _ in fits.run(["a", "b", "c"])] == ["a", "b", "c"]
+
+    class Broken:                                       # the first fit returns, then a worker dies
+        def __init__(self, *args, **kw):
+            pass
+
+        def submit(self, fn, setup, v, opts, cv):
+            f = Future()
+            if v == "a":
+                f.set_result((v, None))
+            else:
+                f.set_exception(BrokenProcessPool("a worker was killed"))
+            return f
+
+        def shutdown(self, **kw):
+            pass
+
+    monkeypatch.setattr(closing, "ProcessPoolExecutor", Broken)
+    fits = closing._Fits(None, {}, 2, None, False)
+    with pytest.warns(RuntimeWarning, match="BrokenProcessPool"):
+        assert [r for r, _ in fits.run(["a", "b", "c"])] == ["a", "b", "c"]
+    assert fits.pool is None
 
 
 def test_fit_workers_one_per_core_as_far_as_the_memory_holds():
