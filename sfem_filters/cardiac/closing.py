@@ -111,7 +111,7 @@ from ..filtering.smoother import PEAK_FACTOR, available_memory
 from .crossval import DEFAULT_FOLDS, cross_validate, observation_folds, spline_cross_validation
 from .effects import CATALOGUE, EXPLICIT_ONLY, build_effects
 from .measured import (NOMINAL, Run, Setup, angle_from_origin, equivalent_eigenstrain, exact_posterior, kriged_heldout,
-                       measured_wall_kinematics, prepare, run)
+                       measured_wall_kinematics, prepare, run, with_covariance)
 from .reference import angular_sectors, rmse_difference, spline_reference
 from .sequence import Sequence
 
@@ -477,6 +477,10 @@ class _Fits:
     """
 
     def __init__(self, setup, opts, workers: int, cv_folds, progress: bool):
+        if opts.get("estimator") == "smoother":
+            # most fits are tried and let go: the variances of their kinematics and strains are
+            # made only for those kept (kept(), measured.with_covariance: the same figures)
+            opts = {**opts, "covariance": False}
         self.setup, self.opts, self.workers, self.cv_folds = setup, opts, workers, cv_folds
         self.progress = progress
         self.quiet = {**opts, "progress": False}            # one bar for a batch of fits, not one per worker
@@ -507,8 +511,9 @@ class _Fits:
             futures = []
             try:
                 futures = [self.pool.submit(_fit_job, self.setup, v, self.quiet, self.cv_folds) for v in variants]
-                for f in futures:
+                for i, f in enumerate(futures):
                     out = f.result()
+                    futures[i] = None                       # a fit is held once, by whoever takes it
                     bar.update(1)
                     done += 1
                     yield out
@@ -517,7 +522,8 @@ class _Fits:
             finally:
                 bar.close()
                 for f in futures:
-                    f.cancel()
+                    if f is not None:
+                        f.cancel()
         for v in variants[done:]:
             yield _fit_job(self.setup, v, self.opts, self.cv_folds)
 
@@ -819,6 +825,9 @@ def _rounds(seq, setup, start, base, fits, opts, *, effects, drive, landmarks, o
         return float(gain), ok, entry
 
     def kept(number, variant, added, replaced, trial, ranking, threshold, tried, cv) -> Round:
+        if estimator == "smoother":
+            with threadpool_limits(limits=1):          # on one BLAS thread, as its fit (_fit)
+                trial = with_covariance(setup, trial)
         return Round(number, variant, added, replaced, trial, ranking, threshold, tried, log_evidence(trial),
                      cv if cv is not None or not cv_possible else round_cross_validation(setup, variant, trial, folds))
     loads = dict(candidate_loads(setup, names))

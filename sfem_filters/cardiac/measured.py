@@ -45,6 +45,7 @@ from ..fem.strain import nodal_strains
 from ..filtering import diagnostics
 from ..filtering.cyclic import cyclic_estimate
 from ..filtering.iterated import NOISE_LEVELS, IteratedSmoother, exact_laplace
+from ..filtering.iterated import with_covariance as smoother_with_covariance
 from ..filtering.marginal import log_posterior
 from ..filtering.protocol import parameter_prior
 from ..geometry import polygon_centroid, radius_by_angle, triangle_double_areas
@@ -723,7 +724,8 @@ def run(setup: Setup, effects=(), drive: str = "penalty", parameterisation: str 
         process_scale: float = 1.0, tol: float = 1e-3, progress: bool = False, name: str = "",
         landmark_step_px: float | None = None, beta: float | None = None, model_options: dict | None = None,
         estimator: str = "smoother", max_iterations: int = 20, effect_rates: bool = False,
-        drive_trend: bool = False, spring_scale: float = 1.0, measurement_noise: str = "fixed") -> Run:
+        drive_trend: bool = False, spring_scale: float = 1.0, measurement_noise: str = "fixed",
+        covariance: bool = True) -> Run:
     """Build the model, estimate and evaluate.
 
     ``estimator`` (:data:`ESTIMATORS`): ``"smoother"``, the iterated smoother with at most
@@ -735,7 +737,15 @@ def run(setup: Setup, effects=(), drive: str = "penalty", parameterisation: str 
     ``sigma``); ``"estimate"``, its level (one factor on every frame's R) chosen by the smoother's
     type-II maximum likelihood (:class:`~sfem_filters.filtering.iterated.IteratedSmoother`
     ``measurement_noise``); the factor is ``metrics["measurement_noise_scale"]``. Smoother only.
+    ``covariance=False`` (smoother only) leaves out the smoothed variances of the kinematics and
+    strains (no ``strain_polar`` / ``_sd`` in the metrics), the dearest part of a fit's final pass;
+    the estimate, its evidence and the material's covariance are the same. :func:`with_covariance`
+    adds them later.
     """
+    if not isinstance(covariance, (bool, np.bool_)):
+        raise TypeError(f"covariance: expected True or False, got {covariance!r}")
+    if not covariance and estimator != "smoother":
+        raise ValueError(f"covariance: False applies to the iterated smoother; got estimator={estimator!r}")
     if estimator not in ESTIMATORS:
         raise ValueError(f"estimator: expected one of {ESTIMATORS}, got {estimator!r}")
     if measurement_noise not in NOISE_LEVELS:
@@ -750,7 +760,8 @@ def run(setup: Setup, effects=(), drive: str = "penalty", parameterisation: str 
         warnings.filterwarnings("ignore", message="cyclic_estimate: the material did not converge")
         warnings.filterwarnings("ignore", message="iterated smoother: stopped by")
         if estimator == "smoother":
-            result = IteratedSmoother(max_iterations=max_iterations, measurement_noise=measurement_noise).run(
+            result = IteratedSmoother(max_iterations=max_iterations, measurement_noise=measurement_noise,
+                                      covariance=bool(covariance)).run(
                 model, y, progress=progress, description=name or "dense")
         else:
             result = cyclic_estimate(model, y, max_loops=max_loops, tol=tol, progress=progress,
@@ -763,6 +774,28 @@ def run(setup: Setup, effects=(), drive: str = "penalty", parameterisation: str 
         metrics["measurement_noise_scale"] = float(result.measurement_noise_scale)
         metrics["measurement_noise_search"] = list(result.measurement_noise_search)
     return Run(name, model, result, U, metrics, y)
+
+
+def with_covariance(setup: Setup, r: Run) -> Run:
+    """A smoother run made with ``covariance=False``, completed as if made with ``covariance=True``:
+    the final pass again at its mode with the variances of the kinematics and strains
+    (:func:`sfem_filters.filtering.iterated.with_covariance`), metrics recomputed, its pass's time
+    added to ``seconds``. A run that has them is returned as it is."""
+    if getattr(r.result, "method", "") != "iterated_smoother":
+        raise ValueError(f"r: expected a run of the iterated smoother (estimator='smoother'), got "
+                         f"{type(r.result).__name__}")
+    if r.observations is None:
+        raise ValueError("r: expected a run made by measured.run (it keeps the observations), got none")
+    t0 = time.perf_counter()
+    result = smoother_with_covariance(r.model, r.observations, r.result)
+    if result is r.result:
+        return r
+    seconds = float(r.metrics.get("seconds", 0.0)) + time.perf_counter() - t0
+    U, metrics = evaluate(setup, r.model, result, seconds, r.observations)
+    for key in ("measurement_noise_scale", "measurement_noise_search"):
+        if key in r.metrics:
+            metrics[key] = r.metrics[key]
+    return Run(r.name, r.model, result, U, metrics, r.observations)
 
 
 def exact_posterior(setup: Setup, r: Run, progress: bool = False) -> Run:

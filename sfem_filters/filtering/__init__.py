@@ -48,7 +48,7 @@ from .cyclic import CyclicEKF, CyclicResult, check_observations, cyclic_estimate
 from .ekf import FilterpyEngine, SFEMExtendedKalmanFilter
 from .engines import ENGINES, make_engine
 from .history import History
-from .iterated import IteratedSmoother, MapObjective, SmootherResult, exact_laplace, iterated_smoother
+from .iterated import IteratedSmoother, MapObjective, SmootherResult, exact_laplace, iterated_smoother, with_covariance
 from .linear import LinearGaussianModel, LinearObservation
 from .linearised import LinearisedModel, linearise, linearise_dense
 from .ljung import LJUNG_MAX_PARAMS, LjungCoupling
@@ -74,4 +74,5 @@ __all__ = ["ROUKFEngine", "simplex_points", "UKFEngine", "make_ukf", "diagnostic
            "smooth", "kalman_forward", "smooth_backward", "rts_reference", "ForwardPass", "SmoothedPass",
            "Linearisable", "OutputOperators", "ScalableProcessNoise", "scaled_process_noise",
            "ScalableMeasurementNoise", "scaled_measurement_noise", "MarginalCheck", "laplace_check", "log_likelihood", "log_posterior",
-           "ProfileHessian", "profile_hessian", "profile_pass", "optimal_trajectory", "gauss_newton_pass", "exact_laplace"]
+           "ProfileHessian", "profile_hessian", "profile_pass", "optimal_trajectory", "gauss_newton_pass", "exact_laplace",
+           "with_covariance"]

@@ -67,7 +67,7 @@ from .curvature import ProfileHessian, gauss_newton_pass, optimal_trajectory, pr
 from .smoother import check_memory, smooth
 
 __all__ = ["IteratedSmoother", "SmootherResult", "MapObjective", "iterated_smoother", "open_loop", "exact_laplace",
-           "NOISE_LEVELS"]
+           "with_covariance", "NOISE_LEVELS"]
 
 #: How a noise level is set (``process_noise=``, ``measurement_noise=``): as the model gives it, or
 #: by type-II maximum likelihood.
@@ -331,6 +331,49 @@ def exact_laplace(model, observations, result: SmootherResult, *, safeguards: Sa
     out.P_diag = np.array(result.P_diag, float)
     out.P_diag[:, nr:] = np.diag(out.P_theta)
     out.laplace = "exact"
+    return out
+
+
+def with_covariance(model, observations, result: SmootherResult, *,
+                    safeguards: Safeguards | None = None) -> SmootherResult:
+    """A result of a run made with ``covariance=False``, completed with the marginal variances of
+    the kinematics and of the model's outputs (``P_diag``, ``output_sd``).
+
+    The final pass is made again at the result's mode, this time with the covariance recursion:
+    the same linearisation, the same forward pass (so the same innovations, log-likelihood and
+    ``P_theta``, bit for bit), and the variances a run with ``covariance=True`` reports. A search
+    that fits many models and keeps few (the rounds of
+    :func:`sfem_filters.cardiac.closing.closing_the_loop`) pays for the variances only of those it
+    keeps. A result that has them is returned as it is.
+
+    Parameters
+    ----------
+    model : the model the result was computed with (its noise scales included)
+    observations : (n_frames, dim_obs) the same observations (model units, NaN where missing)
+    result : SmootherResult of :class:`IteratedSmoother` (not modified)
+    safeguards : Safeguards, optional
+        Covariance checks of the pass (default: a fresh :class:`Safeguards`).
+
+    Returns
+    -------
+    SmootherResult, a copy (with the search's records, stop reason and noise levels).
+    """
+    if not isinstance(result, SmootherResult):
+        raise TypeError(f"result: expected a SmootherResult of the iterated smoother, got {type(result).__name__}")
+    nr = int(model.n_restart)
+    if np.all(np.isfinite(np.asarray(result.P_diag, float)[:, :nr])):
+        return result
+    y = check_observations(model, observations)
+    guard = safeguards if safeguards is not None else Safeguards()
+    done = IteratedSmoother(covariance=True)._final(model, y, result.states, result.cost, result.records,
+                                                    result.stop_reason, result.converged, guard)
+    out = replace(done, process_noise_scale=result.process_noise_scale, noise_search=result.noise_search,
+                  measurement_noise_scale=result.measurement_noise_scale,
+                  measurement_noise_search=result.measurement_noise_search, laplace=result.laplace,
+                  curvature=result.curvature, P_theta_gauss_newton=result.P_theta_gauss_newton)
+    # the material's covariance is the result's (an exact Laplace one stays exact)
+    out.P_theta = np.array(result.P_theta, float)
+    out.P_diag[:, nr:] = np.asarray(result.P_diag, float)[:, nr:]
     return out
 
 

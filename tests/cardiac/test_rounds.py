@@ -302,6 +302,49 @@ def test_fits_side_by_side_take_the_same_path_and_give_the_same_figures(selectio
     assert split_timing(two.as_json())[0] == split_timing(one.as_json())[0]
 
 
+def test_variances_made_only_for_the_fits_kept_give_the_same_report(monkeypatch):
+    """The rounds fit their candidates without the kinematics' and strains' variances and add
+    them to the fits they keep (measured.with_covariance): the report is the one of fits that
+    all had them, bit for bit."""
+    seq = annulus_sequence(["active_polar", "cavity_pressure"], amplitude=[(0.15, -0.3), (0.5,)], n_frames=5, seed=1)
+    kw = dict(candidates=["active_polar", "cavity_pressure", "active_radial"], max_rounds=2, max_iterations=3,
+              corrections=False, folds=9)
+    lean = closing.closing_the_loop(seq, **kw)
+    made = []
+
+    def full(*args, covariance=True, **options):      # every fit with its variances, as before
+        made.append(covariance)
+        return measured.run(*args, **options)
+
+    monkeypatch.setattr(closing, "run", full)
+    rich = closing.closing_the_loop(seq, **kw)
+    assert False in made                                # the rounds did ask for lean fits
+    assert len(rich.rounds) > 1 and "strain_polar_sd" in rich.extended.metrics
+    assert split_timing(lean.as_json())[0] == split_timing(rich.as_json())[0]
+
+
+def test_with_covariance_completes_a_lean_fit_exactly():
+    seq = annulus_sequence("active_polar", n_frames=5, seed=2)
+    setup = measured.prepare(seq, 8)
+    lean = measured.run(setup, ("active_polar",), max_iterations=2, covariance=False)
+    rich = measured.run(setup, ("active_polar",), max_iterations=2)
+    assert "strain_polar_sd" not in lean.metrics and "strain_polar_sd" in rich.metrics
+    assert np.all(np.isnan(lean.result.P_diag[:, :lean.model.n_restart]))
+    done = measured.with_covariance(setup, lean)
+    assert measured.with_covariance(setup, done) is done                # nothing left to add
+    assert np.array_equal(done.result.P_diag, rich.result.P_diag)
+    assert np.array_equal(done.result.P_theta, rich.result.P_theta)
+    assert done.result.output_sd.keys() == rich.result.output_sd.keys()
+    for k in rich.result.output_sd:
+        assert np.array_equal(done.result.output_sd[k], rich.result.output_sd[k])
+    assert split_timing(done.metrics)[0] == split_timing(rich.metrics)[0]
+    assert done.metrics["seconds"] > lean.metrics["seconds"]
+    with pytest.raises(ValueError, match="covariance"):
+        measured.run(setup, (), estimator="cyclic", max_loops=1, covariance=False)
+    with pytest.raises(TypeError, match="covariance"):
+        measured.run(setup, (), covariance="no")
+
+
 def test_a_pool_that_cannot_start_or_breaks_leaves_the_fits_to_this_process(monkeypatch):
     """No process semaphores, or a worker killed midway: a warning, and the fits not yet returned
     are made here, in order (an error of a fit itself is not caught: it is the fit's)."""
