@@ -82,6 +82,10 @@ angular sectors of the held-out points, whose errors are alike within a gap betw
 so that a report says whether a difference is more than the luck of which points were held out.
 :func:`closing_the_loop` returns all rounds as a :class:`LoopResult`.
 
+Most fits of the rounds are tried and let go, so they are made without the smoothed variances
+of their kinematics and strains (the covariance recursion of the smoother's final pass, its
+dearest part), and a fit that is kept gets them afterwards
+(:func:`sfem_filters.cardiac.measured.with_covariance`): the same figures, bit for bit.
 The fits of a round (its significant candidates, its corrections, its backward steps) do not
 depend on each other, so ``workers=N`` makes them side by side in N processes
 (:func:`fit_workers`; ``sfem-filters dense`` uses one per core). Every fit runs on one BLAS thread
