@@ -792,7 +792,8 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
             "estimator": estimator, "max_iterations": max_iterations, "measurement_noise": measurement_noise}
     start = Variant(drive=drive)
     base = _fit(setup, start, opts)
-    fits = _Fits(setup, opts, fit_workers(workers, base.model.dim_state, seq.n_frames) if effects == "auto" else 1,
+    fits = _Fits(setup, opts, 1 if effects != "auto" or workers == 1
+                 else fit_workers(workers, base.model.dim_state, seq.n_frames),
                  folds if criterion == "cv" else None, progress)
     try:
         return _rounds(seq, setup, start, base, fits, opts, effects=effects, drive=drive, landmarks=landmarks,
@@ -829,7 +830,7 @@ def _rounds(seq, setup, start, base, fits, opts, *, effects, drive, landmarks, o
         return float(gain), ok, entry
 
     def kept(number, variant, added, replaced, trial, ranking, threshold, tried, cv) -> Round:
-        if estimator == "smoother":
+        if getattr(trial.result, "method", "") == "iterated_smoother":
             with threadpool_limits(limits=1):          # on one BLAS thread, as its fit (_fit)
                 trial = with_covariance(setup, trial)
         return Round(number, variant, added, replaced, trial, ranking, threshold, tried, log_evidence(trial),
