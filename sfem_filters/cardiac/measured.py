@@ -788,8 +788,12 @@ def with_covariance(setup: Setup, r: Run) -> Run:
         raise ValueError("r: expected a run made by measured.run (it keeps the observations), got none")
     t0 = time.perf_counter()
     result = smoother_with_covariance(r.model, r.observations, r.result)
-    if result is r.result:
-        return r
+    return r if result is r.result else _rerun(setup, r, result, t0)
+
+
+def _rerun(setup: Setup, r: Run, result, t0: float) -> Run:
+    """``r`` with a new result of its model and data: metrics evaluated again, the new work's time
+    (since ``t0``) added to ``seconds``, the measurement noise search's metrics kept."""
     seconds = float(r.metrics.get("seconds", 0.0)) + time.perf_counter() - t0
     U, metrics = evaluate(setup, r.model, result, seconds, r.observations)
     for key in ("measurement_noise_scale", "measurement_noise_search"):
@@ -824,10 +828,7 @@ def exact_posterior(setup: Setup, r: Run, progress: bool = False) -> Run:
     if r.observations is None:
         raise ValueError("r: expected a run made by measured.run (it keeps the observations), got none")
     t0 = time.perf_counter()
-    result = exact_laplace(r.model, r.observations, r.result, progress=progress)
-    seconds = float(r.metrics.get("seconds", 0.0)) + time.perf_counter() - t0
-    U, metrics = evaluate(setup, r.model, result, seconds, r.observations)
-    return Run(r.name, r.model, result, U, metrics, r.observations)
+    return _rerun(setup, r, exact_laplace(r.model, r.observations, r.result, progress=progress), t0)
 
 
 def strain_maps(setup: Setup, U_px) -> np.ndarray:
