@@ -35,6 +35,37 @@ from .filtering.linear import LinearObservation
 from .filtering.linearised import LinearisedModel, linearise_dense
 from .filtering.protocol import measurement_cov
 
+#: Largest ``k n^2`` array of modal stiffness derivatives :meth:`SFEMModel.linearise` makes (bytes).
+MODAL_STIFFNESS_BYTES = 512 * 2 ** 20
+
+
+def modal_stiffness_pays(combine, dofs, frames: int, n: int) -> bool:
+    """Whether :meth:`sfem_filters.fem.statespace.ModalSystem.modal_stiffness_derivatives` pays
+    for itself over ``frames`` sensitivities of one material.
+
+    It costs a product over the dofs each parameter's stiffness derivative touches, one per
+    parameter, and saves the O(n^3) product of every frame's sensitivity; it is made when it
+    costs less than half of what it saves and fits in :data:`MODAL_STIFFNESS_BYTES`.
+
+    Parameters
+    ----------
+    combine : (P, k) array or sparse matrix
+        The chain rule from the P element directions to the k parameters.
+    dofs : (P, 6) int array
+        Free dofs of each direction's element (-1: fixed).
+    frames : int
+        Sensitivities to be taken with this material.
+    n : int
+        Free dofs.
+    """
+    C = sp.csc_matrix(combine)
+    k = C.shape[1]
+    if k == 0 or 8 * k * n * n > MODAL_STIFFNESS_BYTES:
+        return False
+    dofs = np.asarray(dofs)
+    touched = sum(np.unique(dofs[C.indices[C.indptr[j]:C.indptr[j + 1]]]).size for j in range(k))
+    return touched < 0.5 * frames * n
+
 __all__ = ["SFEMModel"]
 
 
@@ -538,8 +569,13 @@ class SFEMModel(LinearObservation):
             dirs = self._directions(mat)
             dofs = np.concatenate([self._directions_dofs, self._directions_dofs])
             J = self.parameterisation.element_jacobian(mat)
+            # one material for every frame: with few parameters, their modal stiffness derivatives
+            # once beat the O(n^3) product of every frame's sensitivity (same numbers to round-off)
+            G = (system.modal_stiffness_derivatives(dirs, dofs, J)
+                 if modal_stiffness_pays(J, dofs, T - 1, nx // 2) else None)
             for t in range(T - 1):
-                M[t, :nx] = system.sensitivity(z[t, :nx], self.load(z[t], t), dirs, dofs, combine=J, modal=True)
+                M[t, :nx] = system.sensitivity(z[t, :nx], self.load(z[t], t), dirs, dofs, combine=J, modal=True,
+                                               modal_stiffness=G)
         P0 = np.asarray(self.P0)
         return LinearisedModel(A=base["A"], M=M, c=base["c"], H=base["H"], R=base["R"], Q=base["Q"],
                                xi0=base["xi0"], P0=base["P0"], theta_bar=theta[:p_out].copy(),

@@ -294,6 +294,7 @@ class ModalSystem:
         lam2 = w2 / lam1
         self.lam = np.stack([lam1, lam2], axis=1)
         self.critical = np.abs(lam1 - lam2) < self.critical_tol * np.abs(lam1)
+        self._dd = None                 # divided differences of exp over the eigenvalues (lazy)
 
     @property
     def n(self) -> int:
@@ -336,7 +337,73 @@ class ModalSystem:
         """B = int_0^T e^{A_c s} ds B_c (Eq. 16), dense (2n, n)."""
         return np.vstack([(self.Phi * self.g[:, r]) @ self.Phi.T for r in range(2)])
 
-    def sensitivity(self, x, w, dK_elements, dofs, chunk: int = 256, combine=None, modal: bool = False) -> np.ndarray:
+    def modal_stiffness_derivatives(self, dK_elements, dofs, combine) -> np.ndarray:
+        """``G_k = Phi^T dK^(k) Phi`` for the combined parameters, stored as (N, k, N): ``[i, k, j]``.
+
+        ``dK^(k) = sum_p combine[p, k] dK_p`` with ``dK_p`` the element matrix ``dK_elements[p]``
+        scattered to its free dofs (as in :meth:`sensitivity`). With it, :meth:`sensitivity`
+        (``modal_stiffness=``) contracts the Frechet pairs with ``G`` directly and skips its
+        O(n^3) product per call: worth it when the same material serves many states (a
+        smoother's linearisation, one per frame) and k is small. Each ``G_k`` costs a product
+        over the dofs that ``dK^(k)`` touches only (a region's, for a regional map).
+
+        Parameters
+        ----------
+        dK_elements : (P, 6, 6) array
+            ``dK/dp_j`` on the 6 dofs of one element (N/m per unit p_j).
+        dofs : (P, 6) int array
+            Free-dof index of each of those 6 dofs, -1 where the dof is fixed.
+        combine : (P, k) array or sparse matrix
+            The chain rule to the k parameters (as in :meth:`sensitivity`).
+
+        Returns
+        -------
+        (N, k, N) array (N/m per unit parameter, in mass-normalised modal coordinates)
+        """
+        n, Phi = self.n, self.Phi
+        dK = np.asarray(dK_elements, float)
+        dofs = np.asarray(dofs)
+        C = sp.csr_matrix(combine)
+        k = C.shape[1]
+        # Directions with the same row of combine (a region's elements, say) act together: one
+        # product per such group over the dofs it touches, then G_k = sum_g combine[g, k] G_g, is
+        # cheaper than one product per parameter when the parameters reach many groups each (the
+        # orthonormal contrasts of a regional map reach every region).
+        rows, group = np.unique(C.toarray(), axis=0, return_inverse=True)
+        group = group.ravel()
+        Cc = C.tocsc()
+        touched_p = [np.unique(dofs[Cc.indices[Cc.indptr[j]:Cc.indptr[j + 1]]]).size for j in range(k)]
+        touched_g = [np.unique(dofs[group == g]).size for g in range(len(rows))]
+        by_group = sum(touched_g) + len(rows) * k < sum(touched_p)
+
+        def projected(p, weights):
+            """Phi^T (sum_p weights_p dK_p) Phi over the dofs the directions p touch."""
+            rr = np.broadcast_to(dofs[p][:, :, None], (len(p), 6, 6))
+            cc = np.broadcast_to(dofs[p][:, None, :], (len(p), 6, 6))
+            ok = (rr >= 0) & (cc >= 0)
+            vals = (weights[:, None, None] * dK[p])[ok]
+            touched, inv = np.unique(np.concatenate([rr[ok], cc[ok]]), return_inverse=True)
+            m = len(touched)
+            dKm = sp.csr_matrix((vals, (inv[:len(vals)], inv[len(vals):])), shape=(m, m))
+            Pt = Phi[touched]
+            return Pt.T @ np.asarray(dKm @ Pt)
+
+        if by_group:
+            Gg = np.empty((len(rows), n, n))
+            for g in range(len(rows)):
+                p = np.flatnonzero(group == g)
+                Gg[g] = projected(p, np.ones(len(p)))
+            # G[i, k, j] = sum_g rows[g, k] Gg[g, i, j]: one product, then the (N, k, N) layout
+            Gk = (rows.T @ Gg.reshape(len(rows), -1)).reshape(k, n, n)
+            return np.ascontiguousarray(Gk.transpose(1, 0, 2))
+        G = np.empty((n, k, n))
+        for j in range(k):
+            lo, hi = Cc.indptr[j], Cc.indptr[j + 1]
+            G[:, j, :] = projected(Cc.indices[lo:hi], Cc.data[lo:hi])
+        return G
+
+    def sensitivity(self, x, w, dK_elements, dofs, chunk: int = 256, combine=None, modal: bool = False,
+                    modal_stiffness=None) -> np.ndarray:
         """Exact d(A x + B w)/d p for element-level stiffness perturbations (Eq. 33).
 
         Parameters
@@ -358,6 +425,11 @@ class ModalSystem:
             Return the derivative in the modal coordinates ``[q; p] = [Phi^T M U; Phi^T M U']``
             (the rows are ``W d(A x + B w)`` with ``W = diag(Phi^T M, Phi^T M)``), skipping the final
             modal-to-nodal products.
+        modal_stiffness : (N, k, N) array, optional
+            :meth:`modal_stiffness_derivatives` of the same ``dK_elements``, ``dofs`` and
+            ``combine`` (which must be given): the result is then ``-T sum_j G[i, k, j] h[i, j]``
+            plus the static part, O(k N^2) instead of the O(n^3) product, the same numbers to
+            round-off.
 
         Returns
         -------
@@ -381,6 +453,18 @@ class ModalSystem:
         q_s = f / self.w2
         y = np.stack([self.PhiTM @ x[:n] - q_s, self.PhiTM @ x[n:]], axis=1)      # (N, 2)
         h = self._frechet_pairs(y)                                                 # (N, N, 2)
+        static = np.stack([1.0 - self.E[:, 0, 0], -self.E[:, 1, 0]]) / self.w2      # (2, N)
+        if modal_stiffness is not None:
+            if combine is None:
+                raise ValueError("modal_stiffness: given without combine, which it was made with")
+            G = modal_stiffness
+            if G.shape != (N, combine.shape[1], N):
+                raise ValueError(f"modal_stiffness: expected shape {(N, combine.shape[1], N)}, got {G.shape}")
+            # sum_p combine[p, k] W_p^T Y_p = G_k o h, and W_p^T U_s = G_p q_s (U_s = Phi q_s)
+            z = np.matmul(G, h)                                                    # (N, k, 2)
+            z *= -T
+            z -= (G @ q_s)[:, :, None] * static.T[:, None, :]
+            return np.vstack([z[:, :, 0], z[:, :, 1]]) if modal else np.vstack([Phi @ z[:, :, 0], Phi @ z[:, :, 1]])
         # Y[d, k, i] = sum_j Phi[d, j] h[i, j, k] in one product; a zero row stands for fixed
         # dofs (index -1). Dof-major, so that gathering an element's 6 rows copies whole rows.
         Y = np.empty((n + 1, 2, N))
@@ -394,7 +478,6 @@ class ModalSystem:
         k = P if combine is None else combine.shape[1]
         acc = np.zeros((k, 2, N)) if combine is not None else None
         out = np.empty((2 * n, k))
-        static = np.stack([1.0 - self.E[:, 0, 0], -self.E[:, 1, 0]]) / self.w2      # (2, N)
         for start in range(0, P, chunk):
             sl = slice(start, min(start + chunk, P))
             Kd, dd = dK_elements[sl], dofs[sl]
@@ -458,26 +541,29 @@ class ModalSystem:
         u = (1.0 + beta * lam) * eta                                               # ([1, beta] V) * V^-1 y
         la = lam * a                                                               # row weights of h[..., 1]
         real = (lam1.imag == 0) & (lam2.imag == 0)
+        dd = self._divided_differences()
         h = np.empty((2, N, N))                                                    # [h0, h1], contiguous
         if real.all():
-            self._pairs_real(lam.real * T, a.real, la.real, u.real, h)
+            self._pairs_real(dd["RR"], a.real, la.real, u.real, h)
         else:
             R, C = np.flatnonzero(real), np.flatnonzero(~real)
             if R.size:
-                hr = np.empty((2, R.size, R.size))
-                self._pairs_real(lam[R].real * T, a[R].real, la[R].real, u[R].real, hr)
+                if R[-1] - R[0] + 1 == R.size:          # one run of modes (the usual case): in place
+                    rs = slice(R[0], R[-1] + 1)
+                    self._pairs_real(dd["RR"], a[R].real, la[R].real, u[R].real, h[:, rs, rs])
+                else:
+                    hr = np.empty((2, R.size, R.size))
+                    self._pairs_real(dd["RR"], a[R].real, la[R].real, u[R].real, hr)
+                    h[np.ix_([0, 1], R, R)] = hr
                 # rows R, columns C: real rows (both eigenvalues), complex columns
-                D0 = [divided_difference_exp(lam[R, ra, None] * T, lam[None, C, b] * T) for ra in range(2)
-                      for b in range(2)]
+                D0 = dd["RC"]
                 s0 = D0[0] * u[C, 0] + D0[1] * u[C, 1]
                 s1 = D0[2] * u[C, 0] + D0[3] * u[C, 1]
                 hc = np.stack([(a[R, 0, None] * s0 + a[R, 1, None] * s1).real,
                                (la[R, 0, None] * s0 + la[R, 1, None] * s1).real])
-                h[np.ix_([0, 1], R, R)] = hr
                 h[np.ix_([0, 1], R, C)] = hc
             # rows C (underdamped): the first eigenvalue only, twice the real part
-            s = (divided_difference_exp(lam[C, 0, None] * T, lam[None, :, 0] * T) * u[:, 0]
-                 + divided_difference_exp(lam[C, 0, None] * T, lam[None, :, 1] * T) * u[:, 1])
+            s = dd["C"][0] * u[:, 0] + dd["C"][1] * u[:, 1]
             h[0, C] = 2.0 * (a[C, 0, None] * s).real
             h[1, C] = 2.0 * (la[C, 0, None] * s).real
         h = np.moveaxis(h, 0, 2)
@@ -487,18 +573,34 @@ class ModalSystem:
             h[:, crit, :] = self._pairs_by_expm(np.arange(N), crit, y)
         return h
 
+    def _divided_differences(self) -> dict:
+        """The divided differences of exp over the blocks' eigenvalues times T that
+        :meth:`_frechet_pairs` needs, made once per system (they do not depend on the state):
+        ``"RR"``, the four real ``D(lam_a T, lam_b T)`` between overdamped modes; ``"RC"``, the four
+        complex ones from overdamped rows to underdamped columns; ``"C"``, the two from the first
+        eigenvalue of each underdamped mode to every mode's first and second."""
+        if self._dd is None:
+            T, lam = self.T, self.lam
+            real = (lam[:, 0].imag == 0) & (lam[:, 1].imag == 0)
+            R, C = np.flatnonzero(real), np.flatnonzero(~real)
+            lamT = lam[R].real * T
+            dd = {"RR": [_divided_difference_exp_real(lamT[:, ra], lamT[:, b]) for ra in range(2) for b in range(2)]}
+            if C.size:
+                dd["RC"] = [divided_difference_exp(lam[R, ra, None] * T, lam[None, C, b] * T) for ra in range(2)
+                            for b in range(2)]
+                dd["C"] = [divided_difference_exp(lam[C, 0, None] * T, lam[None, :, b] * T) for b in range(2)]
+            self._dd = dd
+        return self._dd
+
     @staticmethod
-    def _pairs_real(lamT, a, la, u, out):
-        """out[0] = sum_ab a_ia D_ab u_jb, out[1] = the same with lam_ia a_ia, all real."""
-        s0 = _divided_difference_exp_real(lamT[:, 0], lamT[:, 0])
-        s0 *= u[:, 0]
-        t = _divided_difference_exp_real(lamT[:, 0], lamT[:, 1])
-        t *= u[:, 1]
+    def _pairs_real(D, a, la, u, out):
+        """out[0] = sum_ab a_ia D_ab u_jb, out[1] = the same with lam_ia a_ia, all real
+        (``D = [D_00, D_01, D_10, D_11]``)."""
+        s0 = D[0] * u[:, 0]
+        t = D[1] * u[:, 1]
         s0 += t
-        s1 = _divided_difference_exp_real(lamT[:, 1], lamT[:, 0])
-        s1 *= u[:, 0]
-        t = _divided_difference_exp_real(lamT[:, 1], lamT[:, 1], out=t)
-        t *= u[:, 1]
+        s1 = D[2] * u[:, 0]
+        np.multiply(D[3], u[:, 1], out=t)
         s1 += t
         np.multiply(a[:, 0, None], s0, out=out[0])
         out[0] += np.multiply(a[:, 1, None], s1, out=t)

@@ -1,6 +1,7 @@
 """Exact discretisation and exact sensitivities of the state-space model (Eqs. 9-16, 33)."""
 import numpy as np
 import pytest
+import scipy.sparse as sp
 from helpers import (
     random_block_mesh,
     random_material,
@@ -28,6 +29,15 @@ def _element_directions(model, mat):
     dirs = np.concatenate([dKE * mat.E[:, None, None], dKnu])
     dofs = model.dofmap.free_index()[model.mesh.element_dofs]
     return dirs, np.concatenate([dofs, dofs])
+
+
+def _element_system(rng, alpha=10.0, beta=1e-3, mesh=None):
+    """A small model's modal system over its free dofs, with its element directions."""
+    model = small_model(rng, mesh, parameterisation=None)
+    M, K = reduced_matrices(model)
+    system = ModalSystem(M, K, alpha, beta, model.frame_interval)
+    dirs, dofs = _element_directions(model, model.material)
+    return model, system, dirs, dofs
 
 
 def _dense_directions(model, dirs, dofs):
@@ -302,13 +312,9 @@ def test_frechet_pairs_equal_the_plain_daleckii_krein_sum(seed, alpha, beta):
 
 def test_sensitivity_contracted_with_a_parameter_map():
     """``combine=J`` (contracted before the nodal product) equals the per-element result times J."""
-    import scipy.sparse as sp
     rng = np.random.default_rng(4)
-    model = small_model(rng, parameterisation=None)
-    M, K = reduced_matrices(model)
-    system = ModalSystem(M, K, 10.0, 1e-3, model.frame_interval)
-    dirs, dofs = _element_directions(model, model.material)
-    n = M.shape[0]
+    model, system, dirs, dofs = _element_system(rng)
+    n = system.n
     x = np.concatenate([rng.standard_normal(n) * 1e-3, rng.standard_normal(n) * 1e-2])
     w = rng.standard_normal(n) * 5
     J = sp.random(len(dirs), 5, density=0.3, random_state=4, format="csr")
@@ -332,3 +338,48 @@ def test_transition_matrix_into_a_block_of_a_larger_array():
     np.testing.assert_array_equal(F[n2:], np.eye(n2 + 3)[n2:])
     with pytest.raises(ValueError, match="out: expected shape"):
         system.transition_matrix(out=np.empty((n2, n2 + 1)))
+
+
+@settings(max_examples=15, deadline=None)
+@given(seed=st.integers(0, 2 ** 16), k=st.integers(1, 6), density=st.sampled_from([0.05, 0.3, 1.0, "regions"]),
+       alpha=st.sampled_from([0.0, 10.0]), beta=st.sampled_from([0.0, 1e-4, 1e-2]), modal=st.booleans())
+def test_modal_stiffness_derivatives_give_the_same_sensitivity(seed, k, density, alpha, beta, modal):
+    """With the modal stiffness derivatives made once (``G_k = Phi^T dK^(k) Phi``), the contracted
+    sensitivity equals the direct one to round-off, for random meshes (fixed dofs included),
+    materials, parameter maps (sparse or dense, local or global, or every parameter a mix of
+    regions, which is made region by region) and damping (over- and underdamped modes)."""
+    rng = np.random.default_rng(seed)
+    model, system, dirs, dofs = _element_system(rng, alpha, beta,
+                                                random_block_mesh(rng, n_interior=int(rng.integers(3, 9))))
+    n = system.n
+    if density == "regions":             # a few regions, every parameter a mix of all of them
+        labels = rng.integers(0, 3, len(dirs))
+        J = sp.csr_matrix(np.eye(3)[labels] @ rng.standard_normal((3, k)))
+    else:
+        J = sp.random(len(dirs), k, density=density, random_state=seed, format="csr")
+    G = system.modal_stiffness_derivatives(dirs, dofs, J)
+    assert G.shape == (n, k, n)
+    # G_k is Phi^T dK^(k) Phi, symmetric in its modal indices
+    dK = sum(c * D for c, D in zip(J.toarray()[:, 0], _dense_directions(model, dirs, dofs)))
+    ref_G = system.Phi.T @ dK @ system.Phi
+    scale = max(np.abs(ref_G).max(), 1e-300)
+    assert np.abs(G[:, 0, :] - ref_G).max() <= 1e-11 * scale
+    for _ in range(2):
+        x = np.concatenate([rng.standard_normal(n) * 1e-3, rng.standard_normal(n) * 1e-2])
+        w = rng.standard_normal(n) * 5
+        ref = system.sensitivity(x, w, dirs, dofs, combine=J, modal=modal)
+        got = system.sensitivity(x, w, dirs, dofs, combine=J, modal=modal, modal_stiffness=G)
+        assert got.shape == ref.shape
+        assert np.abs(got - ref).max() <= 1e-11 * max(np.abs(ref).max(), 1e-300)
+
+
+def test_modal_stiffness_derivatives_checked_against_their_arguments():
+    model, system, dirs, dofs = _element_system(np.random.default_rng(8))
+    n = system.n
+    J = np.ones((len(dirs), 2))
+    G = system.modal_stiffness_derivatives(dirs, dofs, J)
+    x, w = np.zeros(2 * n), np.ones(n)
+    with pytest.raises(ValueError, match="modal_stiffness: given without combine"):
+        system.sensitivity(x, w, dirs, dofs, modal_stiffness=G)
+    with pytest.raises(ValueError, match=r"modal_stiffness: expected shape"):
+        system.sensitivity(x, w, dirs, dofs, combine=J[:, :1], modal_stiffness=G)

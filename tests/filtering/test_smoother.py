@@ -326,3 +326,28 @@ def test_smoother_row_of_the_comparison_keeps_table_1(pinned):
     assert sm["ks_H"] == 0 and rows["perfect_kf"]["ks_D"] <= sm["ks_D"] < rows["uniform_kf"]["ks_D"]
     assert sm["E_rel_error_middle"] <= rows["joint_ekf"]["E_rel_error_middle"]
     assert sm["method"] == "iterated_smoother" and sm["converged"]
+
+
+@pytest.mark.parametrize("parameterisation", ["regions", "elements"])
+def test_linearisation_with_and_without_modal_stiffness_derivatives(pinned, monkeypatch, parameterisation):
+    """``SFEMModel.linearise`` makes the modal stiffness derivatives once when they pay
+    (:func:`sfem_filters.model.modal_stiffness_pays`): its M_t are those of the direct
+    sensitivity at every frame, to round-off, and the choice follows the cost and the memory cap."""
+    import sfem_filters.model as model_module
+    param = (Parameterisation.per_region(pinned.middle) if parameterisation == "regions"
+             else Parameterisation.per_element(pinned.mesh.n_elements))
+    m = benchmark_model(pinned, "joint_ekf", parameterisation=param)
+    z = np.tile(m.x0, (m.n_frames, 1))
+    z[:, : m.dim_x] += 1e-4 * np.random.default_rng(2).standard_normal((m.n_frames, m.dim_x))
+    made = []
+    real = model_module.ModalSystem.modal_stiffness_derivatives
+    monkeypatch.setattr(model_module.ModalSystem, "modal_stiffness_derivatives",
+                        lambda self, *a: made.append(1) or real(self, *a))
+    fast = m.linearise(z)
+    assert bool(made) == (parameterisation == "regions")      # every element's own parameter: no
+    monkeypatch.setattr(model_module, "MODAL_STIFFNESS_BYTES", 0)
+    m._modal_cache.clear()
+    made.clear()
+    direct = m.linearise(z)
+    assert not made
+    assert np.abs(fast.M - direct.M).max() <= 1e-11 * np.abs(direct.M).max()
