@@ -35,7 +35,8 @@ from .material import Material, Parameterisation, correlated_prior
 from .mesh import (TriMesh, check_mesh, delaunay_mesh, delaunay_triangles, lattice_mesh, lattice_offset, mesh_quality,
                    rectangle_mesh, triangle_angles)
 from .observation import locate_points, node_observation_matrix, point_observation_matrix
-from .statespace import ModalSystem, continuous_matrices, discretize_zoh, reference_sensitivity
+from .statespace import (ModalSystem, StiffnessPlan, continuous_matrices, discretize_zoh, reference_sensitivity,
+                         stiffness_plan)
 from .strain import element_strains, nodal_average, nodal_strains
 
 __all__ = ["TriMesh", "check_mesh", "rectangle_mesh", "delaunay_mesh", "delaunay_triangles", "lattice_mesh",
@@ -44,5 +45,6 @@ __all__ = ["TriMesh", "check_mesh", "rectangle_mesh", "delaunay_mesh", "delaunay
            "element_mass", "assemble", "stiffness_matrix", "mass_matrix", "element_stiffness_derivatives",
            "rayleigh_damping", "pressure_load", "stress_loads", "penalty_stiffness", "penalty_load",
            "node_dofs", "DofMap", "Material", "Parameterisation", "correlated_prior", "ModalSystem",
-           "continuous_matrices", "discretize_zoh", "reference_sensitivity", "node_observation_matrix",
+           "StiffnessPlan", "stiffness_plan", "continuous_matrices", "discretize_zoh", "reference_sensitivity",
+           "node_observation_matrix",
            "point_observation_matrix", "locate_points", "element_strains", "nodal_average", "nodal_strains"]

@@ -16,6 +16,8 @@ Two routes give the same numbers:
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
@@ -238,6 +240,49 @@ def _phi1(mu, T):
     return T * np.where(small, 1.0 + z / 2.0 + z * z / 6.0, np.expm1(zs) / zs)
 
 
+@dataclass(frozen=True, eq=False)
+class StiffnessPlan:
+    """How :meth:`ModalSystem.modal_stiffness_derivatives` makes ``G`` (:func:`stiffness_plan`)."""
+
+    n_directions: int               # P, rows of combine
+    n_params: int                   # k, columns of combine
+    by_param: sp.csc_matrix         # combine, by column
+    rows: np.ndarray                # (groups, k) the distinct rows of combine
+    group: np.ndarray               # (P,) the group of each direction
+    by_group: bool                  # made group by group (else parameter by parameter)
+    products: int                   # dofs its projections touch, plus groups * k if grouped:
+                                    # its cost in units of one row of an N x N product
+
+
+def stiffness_plan(combine, dofs) -> StiffnessPlan:
+    """Plan the modal stiffness derivatives of a parameter map: per parameter or per group.
+
+    Directions with the same row of ``combine`` (a region's elements, say) act together, so one
+    projection per such group over the dofs it touches, then ``G_k = sum_g combine[g, k] G_g``,
+    is cheaper than one projection per parameter when the parameters reach many groups each (the
+    orthonormal contrasts of a regional map reach every region). The cheaper is chosen.
+
+    Parameters
+    ----------
+    combine : (P, k) array or sparse matrix
+        The chain rule from the P element directions to the k parameters.
+    dofs : (P, 6) int array
+        Free dofs of each direction's element (-1: fixed).
+    """
+    C = sp.csr_matrix(combine)
+    dofs = np.asarray(dofs)
+    if dofs.ndim != 2 or dofs.shape != (C.shape[0], 6):
+        raise ValueError(f"dofs: expected shape ({C.shape[0]}, 6), one row per row of combine, got {dofs.shape}")
+    k = C.shape[1]
+    rows, group = np.unique(C.toarray(), axis=0, return_inverse=True)
+    group = np.asarray(group).ravel()
+    Cc = C.tocsc()
+    per_param = sum(np.unique(dofs[Cc.indices[Cc.indptr[j]:Cc.indptr[j + 1]]]).size for j in range(k))
+    per_group = sum(np.unique(dofs[group == g]).size for g in range(len(rows))) + len(rows) * k
+    by_group = per_group < per_param
+    return StiffnessPlan(C.shape[0], k, Cc, rows, group, by_group, per_group if by_group else per_param)
+
+
 class ModalSystem:
     """Exact zero-order-hold dynamics of ``M U'' + (alpha M + beta K) U' + K U = R`` in modes.
 
@@ -296,6 +341,11 @@ class ModalSystem:
         self.critical = np.abs(lam1 - lam2) < self.critical_tol * np.abs(lam1)
         self._dd = None                 # divided differences of exp over the eigenvalues (lazy)
 
+    def __getstate__(self) -> dict:
+        state = dict(self.__dict__)
+        state["_dd"] = None             # a cache, made again where needed: pickles stay small
+        return state
+
     @property
     def n(self) -> int:
         return self.M.shape[0]
@@ -337,15 +387,18 @@ class ModalSystem:
         """B = int_0^T e^{A_c s} ds B_c (Eq. 16), dense (2n, n)."""
         return np.vstack([(self.Phi * self.g[:, r]) @ self.Phi.T for r in range(2)])
 
-    def modal_stiffness_derivatives(self, dK_elements, dofs, combine) -> np.ndarray:
+    def modal_stiffness_derivatives(self, dK_elements, dofs, combine, plan: "StiffnessPlan | None" = None
+                                    ) -> np.ndarray:
         """``G_k = Phi^T dK^(k) Phi`` for the combined parameters, stored as (N, k, N): ``[i, k, j]``.
 
         ``dK^(k) = sum_p combine[p, k] dK_p`` with ``dK_p`` the element matrix ``dK_elements[p]``
         scattered to its free dofs (as in :meth:`sensitivity`). With it, :meth:`sensitivity`
         (``modal_stiffness=``) contracts the Frechet pairs with ``G`` directly and skips its
         O(n^3) product per call: worth it when the same material serves many states (a
-        smoother's linearisation, one per frame) and k is small. Each ``G_k`` costs a product
-        over the dofs that ``dK^(k)`` touches only (a region's, for a regional map).
+        smoother's linearisation, one per frame) and k is small. Made as :func:`stiffness_plan`
+        says: one product per parameter over the dofs ``dK^(k)`` touches, or one per group of
+        directions with the same row of ``combine`` (a region's elements), combined row block by
+        row block (peak memory about ``(k + groups) N^2`` floats).
 
         Parameters
         ----------
@@ -355,6 +408,8 @@ class ModalSystem:
             Free-dof index of each of those 6 dofs, -1 where the dof is fixed.
         combine : (P, k) array or sparse matrix
             The chain rule to the k parameters (as in :meth:`sensitivity`).
+        plan : StiffnessPlan, optional
+            :func:`stiffness_plan` of ``combine`` and ``dofs``, if already made.
 
         Returns
         -------
@@ -362,19 +417,18 @@ class ModalSystem:
         """
         n, Phi = self.n, self.Phi
         dK = np.asarray(dK_elements, float)
+        if dK.ndim != 3 or dK.shape[1:] != (6, 6):
+            raise ValueError(f"dK_elements: expected shape (P, 6, 6), got {dK.shape}")
+        plan = stiffness_plan(combine, dofs) if plan is None else plan
         dofs = np.asarray(dofs)
-        C = sp.csr_matrix(combine)
-        k = C.shape[1]
-        # Directions with the same row of combine (a region's elements, say) act together: one
-        # product per such group over the dofs it touches, then G_k = sum_g combine[g, k] G_g, is
-        # cheaper than one product per parameter when the parameters reach many groups each (the
-        # orthonormal contrasts of a regional map reach every region).
-        rows, group = np.unique(C.toarray(), axis=0, return_inverse=True)
-        group = group.ravel()
-        Cc = C.tocsc()
-        touched_p = [np.unique(dofs[Cc.indices[Cc.indptr[j]:Cc.indptr[j + 1]]]).size for j in range(k)]
-        touched_g = [np.unique(dofs[group == g]).size for g in range(len(rows))]
-        by_group = sum(touched_g) + len(rows) * k < sum(touched_p)
+        if dofs.shape != (len(dK), 6):
+            raise ValueError(f"dofs: expected shape ({len(dK)}, 6) like dK_elements, got {dofs.shape}")
+        if plan.n_directions != len(dK):
+            raise ValueError(f"combine: expected {len(dK)} rows (one per direction of dK_elements), got "
+                             f"{plan.n_directions}")
+        if dofs.max(initial=-1) >= n:
+            raise ValueError(f"dofs: expected free-dof indices below {n} (or -1), got {dofs.max()}")
+        k = plan.n_params
 
         def projected(p, weights):
             """Phi^T (sum_p weights_p dK_p) Phi over the dofs the directions p touch."""
@@ -388,15 +442,20 @@ class ModalSystem:
             Pt = Phi[touched]
             return Pt.T @ np.asarray(dKm @ Pt)
 
-        if by_group:
+        G = np.empty((n, k, n))
+        if plan.by_group:
+            rows = plan.rows
             Gg = np.empty((len(rows), n, n))
             for g in range(len(rows)):
-                p = np.flatnonzero(group == g)
+                p = np.flatnonzero(plan.group == g)
                 Gg[g] = projected(p, np.ones(len(p)))
-            # G[i, k, j] = sum_g rows[g, k] Gg[g, i, j]: one product, then the (N, k, N) layout
-            Gk = (rows.T @ Gg.reshape(len(rows), -1)).reshape(k, n, n)
-            return np.ascontiguousarray(Gk.transpose(1, 0, 2))
-        G = np.empty((n, k, n))
+            # G[i, k, j] = sum_g rows[g, k] Gg[g, i, j], a product per block of rows i
+            step = max(1, 2 ** 22 // max(k * n, 1))
+            for lo in range(0, n, step):
+                blk = Gg[:, lo:lo + step, :]
+                G[lo:lo + step] = (rows.T @ blk.reshape(len(rows), -1)).reshape(k, -1, n).transpose(1, 0, 2)
+            return G
+        Cc = plan.by_param
         for j in range(k):
             lo, hi = Cc.indptr[j], Cc.indptr[j + 1]
             G[:, j, :] = projected(Cc.indices[lo:hi], Cc.data[lo:hi])
@@ -460,10 +519,14 @@ class ModalSystem:
             G = modal_stiffness
             if G.shape != (N, combine.shape[1], N):
                 raise ValueError(f"modal_stiffness: expected shape {(N, combine.shape[1], N)}, got {G.shape}")
-            # sum_p combine[p, k] W_p^T Y_p = G_k o h, and W_p^T U_s = G_p q_s (U_s = Phi q_s)
-            z = np.matmul(G, h)                                                    # (N, k, 2)
-            z *= -T
-            z -= (G @ q_s)[:, :, None] * static.T[:, None, :]
+            # sum_p combine[p, k] W_p^T Y_p = G_k o h, and W_p^T U_s = G_p q_s (U_s = Phi q_s):
+            # both in one pass over G, with q_s as a third column beside the pairs
+            hq = np.empty((N, N, 3))
+            hq[:, :, :2] = h
+            hq[:, :, 2] = q_s
+            zq = np.matmul(G, hq)                                                  # (N, k, 3)
+            z = zq[:, :, :2] * -T
+            z -= zq[:, :, 2:] * static.T[:, None, :]
             return np.vstack([z[:, :, 0], z[:, :, 1]]) if modal else np.vstack([Phi @ z[:, :, 0], Phi @ z[:, :, 1]])
         # Y[d, k, i] = sum_j Phi[d, j] h[i, j, k] in one product; a zero row stands for fixed
         # dofs (index -1). Dof-major, so that gathering an element's 6 rows copies whole rows.

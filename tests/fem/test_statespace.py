@@ -1,6 +1,7 @@
 """Exact discretisation and exact sensitivities of the state-space model (Eqs. 9-16, 33)."""
 import numpy as np
 import pytest
+import scipy.linalg as sla
 import scipy.sparse as sp
 from helpers import (
     random_block_mesh,
@@ -287,15 +288,30 @@ def test_real_divided_difference_equals_the_complex_one(seed):
 
 
 @settings(max_examples=10, deadline=None)
-@given(seed=st.integers(0, 10_000), alpha=st.floats(0.0, 50.0), beta=st.floats(0.0, 5e-3))
-def test_frechet_pairs_equal_the_plain_daleckii_krein_sum(seed, alpha, beta):
+@given(seed=st.integers(0, 10_000), alpha=st.floats(0.0, 50.0), beta=st.floats(0.0, 5e-3),
+       low_modes_overdamped=st.booleans())
+def test_frechet_pairs_equal_the_plain_daleckii_krein_sum(seed, alpha, beta, low_modes_overdamped):
     """The pair terms h (real arithmetic between overdamped modes, conjugate symmetry of
-    underdamped ones) equal the plain complex sum over both eigenvalues of both modes."""
+    underdamped ones) equal the plain complex sum over both eigenvalues of both modes; also with
+    the lowest and highest modes overdamped and the middle ones not (the overdamped modes then no
+    single run), and at a second state on the same system (its divided differences cached)."""
     rng = np.random.default_rng(seed)
     model = small_model(rng, parameterisation=None, alpha=alpha, beta=beta)
     M, K = reduced_matrices(model)
+    if low_modes_overdamped:        # c = alpha + beta w^2 > 2 w at both ends of the spectrum
+        w = np.sqrt(sla.eigh(K, M, eigvals_only=True))
+        alpha, beta = 2.2 * w[0], 2.2 / w[-1]
     system = ModalSystem(M, K, alpha, beta, model.frame_interval)
-    y = rng.standard_normal((system.n, 2))
+    real = (system.lam.imag == 0).all(axis=1)
+    if low_modes_overdamped:
+        R = np.flatnonzero(real)
+        assert R.size and not real.all() and R[-1] - R[0] + 1 != R.size
+    for _ in range(2):
+        _check_frechet_pairs(system, rng.standard_normal((system.n, 2)))
+
+
+def _check_frechet_pairs(system, y):
+    beta = system.beta
     lam, T = system.lam, system.T
     lam1, lam2 = lam[:, 0], lam[:, 1]
     gap = np.where(system.critical, 1.0, lam2 - lam1)
@@ -359,11 +375,7 @@ def test_modal_stiffness_derivatives_give_the_same_sensitivity(seed, k, density,
         J = sp.random(len(dirs), k, density=density, random_state=seed, format="csr")
     G = system.modal_stiffness_derivatives(dirs, dofs, J)
     assert G.shape == (n, k, n)
-    # G_k is Phi^T dK^(k) Phi, symmetric in its modal indices
-    dK = sum(c * D for c, D in zip(J.toarray()[:, 0], _dense_directions(model, dirs, dofs)))
-    ref_G = system.Phi.T @ dK @ system.Phi
-    scale = max(np.abs(ref_G).max(), 1e-300)
-    assert np.abs(G[:, 0, :] - ref_G).max() <= 1e-11 * scale
+    _check_modal_stiffness(model, system, dirs, dofs, J, G)
     for _ in range(2):
         x = np.concatenate([rng.standard_normal(n) * 1e-3, rng.standard_normal(n) * 1e-2])
         w = rng.standard_normal(n) * 5
@@ -373,11 +385,45 @@ def test_modal_stiffness_derivatives_give_the_same_sensitivity(seed, k, density,
         assert np.abs(got - ref).max() <= 1e-11 * max(np.abs(ref).max(), 1e-300)
 
 
+def _check_modal_stiffness(model, system, dirs, dofs, J, G):
+    """Every G_k against Phi^T dK^(k) Phi assembled densely."""
+    D = _dense_directions(model, dirs, dofs)
+    Jd = J.toarray() if sp.issparse(J) else np.asarray(J)
+    for k in range(Jd.shape[1]):
+        ref = system.Phi.T @ sum(c * Dp for c, Dp in zip(Jd[:, k], D)) @ system.Phi
+        assert np.abs(G[:, k, :] - ref).max() <= 1e-11 * max(np.abs(ref).max(), 1e-300)
+
+
+@pytest.mark.parametrize("by_group", [True, False])
+def test_modal_stiffness_derivatives_by_group_and_by_parameter(by_group):
+    """A regional map whose contrasts reach every region is made region by region, a map of
+    distinct rows parameter by parameter (:func:`stiffness_plan` says which); either way every
+    G_k is Phi^T dK^(k) Phi."""
+    rng = np.random.default_rng(11)
+    model, system, dirs, dofs = _element_system(rng, mesh=random_block_mesh(rng, n_interior=8))
+    if by_group:
+        labels = np.arange(len(dirs)) % 4
+        J = np.eye(4)[labels] @ rng.standard_normal((4, 5))
+    else:
+        J = rng.standard_normal((len(dirs), 3))
+    plan = fem.stiffness_plan(J, dofs)
+    assert plan.by_group == by_group
+    assert len(plan.rows) == (4 if by_group else len(dirs))
+    _check_modal_stiffness(model, system, dirs, dofs, J, system.modal_stiffness_derivatives(dirs, dofs, J, plan))
+
+
 def test_modal_stiffness_derivatives_checked_against_their_arguments():
     model, system, dirs, dofs = _element_system(np.random.default_rng(8))
     n = system.n
     J = np.ones((len(dirs), 2))
     G = system.modal_stiffness_derivatives(dirs, dofs, J)
+    _check_modal_stiffness(model, system, dirs, dofs, J, G)
+    with pytest.raises(ValueError, match=r"combine: expected \d+ rows"):
+        system.modal_stiffness_derivatives(dirs, dofs, J[:-1], fem.stiffness_plan(J[:-1], dofs[:-1]))
+    with pytest.raises(ValueError, match=r"dofs: expected shape"):
+        fem.stiffness_plan(J[:-1], dofs)
+    with pytest.raises(ValueError, match=r"dK_elements: expected shape"):
+        system.modal_stiffness_derivatives(dirs[:, :5], dofs, J)
     x, w = np.zeros(2 * n), np.ones(n)
     with pytest.raises(ValueError, match="modal_stiffness: given without combine"):
         system.sensitivity(x, w, dirs, dofs, modal_stiffness=G)

@@ -9,6 +9,8 @@ from helpers import bias_model
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+import sfem_filters.model as model_module
+from sfem_filters import fem
 from sfem_filters.benchmark.pinned import benchmark_model, pinned_benchmark
 from sfem_filters.cardiac import annulus_sequence, build_model, prepare
 from sfem_filters.fem import Parameterisation
@@ -333,7 +335,6 @@ def test_linearisation_with_and_without_modal_stiffness_derivatives(pinned, monk
     """``SFEMModel.linearise`` makes the modal stiffness derivatives once when they pay
     (:func:`sfem_filters.model.modal_stiffness_pays`): its M_t are those of the direct
     sensitivity at every frame, to round-off, and the choice follows the cost and the memory cap."""
-    import sfem_filters.model as model_module
     param = (Parameterisation.per_region(pinned.middle) if parameterisation == "regions"
              else Parameterisation.per_element(pinned.mesh.n_elements))
     m = benchmark_model(pinned, "joint_ekf", parameterisation=param)
@@ -351,3 +352,28 @@ def test_linearisation_with_and_without_modal_stiffness_derivatives(pinned, monk
     direct = m.linearise(z)
     assert not made
     assert np.abs(fast.M - direct.M).max() <= 1e-11 * np.abs(direct.M).max()
+
+
+def test_modal_stiffness_pays_by_cost_and_memory():
+    """Made when building them and a pass over G per frame cost less than half the products
+    they save, and they fit in the memory cap; not for as many parameters as dofs (the
+    per-element map); arguments checked."""
+    rng = np.random.default_rng(0)
+    P, n = 60, 400
+    dofs = rng.integers(0, n, (P, 6))
+    few = fem.stiffness_plan(np.eye(4)[np.arange(P) % 4] @ rng.standard_normal((4, 3)), dofs)   # 3 parameters
+    assert model_module.modal_stiffness_pays(few, 30, n)
+    assert not model_module.modal_stiffness_pays(few, 1, 20)             # nothing to save over one frame
+    many = fem.stiffness_plan(np.eye(P), dofs)                                # a parameter per direction
+    assert not model_module.modal_stiffness_pays(many, 30, n)
+    cap = 8 * (3 + 4) * n * n                                             # (k + groups) n^2 floats while made
+    for limit, expected in ((cap, True), (cap - 1, False)):
+        model_module.MODAL_STIFFNESS_BYTES, saved = limit, model_module.MODAL_STIFFNESS_BYTES
+        try:
+            assert model_module.modal_stiffness_pays(few, 30, n) == expected
+        finally:
+            model_module.MODAL_STIFFNESS_BYTES = saved
+    with pytest.raises(ValueError, match="frames: expected an integer >= 1"):
+        model_module.modal_stiffness_pays(few, 0, n)
+    with pytest.raises(ValueError, match="n: expected an integer >= 1"):
+        model_module.modal_stiffness_pays(few, 30, 0.5)
