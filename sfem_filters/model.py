@@ -581,9 +581,11 @@ class SFEMModel(LinearObservation):
             J = self.parameterisation.element_jacobian(mat)
             # one material for every frame: with few parameters, their modal stiffness derivatives
             # once beat the O(n^3) product of every frame's sensitivity (same numbers to round-off)
-            plan = stiffness_plan(J, dofs)
-            G = (system.modal_stiffness_derivatives(dirs, dofs, J, plan)
-                 if modal_stiffness_pays(plan, T - 1, nx // 2) else None)
+            G = None
+            if 8 * J.shape[1] * (nx // 2) ** 2 <= MODAL_STIFFNESS_BYTES:   # else not even planned (per element)
+                plan = stiffness_plan(J, dofs)
+                if modal_stiffness_pays(plan, T - 1, nx // 2):
+                    G = system.modal_stiffness_derivatives(dirs, dofs, J, plan)
             for t in range(T - 1):
                 M[t, :nx] = system.sensitivity(z[t, :nx], self.load(z[t], t), dirs, dofs, combine=J, modal=True,
                                                modal_stiffness=G)
