@@ -29,6 +29,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
 
 from .base import DenseEngine
 from .linearised import LinearisedModel
@@ -309,8 +310,9 @@ def smooth(lin: LinearisedModel, observations, theta_mean=None, theta_cov=None, 
         :meth:`LinearisedModel.output_in_xi`.
     covariance : bool
         Run the covariance recursion (O(n^2 (m + p)) a frame) and return the outputs' smoothed
-        variances (O(c n^2) a frame for the c columns of xi an output reads, shared by outputs
-        that read the same columns); otherwise means only. The covariance of theta is returned
+        variances: the outputs' rows are split into blocks that read disjoint columns of xi
+        (:func:`_output_blocks`), and a block of c columns and r distinct rows costs
+        O(c n^2 + r c^2) a frame; otherwise means only. The covariance of theta is returned
         either way (for static parameters it is the forward pass's last).
     safeguards, check_every_frame, monitor_nis :
         See :func:`kalman_forward`.
@@ -330,8 +332,8 @@ def smooth_backward(lin: LinearisedModel, forward: ForwardPass, *, outputs=None,
     T, n = lin.n_frames, lin.dim_state
     lam = np.zeros(n)
     Lam = np.zeros((n, n)) if covariance else None
-    groups = _support_groups(outputs) if covariance else []
-    var = {name: np.empty((T, L.shape[0])) for _, members in groups for name, L in members}
+    groups = _output_blocks(outputs) if covariance else []
+    var = {name: np.zeros((T, np.shape(L)[0])) for name, L in (outputs or {}).items()} if covariance else {}
     smoothed = np.empty((T, n))
     for t in range(T - 1, -1, -1):
         xb, Pb = eng.priors[t]
@@ -351,11 +353,12 @@ def smooth_backward(lin: LinearisedModel, forward: ForwardPass, *, outputs=None,
                 LamT[:nr, :nr] += H.T @ ((K.T @ G) @ H + sla.cho_solve(cho, H))
                 LamT = 0.5 * (LamT + LamT.T)
         smoothed[t] = xb - Pb @ lt
-        for cols, members in groups:
+        for cols, rows, members in groups:
             PC = Pb[cols, :]
-            Ps = Pb[np.ix_(cols, cols)] - (PC @ LamT) @ PC.T          # smoothed covariance of the support
-            for name, Lc in members:
-                var[name][t] = np.einsum("ij,ij->i", Lc @ Ps, Lc)
+            Ps = Pb[np.ix_(cols, cols)] - (PC @ LamT) @ PC.T          # smoothed covariance of the block's columns
+            v = np.einsum("ij,ij->i", rows @ Ps, rows)
+            for name, where, which in members:
+                var[name][t, where] = v[which]
         if t > 0:
             A, M = lin.A_at(t - 1), lin.M[t - 1]
             lam = _transpose_step(A, M, lt, nr)
@@ -366,15 +369,47 @@ def smooth_backward(lin: LinearisedModel, forward: ForwardPass, *, outputs=None,
                         P_theta=eng.P[nr:, nr:].copy(), variances=var)
 
 
-def _support_groups(outputs) -> list:
-    """Outputs grouped by the columns of xi they read: ``[(cols, [(name, L[:, cols]), ...]), ...]``,
-    so that the smoothed covariance of each support is formed once a frame."""
-    groups: dict = {}
+def _output_blocks(outputs) -> list:
+    """The outputs' rows in blocks that read disjoint columns of xi, each block's distinct rows once.
+
+    Two rows are in one block when their supports (non-zero columns) are joined by a chain of
+    rows sharing a column (the connected components of the bipartite row-column graph), so the
+    blocks' column sets are disjoint and forming the smoothed covariance of each block's
+    columns costs at most what one covariance of their union would. In vibration modes, for
+    example, displacements read the modal displacements and velocities the modal velocities:
+    two blocks of half the columns each, instead of every output reading all of them. Rows
+    repeated within a block (an output that is a selection of another's rows) are computed
+    once; rows of zeros read nothing and have variance 0.
+
+    Returns ``[(cols, rows, [(name, where, which), ...]), ...]``: the block's columns, its distinct
+    rows restricted to them, and for each output the positions ``where`` of its rows in the block
+    and ``which`` distinct row each one is.
+    """
+    names, mats = [], []
     for name, L in (outputs or {}).items():
-        L = np.asarray(L, float)
-        cols = np.flatnonzero(np.any(L != 0, axis=0))
-        groups.setdefault(cols.tobytes(), (cols, []))[1].append((name, L[:, cols]))
-    return list(groups.values())
+        names.append(name)
+        mats.append(np.atleast_2d(np.asarray(L, float)))
+    if not mats:
+        return []
+    L = np.vstack(mats)
+    owner = np.repeat(np.arange(len(mats)), [m.shape[0] for m in mats])
+    position = np.concatenate([np.arange(m.shape[0]) for m in mats])
+    R, C = L.shape
+    B = sp.csr_matrix(L != 0, dtype=float)
+    graph = sp.bmat([[sp.csr_matrix((R, R)), B], [B.T, sp.csr_matrix((C, C))]], format="csr")
+    _, label = connected_components(graph, directed=False)
+    blocks = []
+    for comp in np.unique(label[:R]):
+        cols = np.flatnonzero(label[R:] == comp)
+        if cols.size == 0:
+            continue                                            # rows of zeros: variance 0
+        in_block = np.flatnonzero(label[:R] == comp)
+        rows, which = np.unique(L[np.ix_(in_block, cols)], axis=0, return_inverse=True)
+        which = np.asarray(which).ravel()
+        members = [(names[k], position[in_block[owner[in_block] == k]], which[owner[in_block] == k])
+                   for k in np.unique(owner[in_block])]
+        blocks.append((cols, rows, members))
+    return blocks
 
 
 def rts_reference(lin: LinearisedModel, observations, theta_mean=None, theta_cov=None):

@@ -73,6 +73,45 @@ def test_modified_bryson_frazier_equals_the_textbook_rts(seed, nr, p, m, T, spar
     assert np.ptp(sm.smoothed[:, nr:], axis=0).max(initial=0.0) <= 1e-9 * scale     # theta is static
 
 
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 10_000), nr=st.integers(2, 7), p=st.integers(0, 2), T=st.integers(2, 5),
+       n_outputs=st.integers(1, 4))
+def test_output_blocks_give_the_textbook_variances(seed, nr, p, T, n_outputs):
+    """Outputs with structure (rows reading disjoint column sets, rows repeated across outputs,
+    rows of zeros, an output spread over several blocks): split into blocks with disjoint
+    columns, every row computed once per distinct row, the variances are the textbook RTS
+    smoother's."""
+    rng = np.random.default_rng(seed)
+    lin = _random_linearised(rng, nr, p, 2, T, False)
+    y = rng.standard_normal((T, 2))
+    split = rng.integers(1, nr)                       # columns [0, split) and [split, nr)
+    pool = []
+    for _ in range(4):
+        row = rng.standard_normal(nr)
+        row[split:] = 0.0 if rng.uniform() < 0.5 else row[split:]
+        row[:split] = 0.0 if rng.uniform() < 0.3 else row[:split]
+        pool.append(row)
+    pool.append(np.zeros(nr))
+    outputs = {f"o{k}": np.array([pool[i] for i in rng.integers(0, len(pool), size=rng.integers(1, 6))])
+               for k in range(n_outputs)}
+    blocks = smoother_module._output_blocks(outputs)
+    seen_cols = np.concatenate([cols for cols, _, _ in blocks]) if blocks else np.zeros(0, int)
+    assert len(seen_cols) == len(np.unique(seen_cols))                  # disjoint columns
+    for name, L in outputs.items():
+        where = np.concatenate([w for _, _, members in blocks for n, w, _ in members if n == name] or [[]])
+        assert np.array_equal(np.sort(where.astype(int)), np.flatnonzero(np.any(L != 0, axis=1)))
+        for cols, rows, members in blocks:                              # every row rebuilt from its block
+            for n, w, which in members:
+                if n == name:
+                    assert np.array_equal(rows[which], L[np.ix_(w, cols)])
+                    assert not np.any(np.delete(L[w], cols, axis=1))
+    sm = smooth(lin, y, outputs=outputs, covariance=True)
+    _, Ps = rts_reference(lin, y)
+    for name, L in outputs.items():
+        want = np.array([np.diag(L @ P[:nr, :nr] @ L.T) for P in Ps])
+        np.testing.assert_allclose(sm.variances[name], want, rtol=1e-7, atol=1e-10 * max(want.max(), 1e-300))
+
+
 @pytest.fixture(scope="module")
 def pinned():
     return pinned_benchmark(0)
