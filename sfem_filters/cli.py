@@ -11,7 +11,7 @@ import os
 import sys
 
 from ._io import write_json
-from .cardiac.closing import CRITERIA, LAPLACE, SELECTIONS
+from .cardiac.closing import CRITERIA, LAPLACE, SELECTIONS, default_max_iterations, not_converged_note
 from .cardiac.effects import CATALOGUE, EXPLICIT_ONLY
 from .cardiac.measured import DRIVES, ESTIMATORS, MESHES, OBSERVE, PARAMETERISATIONS
 from .filtering.engines import ENGINES
@@ -151,8 +151,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "and a Laplace posterior; cyclic: the paper's cyclic joint EKF, reported with the covariance "
                         "of one cycle; roukf: Moireau & Chapelle's reduced-order UKF (p + 1 simplex sigma points on "
                         "the material, no tangent operator, no process noise) in the same cyclic driver")
-    d.add_argument("--max-iterations", type=_positive_int, default=20,
-                   help="Gauss-Newton iteration limit of the smoother (default 20)")
+    d.add_argument("--max-iterations", type=_positive_int, default=None,
+                   help="Gauss-Newton iteration limit of the smoother (default 20; 80 with --drive pressure, where "
+                        "the stiffness level is estimated and takes longer to converge)")
     d.add_argument("--max-loops", type=_positive_int, default=3, help="loop limit of the cyclic estimator (default 3)")
     d.add_argument("--max-rounds", type=_positive_int, default=5,
                    help="most rounds (effects or corrections added) of --effects auto (default 5)")
@@ -286,7 +287,9 @@ def cmd_dense(args) -> int:
     from .cardiac.sequence import example_path, load_sequence
     config = dict(effects=args.effects, drive=args.drive, landmarks=args.landmarks, observe=args.observe,
                   holdout_seed=args.holdout_seed, parameterisation=args.parameterisation, max_loops=args.max_loops,
-                  estimator=args.estimator, max_iterations=args.max_iterations, max_rounds=args.max_rounds,
+                  estimator=args.estimator,
+                  max_iterations=(default_max_iterations(args.drive) if args.max_iterations is None
+                                  else args.max_iterations), max_rounds=args.max_rounds,
                   alpha=args.alpha, criterion=args.criterion, folds=args.folds,
                   # always in the configuration (and a batch job's fingerprint): the default changed
                   # from "first" to "best", and a result of the one must not be reused for the other
@@ -319,6 +322,9 @@ def cmd_dense(args) -> int:
     # --workers changes how fast, not what: it is not part of the configuration (nor a batch fingerprint)
     out = closing_the_loop(seq, progress=not args.no_progress, workers=args.workers, **config)
     print(format_report(out))
+    note = not_converged_note(out.as_json())
+    if note:
+        print(f"sfem-filters dense: warning: {note}", file=sys.stderr)
     if args.figures:
         from .plotting.measured import dense_figures
         for p in dense_figures(out, args.figures):

@@ -28,6 +28,7 @@ from sfem_filters.cardiac.sequence import (
     moved_on_lattice,
     save_sequence,
 )
+from sfem_filters.cli import main
 from sfem_filters.fem.elasticity import stiffness_matrix
 from sfem_filters.fem.loads import stress_loads
 from sfem_filters.filtering import diagnostics
@@ -791,3 +792,38 @@ def test_the_loop_records_and_reports_its_mesh():
     assert out.config["mesh"] == "radial" and out.setup.mesh_kind == "radial"
     assert "triangles (radial)" in closing.format_report(out)
     assert json.loads(json.dumps(out.as_json()))["config"]["mesh"] == "radial"
+
+
+def test_a_fit_stopped_short_of_the_stop_rule_is_reported_as_such(tmp_path, capsys):
+    """A run stopped by its iteration limit says so beside its numbers, in the report and on stderr
+    (its stiffness level's interval is not the posterior's), and names the option to raise; a
+    converged run says nothing of the kind. Without a limit given, a measured pressure gets the
+    longer default (the level converges slowly) and other drives the usual one."""
+    seq = annulus_sequence(None, n_frames=8, seed=2, drive="pressure")
+    path = str(tmp_path / "p.npz")
+    save_sequence(seq, path)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        assert main(["dense", path, "--drive", "pressure", "--effects", "none", "--max-iterations", "1",
+                     "--no-progress", "--workers", "1", "--json", str(tmp_path / "p.json")]) == 0
+    out = capsys.readouterr()
+    level = next(line for line in out.out.splitlines() if line.startswith("stiffness level (baseline)"))
+    assert "NOT CONVERGED" in level
+    assert "stopped at the limit of 1 iterations" in out.out and "--max-iterations" in out.out
+    assert "warning: the baseline and the final model stopped at the limit of 1 iterations" in out.err
+    report = json.loads((tmp_path / "p.json").read_text())
+    assert report["config"]["max_iterations"] == 1 and not report["baseline"]["converged"]
+    assert closing.not_converged_note({**report, "baseline": {**report["baseline"], "converged": True},
+                                       "extended": {**report["extended"], "converged": True}}) == ""
+    stuck = {**report, "baseline": {**report["baseline"], "stop_reason": "damping"},
+             "extended": {**report["extended"], "stop_reason": "damping"}}
+    assert "no damping" in closing.not_converged_note(stuck) and "--max-iterations" not in \
+        closing.not_converged_note(stuck)
+    assert closing.default_max_iterations("pressure") == 80 and closing.default_max_iterations("penalty") == 20
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        out = closing.closing_the_loop(seq, effects="none", drive="pressure", parameterisation="none")
+    assert out.config["max_iterations"] == 80
+    assert "NOT CONVERGED" not in closing.format_report(out) and closing.not_converged_note(out.as_json()) == ""
+    with pytest.raises(ValueError, match="^max_iterations: expected an integer >= 1"):
+        closing.closing_the_loop(seq, effects="none", max_iterations=0)
