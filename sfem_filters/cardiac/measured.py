@@ -683,17 +683,21 @@ def evaluate(setup: Setup, model: SFEMModel, result, seconds: float = 0.0, obser
                         "E_sd_log": sd_logE.tolist(), "nu_sd": sd_nu.tolist(),
                         "E_sd_log_median": float(np.median(sd_logE)), "nu_sd_median": float(np.median(sd_nu))})
     # transmural shear 2 E_rc at the data's systolic peak (largest wall area): model vs measured
-    data_U = _filled(meas)
-    peak = int(np.argmax([np.abs(triangle_double_areas(setup.seq.points + data_U[t], setup.mesh.elements)).sum()
-                          for t in range(F)]))
-    shear_data = strain_maps(setup, data_U)[peak, :, 2]
+    # (measured data only: nodes whose strain needs a missing datum are left out)
+    peak = _peak_frame(wall_area_ratios(setup, meas))
+    shear_data = strain_maps(setup, meas)[peak, :, 2]
     shear_model = strain_maps(setup, U)[peak, :, 2]
-    metrics.update({"shear_strain_rms_peak_model": float(np.sqrt(np.mean(shear_model ** 2))),
-                    "shear_strain_error_rms_peak": float(np.sqrt(np.mean((shear_model - shear_data) ** 2))),
+    known = np.isfinite(shear_data)
+    rms_model = float(np.sqrt(np.mean(shear_model ** 2)))
+    shear_data, shear_model = shear_data[known], shear_model[known]
+    metrics.update({"shear_strain_rms_peak_model": rms_model,
+                    "shear_strain_error_rms_peak": float(np.sqrt(np.mean((shear_model - shear_data) ** 2)))
+                    if known.any() else float("nan"),
                     # undefined (null in the JSON, '-' in the report) where either field is constant,
                     # as at a peak frame 0, where every strain is zero; not a correlation of 0
                     "shear_strain_correlation_peak": float(np.corrcoef(shear_model, shear_data)[0, 1])
-                    if np.std(shear_model) > 1e-12 and np.std(shear_data) > 1e-12 else float("nan")})
+                    if known.sum() > 1 and np.std(shear_model) > 1e-12 and np.std(shear_data) > 1e-12
+                    else float("nan")})
     if smoother:
         metrics["log_evidence"] = float(result.log_likelihood)
     elif observations is not None:
@@ -835,10 +839,20 @@ def strain_maps(setup: Setup, U_px) -> np.ndarray:
     """Radial, circumferential and shear strain at each node w.r.t. frame 0, (frames, nodes, 3).
 
     ``U_px`` (frames, points, 2) displacement in data units; the shear is engineering (2 E_rc).
+    Where a datum is missing (NaN, in that frame or in frame 0) the strains of the nodes of every
+    triangle it touches are NaN: measured strain is not made up from neighbouring frames.
     """
     U = np.asarray(U_px, float) - np.asarray(U_px, float)[0]
-    eps = nodal_strains(setup.mesh, U.reshape(len(U), -1) * setup.spacing)   # e_xx, e_yy, gamma_xy
-    return polar_strains(setup.geometry, eps)
+    missing = ~np.all(np.isfinite(U), axis=-1)                                  # (F, P)
+    eps = nodal_strains(setup.mesh, np.where(missing[..., None], 0.0, U).reshape(len(U), -1) * setup.spacing)
+    out = polar_strains(setup.geometry, eps)                                  # e_xx, e_yy, gamma_xy -> polar
+    if missing.any():
+        tri = setup.mesh.elements
+        touched = np.zeros_like(missing)
+        for t in np.flatnonzero(missing.any(axis=1)):
+            touched[t, tri[missing[t][tri].any(axis=1)].ravel()] = True
+        out[touched] = np.nan
+    return out
 
 
 def measured_wall_kinematics(setup: Setup) -> dict:
@@ -851,32 +865,65 @@ def measured_wall_kinematics(setup: Setup) -> dict:
     the displacement RMS of the first frame (is it at rest?) and between the last and first
     frames (does the cycle close?). Data units (pixels).
     """
-    mesh, g, seq = setup.mesh, setup.geometry, setup.seq
+    g, seq = setup.geometry, setup.seq
     P = seq.points
-    U = _filled(seq.displacement)
-    def area(X):
-        return 0.5 * np.abs(triangle_double_areas(X, mesh.elements)).sum()
-
-    a0 = area(P)
-    area_ratio = np.array([area(P + U[t]) / a0 for t in range(len(U))])
+    U = np.asarray(seq.displacement, float)
+    ok = np.all(np.isfinite(U), axis=-1)                                 # (F, P): a datum
+    area_ratio = wall_area_ratios(setup, U)
     grid = np.linspace(0, 2 * np.pi, 90, endpoint=False)
 
-    def thickness(X):
-        c = polygon_centroid(X[g.endo])
-        return float(np.mean(radius_by_angle(X[g.epi], c, grid) - radius_by_angle(X[g.endo], c, grid)))
+    def thickness(t):
+        endo, epi = g.endo[ok[t][g.endo]], g.epi[ok[t][g.epi]]
+        if min(len(endo), len(epi)) < 3:
+            return np.nan
+        X = P + np.where(ok[t][:, None], U[t], 0.0)
+        c = polygon_centroid(X[endo])
+        return float(np.mean(radius_by_angle(X[epi], c, grid) - radius_by_angle(X[endo], c, grid)))
 
-    thick = np.array([thickness(P + U[t]) for t in range(len(U))])
-    eps = strain_maps(setup, U)
-    peak = int(np.argmax(area_ratio))
+    thick = np.array([thickness(t) for t in range(len(U))])
+    eps = strain_maps(setup, U)                                           # NaN where a datum is missing
+    peak = _peak_frame(area_ratio)
+
+    def mean(x):
+        x = x[np.isfinite(x)]
+        return float(np.mean(x)) if x.size else np.nan
+
+    both = ok[0] & ok[-1]
     return {"peak_frame": peak, "wall_area_ratio_peak": float(area_ratio[peak]),
             "wall_thickness_px_frame0": float(thick[0]), "wall_thickness_px_peak": float(thick[peak]),
-            "mean_radial_strain_peak": float(eps[peak, :, 0].mean()),
-            "mean_circumferential_strain_peak": float(eps[peak, :, 1].mean()),
-            "mean_shear_strain_peak": float(eps[peak, :, 2].mean()),
-            "shear_strain_rms_peak": float(np.sqrt(np.mean(eps[peak, :, 2] ** 2))),
-            "frame0_displacement_rms_px": float(np.sqrt(np.mean(np.sum(U[0] ** 2, axis=1)))),
-            "last_to_first_rms_px": float(np.sqrt(np.mean(np.sum((U[-1] - U[0]) ** 2, axis=1)))),
+            "mean_radial_strain_peak": mean(eps[peak, :, 0]),
+            "mean_circumferential_strain_peak": mean(eps[peak, :, 1]),
+            "mean_shear_strain_peak": mean(eps[peak, :, 2]),
+            "shear_strain_rms_peak": float(np.sqrt(mean(eps[peak, :, 2] ** 2))),
+            "frame0_displacement_rms_px": float(np.sqrt(mean(np.sum(U[0][ok[0]] ** 2, axis=1)))),
+            "last_to_first_rms_px": float(np.sqrt(mean(np.sum((U[-1] - U[0])[both] ** 2, axis=1)))),
             "wall_area_ratio": area_ratio.tolist(), "wall_thickness_px": thick.tolist()}
+
+
+def wall_area_ratios(setup: Setup, U_px) -> np.ndarray:
+    """Deformed over reference area of the tissue, per frame, (frames,), from measured data only.
+
+    ``U_px`` (frames, points, 2) displacement in data units, NaN where missing. A frame's ratio is
+    taken over the triangles whose three points all have data in that frame (the whole mesh when
+    nothing is missing); NaN where none has.
+    """
+    tri = setup.mesh.elements
+    U = np.asarray(U_px, float)
+    ok = np.all(np.isfinite(U), axis=-1)
+    ref = np.abs(triangle_double_areas(setup.seq.points, tri))
+    out = np.full(len(U), np.nan)
+    for t in range(len(U)):
+        full = ok[t][tri].all(axis=1)
+        if full.any():
+            X = setup.seq.points + np.where(ok[t][:, None], U[t], 0.0)
+            out[t] = np.abs(triangle_double_areas(X, tri))[full].sum() / ref[full].sum()
+    return out
+
+
+def _peak_frame(area_ratio) -> int:
+    """The systolic peak: the frame of largest wall area with data (0 when no frame has any)."""
+    a = np.asarray(area_ratio, float)
+    return int(np.nanargmax(a)) if np.any(np.isfinite(a)) else 0
 
 
 def equivalent_eigenstrain(effect_states, nu: float = None) -> np.ndarray:

@@ -32,6 +32,7 @@ from sfem_filters.cli import main
 from sfem_filters.fem.elasticity import stiffness_matrix
 from sfem_filters.fem.loads import stress_loads
 from sfem_filters.filtering import diagnostics
+from sfem_filters.geometry import triangle_double_areas
 
 
 # ------------------------------------------------------------------ data format
@@ -827,3 +828,46 @@ def test_a_fit_stopped_short_of_the_stop_rule_is_reported_as_such(tmp_path, caps
     assert "NOT CONVERGED" not in closing.format_report(out) and closing.not_converged_note(out.as_json()) == ""
     with pytest.raises(ValueError, match="^max_iterations: expected an integer >= 1"):
         closing.closing_the_loop(seq, effects="none", max_iterations=0)
+
+
+@settings(max_examples=10, deadline=None)
+@given(seed=st.integers(0, 1000), n_missing=st.integers(1, 40), frame=st.integers(1, 5))
+def test_what_the_data_say_is_computed_from_the_data_only(seed, n_missing, frame):
+    """The report's measured wall kinematics and measured strains use the data that exist: points
+    with no data count in no frame (the area over the triangles with data, the strain NaN at the
+    nodes of any triangle they touch and the full data's elsewhere), and a frame without data
+    gives NaN, never a neighbour's copy or a zero displacement."""
+    seq = annulus_sequence(None, n_frames=6, seed=seed % 7)
+    rng = np.random.default_rng(seed)
+    gone = rng.choice(seq.n_points, size=n_missing, replace=False)
+    d = seq.displacement.copy()
+    d[:, gone] = np.nan
+    d[frame] = np.nan
+    setup, full = measured.prepare(dataclasses.replace(seq, displacement=d), 4), measured.prepare(seq, 4)
+    tri = setup.mesh.elements
+    keep = ~np.isin(tri, gone).any(axis=1)
+    ratio = measured.wall_area_ratios(setup, d)
+    for t in range(seq.n_frames):
+        if t == frame:
+            assert np.isnan(ratio[t])
+            continue
+        ref = np.abs(triangle_double_areas(seq.points, tri))[keep].sum()
+        now = np.abs(triangle_double_areas(seq.points + seq.displacement[t], tri))[keep].sum()
+        assert ratio[t] == pytest.approx(now / ref, rel=1e-12)
+    eps, eps_full = measured.strain_maps(setup, d), measured.strain_maps(full, seq.displacement)
+    touched = np.unique(tri[~keep])
+    assert np.all(np.isnan(eps[:, touched])) and np.all(np.isnan(eps[frame]))
+    rest = np.setdiff1d(np.arange(seq.n_points), touched)
+    others = np.setdiff1d(np.arange(seq.n_frames), [frame])
+    np.testing.assert_allclose(eps[np.ix_(others, rest)], eps_full[np.ix_(others, rest)], rtol=1e-10, atol=1e-14)
+    m = measured.measured_wall_kinematics(setup)
+    assert np.isnan(m["wall_thickness_px"][frame]) and np.isnan(m["wall_area_ratio"][frame])
+    assert m["peak_frame"] != frame and np.isfinite(m["wall_area_ratio_peak"])
+    ok = np.setdiff1d(np.arange(seq.n_points), gone)
+    assert m["frame0_displacement_rms_px"] == pytest.approx(
+        np.sqrt(np.mean(np.sum(seq.displacement[0][ok] ** 2, axis=1))), rel=1e-12)
+    d0 = seq.displacement.copy()
+    d0[0] = np.nan
+    m0 = measured.measured_wall_kinematics(measured.prepare(dataclasses.replace(seq, displacement=d0), 4))
+    assert np.isnan(m0["frame0_displacement_rms_px"]) and np.isnan(m0["last_to_first_rms_px"])
+    assert np.isnan(m0["wall_thickness_px_frame0"])
