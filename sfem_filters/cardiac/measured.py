@@ -230,8 +230,22 @@ def prepare(seq: Sequence, landmarks: int = 8, observe: str = "boundary", holdou
     if landmarks > shortest:
         raise ValueError(f"landmarks: expected at most {shortest} per contour (the shorter contour's points), "
                          f"got {landmarks}")
-    endo_l, epi_l = contour_landmarks(geometry, mesh, landmarks, offset_deg=angle_origin_deg)
+    # a point without data in any frame cannot be a landmark: its spring would pull the tissue to
+    # a made-up target; the closest contour point with data takes its place, and the user is told
+    has_data = np.any(np.all(np.isfinite(seq.displacement), axis=-1), axis=0)
+    ideal = np.concatenate(contour_landmarks(geometry, mesh, landmarks, offset_deg=angle_origin_deg))
+    try:
+        endo_l, epi_l = contour_landmarks(geometry, mesh, landmarks, offset_deg=angle_origin_deg, eligible=has_data)
+    except ValueError as exc:
+        raise ValueError(f"landmarks: {exc} (points without data in any frame cannot be landmarks)") from None
     lm = np.concatenate([endo_l, epi_l])
+    moved = np.flatnonzero(lm != ideal)
+    if moved.size:
+        turn = np.degrees(np.abs(np.angle(np.exp(1j * (geometry.angle(mesh.nodes[lm[moved]])
+                                                          - geometry.angle(mesh.nodes[ideal[moved]]))))))
+        warnings.warn(f"landmarks: {moved.size} contour point(s) {ideal[moved].tolist()} have no data in any frame; "
+                      f"the closest contour points with data, {lm[moved].tolist()} ({turn.max():.1f} degrees away at "
+                      "most), are the landmarks instead", RuntimeWarning, stacklevel=2)
     observed = lm
     if observe == "boundary+midwall":
         rng = np.random.default_rng(holdout_seed)

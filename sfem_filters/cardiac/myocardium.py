@@ -313,11 +313,14 @@ def polar_strain_operator(mesh: TriMesh, geometry: LVGeometry) -> sp.csr_matrix:
     return sp.csr_matrix(P @ nodal_strain_operator(mesh))
 
 
-def contour_landmarks(geometry: LVGeometry, mesh: TriMesh, n_per_contour: int, offset_deg: float = 0.0):
+def contour_landmarks(geometry: LVGeometry, mesh: TriMesh, n_per_contour: int, offset_deg: float = 0.0,
+                      eligible=None):
     """``n_per_contour`` evenly spaced landmark nodes on each contour (endo, epi).
 
     Landmark k of a contour is the contour node whose angle about the cavity centre is
     closest to ``offset + 360 k / n`` degrees, as shape tracking would give sparse points.
+    ``eligible`` (bool per node, optional): only these nodes may be landmarks (for example the
+    points with data in some frame); landmark k is then the closest eligible node.
 
     Returns
     -------
@@ -325,17 +328,21 @@ def contour_landmarks(geometry: LVGeometry, mesh: TriMesh, n_per_contour: int, o
     """
     if int(n_per_contour) != n_per_contour or n_per_contour < 3:
         raise ValueError(f"n_per_contour: expected an integer >= 3, got {n_per_contour!r}")
+    ok = np.ones(mesh.n_nodes, bool) if eligible is None else np.asarray(eligible, bool)
     targets = np.radians(offset_deg + 360.0 * np.arange(int(n_per_contour)) / n_per_contour)
     out = []
-    for loop in (geometry.endo, geometry.epi):
+    for name, loop in (("endocardial", geometry.endo), ("epicardial", geometry.epi)):
         if n_per_contour > len(loop):
             raise ValueError(f"n_per_contour: a contour has only {len(loop)} nodes, asked for {n_per_contour}")
+        if n_per_contour > int(ok[loop].sum()):
+            raise ValueError(f"n_per_contour: the {name} contour has {int(ok[loop].sum())} of its {len(loop)} points "
+                             f"with data, asked for {n_per_contour} landmarks")
         ang = geometry.angle(mesh.nodes[loop])
         diff = np.abs(np.angle(np.exp(1j * (ang[None, :] - targets[:, None]))))
         chosen = []
         for row in diff:
             order = np.argsort(row)
-            pick = next(i for i in order if loop[i] not in chosen)
+            pick = next(i for i in order if loop[i] not in chosen and ok[loop[i]])
             chosen.append(loop[pick])
         out.append(np.array(chosen))
     return out[0], out[1]

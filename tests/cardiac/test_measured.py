@@ -871,3 +871,28 @@ def test_what_the_data_say_is_computed_from_the_data_only(seed, n_missing, frame
     m0 = measured.measured_wall_kinematics(measured.prepare(dataclasses.replace(seq, displacement=d0), 4))
     assert np.isnan(m0["frame0_displacement_rms_px"]) and np.isnan(m0["last_to_first_rms_px"])
     assert np.isnan(m0["wall_thickness_px_frame0"])
+
+
+def test_a_point_without_data_is_never_a_landmark():
+    """A contour point with no data in any frame would drive the tissue to a made-up target: the
+    closest contour point with data is the landmark instead (with a warning naming both), the
+    other landmarks stay, and a contour with fewer points with data than landmarks is refused."""
+    seq = annulus_sequence(None, n_frames=6, seed=3)
+    full = measured.prepare(seq, 8)
+    d = seq.displacement.copy()
+    lost = full.landmarks[[0, 8]]                         # landmark 0 of each contour
+    d[:, lost] = np.nan
+    with pytest.warns(RuntimeWarning, match=r"landmarks: 2 contour point\(s\) .* have no data in any frame"):
+        setup = measured.prepare(dataclasses.replace(seq, displacement=d), 8)
+    assert not np.isin(lost, setup.landmarks).any()
+    assert np.array_equal(np.delete(setup.landmarks, [0, 8]), np.delete(full.landmarks, [0, 8]))
+    g = setup.geometry
+    for k, loop in ((0, g.endo), (8, g.epi)):
+        assert setup.landmarks[k] in loop and np.all(np.isfinite(d[:, setup.landmarks[k]]))
+        gap = np.abs(np.angle(np.exp(1j * g.angle(setup.mesh.nodes[loop]))))     # landmark 0 aims at 0 degrees
+        usable = np.isfinite(d[0, loop, 0]) & ~np.isin(loop, np.delete(setup.landmarks, k))
+        assert gap[loop == setup.landmarks[k]][0] == gap[usable].min()
+    d = seq.displacement.copy()
+    d[:, full.geometry.endo[2:]] = np.nan                 # two endocardial points left with data
+    with pytest.raises(ValueError, match=r"^landmarks: .*endocardial contour has 2 of its .* points with data"):
+        measured.prepare(dataclasses.replace(seq, displacement=d), 3)
