@@ -392,7 +392,16 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return {"compare": cmd_compare, "dense": cmd_dense, "observe": cmd_observe}[args.command](args)
-    except (ValueError, TypeError, OSError, ImportError, MemoryError) as exc:
+    except MemoryError as exc:
+        # the smoother's own check says what to reduce; an allocation that fails midway does not
+        text = str(exc) or "out of memory"
+        if "reduce" not in text:
+            text = (f"out of memory ({text}); the run needs more memory than is free here: reduce the state (fewer "
+                    "points, for example every other pixel of the tissue; fewer material parameters) or the frames, "
+                    "or run where more memory is free")
+        print(f"sfem-filters {args.command}: error: {text}", file=sys.stderr)
+        return 2
+    except (ValueError, TypeError, OSError, ImportError) as exc:
         print(f"sfem-filters {args.command}: error: {exc}", file=sys.stderr)
         return 2
 

@@ -23,6 +23,7 @@ Memory: the prior covariance of every frame is kept for the backward pass (n^2 f
 """
 from __future__ import annotations
 
+import resource
 import warnings
 from dataclasses import dataclass, field
 
@@ -171,8 +172,9 @@ def available_memory() -> float | None:
 
     The smaller of the machine's ``MemAvailable`` (Linux /proc/meminfo) and what the process's
     control group still allows (cgroup v2 ``memory.max - memory.current``, v1
-    ``memory.limit_in_bytes - memory.usage_in_bytes``), as in a container or a batch slot. A Dask
-    worker's own ``memory_limit`` is not seen here."""
+    ``memory.limit_in_bytes - memory.usage_in_bytes``), as in a container or a batch slot, and what
+    the process's address-space limit (``ulimit -v``) still allows. A Dask worker's own
+    ``memory_limit`` is not seen here."""
     found = []
     try:
         with open("/proc/meminfo") as f:
@@ -187,7 +189,23 @@ def available_memory() -> float | None:
         if cap is not None and now is not None and cap < 2.0 ** 60:     # v1 writes a huge number for none
             found.append(max(cap - now, 0.0))
             break
+    room = _address_space_room()
+    if room is not None:
+        found.append(room)
     return min(found) if found else None
+
+
+def _address_space_room() -> float | None:
+    """Bytes the process's address-space limit (``ulimit -v``, RLIMIT_AS) still allows, or None."""
+    try:
+        soft = resource.getrlimit(resource.RLIMIT_AS)[0]
+        if soft == resource.RLIM_INFINITY:
+            return None
+        with open("/proc/self/status") as f:
+            size = next(float(line.split()[1]) * 1024.0 for line in f if line.startswith("VmSize:"))
+    except (OSError, ValueError, StopIteration, AttributeError):
+        return None
+    return max(float(soft) - size, 0.0)
 
 
 def check_memory(n: int, frames: int, available: float | None = None) -> None:

@@ -896,3 +896,21 @@ def test_a_point_without_data_is_never_a_landmark():
     d[:, full.geometry.endo[2:]] = np.nan                 # two endocardial points left with data
     with pytest.raises(ValueError, match=r"^landmarks: .*endocardial contour has 2 of its .* points with data"):
         measured.prepare(dataclasses.replace(seq, displacement=d), 3)
+
+
+def test_running_out_of_memory_midway_is_an_error_that_says_what_to_do(monkeypatch, capsys, tmp_path):
+    """An allocation that fails inside a run (numpy's bare 'Unable to allocate ...') exits 2 with
+    what to reduce; the smoother's own refusal, which already says so, is passed on as it is."""
+    def out_of_memory(*args, **kwargs):
+        raise MemoryError("Unable to allocate 215. MiB for an array with shape (5312, 5312) and data type float64")
+    monkeypatch.setattr(closing, "closing_the_loop", out_of_memory)
+    assert main(["dense", "example", "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "error: out of memory (Unable to allocate 215. MiB" in err and "reduce the state" in err
+
+    def refused(*args, **kwargs):
+        raise MemoryError("model: the smoother keeps ...; reduce the state (fewer nodes)")
+    monkeypatch.setattr(closing, "closing_the_loop", refused)
+    assert main(["dense", "example", "--no-progress"]) == 2
+    assert capsys.readouterr().err.strip() == ("sfem-filters dense: error: model: the smoother keeps ...; reduce the "
+                                               "state (fewer nodes)")
