@@ -101,6 +101,14 @@ def make_sequence(points, displacement, **optional) -> Sequence:
         raise ValueError(f"displacement: expected at least 2 frames, got {F}")
     if np.all(np.isnan(disp)):
         raise ValueError("displacement: every value is NaN; nothing was measured")
+    extent = float(np.max(np.ptp(pts, axis=0)))
+    largest = float(np.nanmax(np.abs(disp)))
+    if largest > extent:
+        # no point of a heart moves by more than the whole tissue's size: other units than the
+        # points', or failed tracking (mark such values NaN)
+        raise ValueError(f"displacement: expected displacements in the points' units and within the tissue's extent "
+                         f"({extent:.4g}), got values up to {largest:.4g}; a displacement larger than the whole slice is "
+                         "in other units or a tracking failure (mark such values NaN)")
     kw = {}
     if optional.get("velocity") is not None:
         kw["velocity"] = as_float_array("velocity", optional["velocity"], (F, P, 2), allow_nan=True,

@@ -57,6 +57,9 @@ def test_sequence_round_trip(tmp_path):
     (dict(points=np.ones((5, 2)), displacement=np.zeros((3, 4, 2))), r"displacement: expected shape \(any, 5, 2\)"),
     (dict(points=np.ones((5, 2)), displacement=np.zeros((1, 5, 2))), "displacement: expected at least 2 frames"),
     (dict(points=np.ones((5, 2)), displacement=np.full((3, 5, 2), np.nan)), "displacement: every value is NaN"),
+    (dict(points=np.arange(10.0).reshape(5, 2), displacement=np.full((3, 5, 2), 1e6)),
+     r"displacement: expected displacements in the points' units and within the tissue's extent \(8\), got values "
+     r"up to 1e\+06"),
     (dict(points=np.ones((5, 2)), displacement=np.zeros((3, 5, 2)), frame_interval=-1.0),
      "frame_interval: expected a positive"),
     (dict(points=np.ones((5, 2)), displacement=np.zeros((3, 5, 2)), confidence=np.full(5, 2.0)),
