@@ -11,10 +11,11 @@ import os
 import sys
 
 from ._io import write_json
-from .cardiac.closing import CRITERIA, LAPLACE, SELECTIONS, default_max_iterations, not_converged_note
+from .cardiac.closing import CRITERIA, LAPLACE, SELECTIONS, not_converged_note
 from .cardiac.effects import CATALOGUE, EXPLICIT_ONLY
-from .cardiac.measured import DRIVES, ESTIMATORS, MESHES, OBSERVE, PARAMETERISATIONS
+from .cardiac.measured import DRIVES, ESTIMATORS, MESHES, OBSERVE, PARAMETERISATIONS, default_max_iterations
 from .filtering.engines import ENGINES
+from .filtering.smoother import MEMORY_ADVICE, InsufficientMemory
 from .filtering.iterated import NOISE_LEVELS
 
 
@@ -393,12 +394,10 @@ def main(argv=None) -> int:
     try:
         return {"compare": cmd_compare, "dense": cmd_dense, "observe": cmd_observe}[args.command](args)
     except MemoryError as exc:
-        # the smoother's own check says what to reduce; an allocation that fails midway does not
-        text = str(exc) or "out of memory"
-        if "reduce" not in text:
-            text = (f"out of memory ({text}); the run needs more memory than is free here: reduce the state (fewer "
-                    "points, for example every other pixel of the tissue; fewer material parameters) or the frames, "
-                    "or run where more memory is free")
+        # the smoother's own refusal says what to reduce; an allocation that fails midway does not
+        text = str(exc) if isinstance(exc, InsufficientMemory) else (
+            "out of memory" + (f" ({exc})" if str(exc) else "") + f"; the run needs more memory than is free here: "
+            f"{MEMORY_ADVICE}")
         print(f"sfem-filters {args.command}: error: {text}", file=sys.stderr)
         return 2
     except (ValueError, TypeError, OSError, ImportError) as exc:

@@ -24,6 +24,7 @@ from threadpoolctl import threadpool_limits
 from .._io import json_safe
 from ..benchmark.comparison import LABELS, run_comparison
 from ..cardiac.closing import closing_the_loop, length_display
+from ..cardiac.measured import default_max_iterations
 from ..cardiac.sequence import example_path, load_sequence
 from ..export import export_comparison, export_dense
 from ..plotting import comparison_figures, dense_figures
@@ -38,8 +39,10 @@ OUTPUTS = ("figures", "export", "checkpoint_dir")
 _TIMING_KEYS = ("seconds",)
 #: What a result holds for a given configuration, input and version; raised whenever the same job
 #: would now compute something else, so that a resumed batch does not mix old results with new
-#: (2: the innovations' whiteness with the symmetric root of S instead of its Cholesky factor).
-RESULTS_SCHEMA = 2
+#: (2: the innovations' whiteness with the symmetric root of S instead of its Cholesky factor; 3: what
+#: the data say computed from the data only, no longer from the drive's filled-in values, and no
+#: landmark on a point without data).
+RESULTS_SCHEMA = 3
 
 
 def _version() -> str:
@@ -151,13 +154,17 @@ def dense_jobs(paths, figures=None, export=None, **config) -> list:
     paths = [example_path() if p == "example" else os.fspath(p) for p in paths]
     if not paths:
         raise ValueError("paths: expected at least one sequence file")
+    cfg = dict(config)
+    if cfg.get("max_iterations") is None:
+        # the limit the run will use, in its fingerprint: the default depends on the drive
+        cfg["max_iterations"] = default_max_iterations(cfg.get("drive", "penalty"))
     jobs, seen = [], {}
     for p in paths:
         stem = os.path.splitext(os.path.basename(p))[0]
         seen[stem] = seen.get(stem, 0) + 1
         name = stem if seen[stem] == 1 else f"{stem}-{seen[stem]}"
         out = {k: os.path.join(v, name) for k, v in (("figures", figures), ("export", export)) if v}
-        jobs.append(Job("dense", name, dict(config), inputs=(p,), outputs=out))
+        jobs.append(Job("dense", name, cfg, inputs=(p,), outputs=out))
     return jobs
 
 

@@ -114,8 +114,8 @@ from ..filtering.iterated import NOISE_LEVELS
 from ..filtering.smoother import PEAK_FACTOR, available_memory
 from .crossval import DEFAULT_FOLDS, cross_validate, observation_folds, spline_cross_validation
 from .effects import CATALOGUE, EXPLICIT_ONLY, build_effects
-from .measured import (NOMINAL, Run, Setup, angle_from_origin, equivalent_eigenstrain, exact_posterior, kriged_heldout,
-                       measured_wall_kinematics, prepare, run, with_covariance)
+from .measured import (NOMINAL, Run, Setup, angle_from_origin, default_max_iterations, equivalent_eigenstrain,
+                       exact_posterior, kriged_heldout, measured_wall_kinematics, prepare, run, with_covariance)
 from .reference import angular_sectors, rmse_difference, spline_reference
 from .sequence import Sequence
 
@@ -123,7 +123,7 @@ __all__ = ["LoopResult", "Round", "Variant", "closing_the_loop", "candidate_load
            "removals", "fit_workers", "usable_cores",
            "versus_spline", "SELECTIONS",
            "DRIVE_CORRECTIONS", "time_courses", "CRITERIA", "round_cross_validation", "DEFAULT_CANDIDATES", "LAPLACE",
-           "length_display", "MAX_ITERATIONS", "default_max_iterations", "not_converged_note"]
+           "length_display", "not_converged_note"]
 
 #: How a round picks among significant candidates (``selection=``, ``--selection``): the first by
 #: score that improves the criterion, or the one of the fitted that improves it most.
@@ -137,18 +137,6 @@ CRITERIA = ("evidence", "cv")
 #: The final model's material covariance (``laplace=``, ``--laplace``): the smoother's inverse
 #: Gauss-Newton Hessian, or the inverse exact Hessian of the MAP cost at the mode.
 LAPLACE = ("gauss-newton", "exact")
-
-#: The smoother's iteration limit when none is given (``max_iterations=None``, ``--max-iterations``):
-#: 20, and 80 under a measured pressure, where the stiffness level is a parameter and converges
-#: slowly (the README's 100 kPa synthetic annulus needs 57 iterations), so that 20 could leave the
-#: level's interval short of the truth.
-MAX_ITERATIONS = {"default": 20, "pressure": 80}
-
-
-def default_max_iterations(drive: str) -> int:
-    """The smoother's iteration limit for ``drive`` when none is given (:data:`MAX_ITERATIONS`)."""
-    return MAX_ITERATIONS["pressure" if drive == "pressure" else "default"]
-
 
 #: The candidates of the rounds when none are given: the catalogue without the effects that are
 #: tried only by name (:data:`~sfem_filters.cardiac.effects.EXPLICIT_ONLY`).
@@ -700,7 +688,7 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
         segment 0 start, degrees from the image's +x axis towards +y).
     estimator : {"smoother", "cyclic", "roukf"}
         The iterated smoother (at most ``max_iterations`` Gauss-Newton steps; default
-        :func:`default_max_iterations` of the drive: 20, 80 under a measured pressure) or the
+        :func:`~sfem_filters.cardiac.measured.default_max_iterations` of the drive: 20, 80 under a measured pressure) or the
         paper's cyclic joint EKF (at most ``max_loops`` loops); see
         :func:`sfem_filters.cardiac.measured.run`. A fit stopped by its limit is marked not
         converged in the report: its material is where it stopped, not the posterior's mode.

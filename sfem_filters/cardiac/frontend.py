@@ -179,7 +179,7 @@ def fusion_setup(seq: Sequence, tracks: BoundaryTracks, velocity: VelocityData |
 
 def compare_fusion(seq: Sequence, tracks: BoundaryTracks, velocity: VelocityData, landmarks: int = 8,
                    holdout_seed: int = 0, parameterisation: str = "region", max_loops: int = 3, beta: float = 0.03,
-                   progress: bool = False, estimator: str = "smoother", max_iterations: int = 20) -> dict:
+                   progress: bool = False, estimator: str = "smoother", max_iterations: int | None = None) -> dict:
     """Tracked borders alone and tracked borders plus velocity, estimated jointly (the iterated
     smoother, or ``estimator="cyclic"`` with ``max_loops``), scored on the same held-out points.
 

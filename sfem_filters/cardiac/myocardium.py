@@ -320,7 +320,9 @@ def contour_landmarks(geometry: LVGeometry, mesh: TriMesh, n_per_contour: int, o
     Landmark k of a contour is the contour node whose angle about the cavity centre is
     closest to ``offset + 360 k / n`` degrees, as shape tracking would give sparse points.
     ``eligible`` (bool per node, optional): only these nodes may be landmarks (for example the
-    points with data in some frame); landmark k is then the closest eligible node.
+    points with data in some frame). Every landmark that is eligible stays where it is; one that
+    is not is replaced by the eligible contour node closest to its target angle that is not
+    already a landmark, so one missing point moves one landmark.
 
     Returns
     -------
@@ -335,15 +337,19 @@ def contour_landmarks(geometry: LVGeometry, mesh: TriMesh, n_per_contour: int, o
         if n_per_contour > len(loop):
             raise ValueError(f"n_per_contour: a contour has only {len(loop)} nodes, asked for {n_per_contour}")
         if n_per_contour > int(ok[loop].sum()):
-            raise ValueError(f"n_per_contour: the {name} contour has {int(ok[loop].sum())} of its {len(loop)} points "
-                             f"with data, asked for {n_per_contour} landmarks")
+            raise ValueError(f"eligible: the {name} contour has {int(ok[loop].sum())} of its {len(loop)} points "
+                             f"eligible, fewer than the {n_per_contour} landmarks asked for")
         ang = geometry.angle(mesh.nodes[loop])
         diff = np.abs(np.angle(np.exp(1j * (ang[None, :] - targets[:, None]))))
         chosen = []
         for row in diff:
             order = np.argsort(row)
-            pick = next(i for i in order if loop[i] not in chosen and ok[loop[i]])
+            pick = next(i for i in order if loop[i] not in chosen)
             chosen.append(loop[pick])
+        for k, node in enumerate(list(chosen)):
+            if not ok[node]:
+                pick = next(i for i in np.argsort(diff[k]) if ok[loop[i]] and loop[i] not in chosen)
+                chosen[k] = loop[pick]
         out.append(np.array(chosen))
     return out[0], out[1]
 

@@ -102,7 +102,7 @@ def make_sequence(points, displacement, **optional) -> Sequence:
     if np.all(np.isnan(disp)):
         raise ValueError("displacement: every value is NaN; nothing was measured")
     extent = float(np.max(np.ptp(pts, axis=0)))
-    largest = float(np.nanmax(np.abs(disp)))
+    largest = float(np.nanmax(np.linalg.norm(disp, axis=-1)))
     if largest > extent:
         # no point of a heart moves by more than the whole tissue's size: other units than the
         # points', or failed tracking (mark such values NaN)

@@ -37,7 +37,7 @@ from .linearised import LinearisedModel
 from .structured import joseph_update
 
 __all__ = ["LinearisedEngine", "ForwardPass", "SmoothedPass", "kalman_forward", "smooth_backward", "smooth",
-           "rts_reference", "available_memory", "check_memory"]
+           "rts_reference", "available_memory", "check_memory", "InsufficientMemory", "MEMORY_ADVICE"]
 
 LOG_2PI = float(np.log(2.0 * np.pi))
 
@@ -208,6 +208,16 @@ def _address_space_room() -> float | None:
     return max(float(soft) - size, 0.0)
 
 
+#: What to do when a smoothing run does not fit the memory.
+MEMORY_ADVICE = ("reduce the state (fewer nodes, for example every other pixel of the tissue; fewer material "
+                 "parameters) or the frames, or run where more memory is free")
+
+
+class InsufficientMemory(MemoryError):
+    """:func:`check_memory`'s refusal of a run whose stored covariances cannot fit (its message
+    gives the sizes and :data:`MEMORY_ADVICE`)."""
+
+
 def check_memory(n: int, frames: int, available: float | None = None) -> None:
     """Refuse a forward pass whose stored covariances cannot fit, warn where the run's peak may not.
 
@@ -232,13 +242,11 @@ def check_memory(n: int, frames: int, available: float | None = None) -> None:
     gb = 1e-9
     what = (f"the smoother keeps a {n} x {n} covariance for each of {frames + 1} frames ({stored * gb:.1f} GB; "
             f"about {PEAK_FACTOR * stored * gb:.1f} GB at the run's peak)")
-    advice = ("reduce the state (fewer nodes, for example every other pixel of the tissue; fewer material "
-              "parameters) or the frames, or run where more memory is free")
     if stored > available:
-        raise MemoryError(f"model: {what}, more than the {available * gb:.1f} GB available; {advice}")
+        raise InsufficientMemory(f"model: {what}, more than the {available * gb:.1f} GB available; {MEMORY_ADVICE}")
     if PEAK_FACTOR * stored > available:
-        warnings.warn(f"{what}, while {available * gb:.1f} GB are available: the run may run out of memory; {advice}",
-                      RuntimeWarning, stacklevel=3)
+        warnings.warn(f"{what}, while {available * gb:.1f} GB are available: the run may run out of memory; "
+                      f"{MEMORY_ADVICE}", RuntimeWarning, stacklevel=3)
 
 
 def kalman_forward(lin: LinearisedModel, observations, theta_mean=None, theta_cov=None, *, safeguards=None,
@@ -350,8 +358,9 @@ def smooth_backward(lin: LinearisedModel, forward: ForwardPass, *, outputs=None,
     T, n = lin.n_frames, lin.dim_state
     lam = np.zeros(n)
     Lam = np.zeros((n, n)) if covariance else None
-    groups = _output_blocks(outputs) if covariance else []
-    var = {name: np.zeros((T, np.shape(L)[0])) for name, L in (outputs or {}).items()} if covariance else {}
+    outputs = _checked_outputs(outputs, nr) if covariance else {}
+    groups = _output_blocks(outputs)
+    var = {name: np.zeros((T, L.shape[0])) for name, L in outputs.items()}
     smoothed = np.empty((T, n))
     for t in range(T - 1, -1, -1):
         xb, Pb = eng.priors[t]
@@ -387,6 +396,18 @@ def smooth_backward(lin: LinearisedModel, forward: ForwardPass, *, outputs=None,
                         P_theta=eng.P[nr:, nr:].copy(), variances=var)
 
 
+def _checked_outputs(outputs, nr: int) -> dict:
+    """The output operators as dense (k, nr) float arrays (sparse ones densified); a ValueError
+    names an output of another shape."""
+    out = {}
+    for name, L in (outputs or {}).items():
+        L = L.toarray() if sp.issparse(L) else np.asarray(L, float)
+        if L.ndim != 2 or L.shape[1] != nr:
+            raise ValueError(f"outputs: expected (k, {nr}) matrices on xi, got {name!r} with shape {L.shape}")
+        out[name] = L
+    return out
+
+
 def _output_blocks(outputs) -> list:
     """The outputs' rows in blocks that read disjoint columns of xi, each block's distinct rows once.
 
@@ -399,22 +420,20 @@ def _output_blocks(outputs) -> list:
     repeated within a block (an output that is a selection of another's rows) are computed
     once; rows of zeros read nothing and have variance 0.
 
-    Returns ``[(cols, rows, [(name, where, which), ...]), ...]``: the block's columns, its distinct
-    rows restricted to them, and for each output the positions ``where`` of its rows in the block
-    and ``which`` distinct row each one is.
+    ``outputs``: ``{name: (k, n) array}`` (:func:`_checked_outputs`). Returns ``[(cols, rows, [(name,
+    where, which), ...]), ...]``: the block's columns, its distinct rows restricted to them, and for
+    each output the positions ``where`` of its rows in the block and ``which`` distinct row each one is.
     """
-    names, mats = [], []
-    for name, L in (outputs or {}).items():
-        names.append(name)
-        mats.append(np.atleast_2d(np.asarray(L, float)))
-    if not mats:
+    names, mats = list((outputs or {}).keys()), list((outputs or {}).values())
+    if not mats or not sum(m.shape[0] for m in mats):
         return []
     L = np.vstack(mats)
     owner = np.repeat(np.arange(len(mats)), [m.shape[0] for m in mats])
     position = np.concatenate([np.arange(m.shape[0]) for m in mats])
     R, C = L.shape
-    B = sp.csr_matrix(L != 0, dtype=float)
-    graph = sp.bmat([[sp.csr_matrix((R, R)), B], [B.T, sp.csr_matrix((C, C))]], format="csr")
+    B = sp.csr_matrix(L != 0, dtype=np.int8)
+    graph = sp.bmat([[sp.csr_matrix((R, R), dtype=np.int8), B], [B.T, sp.csr_matrix((C, C), dtype=np.int8)]],
+                    format="csr")
     _, label = connected_components(graph, directed=False)
     blocks = []
     for comp in np.unique(label[:R]):

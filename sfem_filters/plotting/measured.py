@@ -4,9 +4,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..cardiac.closing import LoopResult, length_display
-from ..cardiac.measured import angle_from_origin
-from ..cardiac.myocardium import polar_strains
-from ..fem.strain import nodal_strains
+from ..cardiac.measured import angle_from_origin, strain_maps
 from ..filtering.diagnostics import nis_summary
 from ._common import _plt, _triangulation, _write_figures
 
@@ -64,19 +62,19 @@ def dense_strain_maps(loop: LoopResult, path: str, frame: int | None = None):
     plt = _plt()
     setup = loop.setup
     ext = loop.extended
-    F = setup.seq.n_frames
-    meas = polar_strains(setup.geometry, nodal_strains(setup.mesh, np.nan_to_num(setup.seq.displacement).reshape(F, -1)
-                                                       * setup.spacing))
-    est = polar_strains(setup.geometry, nodal_strains(setup.mesh, ext.U.reshape(F, -1) * setup.spacing))
+    # measured strain only where the data are (NaN, blank in the map, around a missing datum)
+    meas = strain_maps(setup, setup.seq.displacement, relative_to_first=False)
+    est = strain_maps(setup, ext.U, relative_to_first=False)
     sd = np.asarray(ext.metrics["strain_polar_sd"]) if "strain_polar_sd" in ext.metrics else None
     if frame is None:
-        frame = int(np.argmax(np.abs(meas[..., 1]).mean(axis=1)))
+        size = [np.nanmean(np.abs(m[:, 1])) if np.isfinite(m[:, 1]).any() else -np.inf for m in meas]
+        frame = int(np.argmax(size))
     tri = _triangulation(setup.mesh)
     rows = 3 if sd is not None else 2
     fig, axes = plt.subplots(rows, 3, figsize=(12, 3.8 * rows), constrained_layout=True)
     for j, (label, cmap) in enumerate((("radial E_rr", "RdBu_r"), ("circumferential E_cc", "RdBu_r"),
                                        ("shear 2 E_rc", "PuOr"))):
-        v = max(np.abs(meas[frame, :, j]).max(), np.abs(est[frame, :, j]).max())
+        v = max(np.nanmax(np.abs(meas[frame, :, j]), initial=0.0), np.abs(est[frame, :, j]).max())
         for i, (data, what) in enumerate(((meas, "measured"), (est, "estimated"))):
             ax = axes[i, j]
             im = ax.tripcolor(tri, data[frame, :, j], shading="gouraud", cmap=cmap, vmin=-v, vmax=v)

@@ -32,6 +32,7 @@ from sfem_filters.cli import main
 from sfem_filters.fem.elasticity import stiffness_matrix
 from sfem_filters.fem.loads import stress_loads
 from sfem_filters.filtering import diagnostics
+from sfem_filters.filtering.smoother import MEMORY_ADVICE, InsufficientMemory
 from sfem_filters.geometry import triangle_double_areas
 
 
@@ -823,7 +824,7 @@ def test_a_fit_stopped_short_of_the_stop_rule_is_reported_as_such(tmp_path, caps
              "extended": {**report["extended"], "stop_reason": "damping"}}
     assert "no damping" in closing.not_converged_note(stuck) and "--max-iterations" not in \
         closing.not_converged_note(stuck)
-    assert closing.default_max_iterations("pressure") == 80 and closing.default_max_iterations("penalty") == 20
+    assert measured.default_max_iterations("pressure") == 80 and measured.default_max_iterations("penalty") == 20
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         out = closing.closing_the_loop(seq, effects="none", drive="pressure", parameterisation="none")
@@ -834,7 +835,7 @@ def test_a_fit_stopped_short_of_the_stop_rule_is_reported_as_such(tmp_path, caps
 
 
 @settings(max_examples=10, deadline=None)
-@given(seed=st.integers(0, 1000), n_missing=st.integers(1, 40), frame=st.integers(1, 5))
+@given(seed=st.integers(0, 1000), n_missing=st.integers(1, 40), frame=st.integers(1, 4))
 def test_what_the_data_say_is_computed_from_the_data_only(seed, n_missing, frame):
     """The report's measured wall kinematics and measured strains use the data that exist: points
     with no data count in no frame (the area over the triangles with data, the strain NaN at the
@@ -846,23 +847,30 @@ def test_what_the_data_say_is_computed_from_the_data_only(seed, n_missing, frame
     d = seq.displacement.copy()
     d[:, gone] = np.nan
     d[frame] = np.nan
+    late = rng.choice(np.setdiff1d(np.arange(seq.n_points), gone), size=3, replace=False)
+    d[-1, late] = np.nan                                  # and a few points missing in the last frame only
     setup, full = measured.prepare(dataclasses.replace(seq, displacement=d), 4), measured.prepare(seq, 4)
     tri = setup.mesh.elements
     keep = ~np.isin(tri, gone).any(axis=1)
     ratio = measured.wall_area_ratios(setup, d)
+    last = seq.n_frames - 1
     for t in range(seq.n_frames):
         if t == frame:
             assert np.isnan(ratio[t])
             continue
-        ref = np.abs(triangle_double_areas(seq.points, tri))[keep].sum()
-        now = np.abs(triangle_double_areas(seq.points + seq.displacement[t], tri))[keep].sum()
+        use = keep & ~np.isin(tri, late).any(axis=1) if t == last else keep
+        ref = np.abs(triangle_double_areas(seq.points, tri))[use].sum()
+        now = np.abs(triangle_double_areas(seq.points + seq.displacement[t], tri))[use].sum()
         assert ratio[t] == pytest.approx(now / ref, rel=1e-12)
     eps, eps_full = measured.strain_maps(setup, d), measured.strain_maps(full, seq.displacement)
     touched = np.unique(tri[~keep])
-    assert np.all(np.isnan(eps[:, touched])) and np.all(np.isnan(eps[frame]))
+    touched_last = np.unique(tri[np.isin(tri, late).any(axis=1)])
+    assert np.all(np.isnan(eps[:, touched])) and np.all(np.isnan(eps[frame])) and np.all(np.isnan(eps[last, touched_last]))
     rest = np.setdiff1d(np.arange(seq.n_points), touched)
-    others = np.setdiff1d(np.arange(seq.n_frames), [frame])
+    others = np.setdiff1d(np.arange(seq.n_frames), [frame, last])
     np.testing.assert_allclose(eps[np.ix_(others, rest)], eps_full[np.ix_(others, rest)], rtol=1e-10, atol=1e-14)
+    rest_last = np.setdiff1d(rest, touched_last)
+    np.testing.assert_allclose(eps[last, rest_last], eps_full[last, rest_last], rtol=1e-10, atol=1e-14)
     m = measured.measured_wall_kinematics(setup)
     assert np.isnan(m["wall_thickness_px"][frame]) and np.isnan(m["wall_area_ratio"][frame])
     assert m["peak_frame"] != frame and np.isfinite(m["wall_area_ratio_peak"])
@@ -897,8 +905,23 @@ def test_a_point_without_data_is_never_a_landmark():
         assert gap[loop == setup.landmarks[k]][0] == gap[usable].min()
     d = seq.displacement.copy()
     d[:, full.geometry.endo[2:]] = np.nan                 # two endocardial points left with data
-    with pytest.raises(ValueError, match=r"^landmarks: .*endocardial contour has 2 of its .* points with data"):
+    with pytest.raises(ValueError, match=r"^landmarks: the endocardial contour has 2 of its .* points with data"):
         measured.prepare(dataclasses.replace(seq, displacement=d), 3)
+
+
+def test_one_missing_point_moves_one_landmark():
+    """With landmarks closer than the contour's spacing can keep apart, a substitute must not push
+    its neighbours along: every landmark with data stays, only the one without moves."""
+    seq = annulus_sequence(None, n_frames=6, seed=3)
+    n = min(len(measured.prepare(seq, 8).geometry.endo), len(measured.prepare(seq, 8).geometry.epi))
+    n -= 4                                                # nearly every contour point a landmark
+    full = measured.prepare(seq, n)
+    d = seq.displacement.copy()
+    d[:, full.landmarks[5]] = np.nan
+    with pytest.warns(RuntimeWarning, match=rf"landmarks: 1 contour point\(s\) \[{full.landmarks[5]}\] have no data"):
+        setup = measured.prepare(dataclasses.replace(seq, displacement=d), n)
+    changed = np.flatnonzero(setup.landmarks != full.landmarks)
+    assert changed.tolist() == [5] and len(np.unique(setup.landmarks)) == len(setup.landmarks)
 
 
 def test_running_out_of_memory_midway_is_an_error_that_says_what_to_do(monkeypatch, capsys, tmp_path):
@@ -909,10 +932,17 @@ def test_running_out_of_memory_midway_is_an_error_that_says_what_to_do(monkeypat
     monkeypatch.setattr(closing, "closing_the_loop", out_of_memory)
     assert main(["dense", "example", "--no-progress"]) == 2
     err = capsys.readouterr().err
-    assert "error: out of memory (Unable to allocate 215. MiB" in err and "reduce the state" in err
+    assert "error: out of memory (Unable to allocate 215. MiB" in err and MEMORY_ADVICE in err
+
+    def bare(*args, **kwargs):
+        raise MemoryError()
+    monkeypatch.setattr(closing, "closing_the_loop", bare)
+    assert main(["dense", "example", "--no-progress"]) == 2
+    assert capsys.readouterr().err.strip() == f"sfem-filters dense: error: out of memory; the run needs more memory " \
+                                              f"than is free here: {MEMORY_ADVICE}"
 
     def refused(*args, **kwargs):
-        raise MemoryError("model: the smoother keeps ...; reduce the state (fewer nodes)")
+        raise InsufficientMemory("model: the smoother keeps ...; reduce the state (fewer nodes)")
     monkeypatch.setattr(closing, "closing_the_loop", refused)
     assert main(["dense", "example", "--no-progress"]) == 2
     assert capsys.readouterr().err.strip() == ("sfem-filters dense: error: model: the smoother keeps ...; reduce the "
