@@ -34,10 +34,31 @@ from .fem.strain import nodal_strain_operator
 from .filtering.linear import LinearObservation
 from .filtering.linearised import LinearisedModel, linearise_dense
 from .filtering.protocol import measurement_cov
+from .filtering.smoother import available_memory
 
 #: Largest memory :meth:`SFEMModel.linearise` spends on modal stiffness derivatives (bytes):
 #: ``8 (k + groups) n^2`` while they are made (:func:`sfem_filters.fem.statespace.stiffness_plan`).
-MODAL_STIFFNESS_BYTES = 512 * 2 ** 20
+#: ``None`` (the default): :func:`modal_stiffness_budget`, a share of the memory available.
+MODAL_STIFFNESS_BYTES: int | None = None
+
+#: The budget's floor (bytes), and its share of the memory available above that floor.
+MODAL_STIFFNESS_FLOOR = 512 * 2 ** 20
+MODAL_STIFFNESS_SHARE = 0.25
+
+
+def modal_stiffness_budget() -> float:
+    """Bytes the modal stiffness derivatives may take while made: :data:`MODAL_STIFFNESS_BYTES`
+    where set, else a quarter of the memory available
+    (:func:`sfem_filters.filtering.smoother.available_memory`) and at least 512 MiB.
+
+    A larger state needs them most (without them every frame's sensitivity is an O(n^3)
+    product), and they grow as n^2, so a fixed cap would refuse them exactly there.
+    """
+    if MODAL_STIFFNESS_BYTES is not None:
+        return float(MODAL_STIFFNESS_BYTES)
+    available = available_memory()
+    return float(MODAL_STIFFNESS_FLOOR if available is None else max(MODAL_STIFFNESS_FLOOR,
+                                                                      MODAL_STIFFNESS_SHARE * available))
 
 #: What a parameter costs a frame's sensitivity with modal stiffness derivatives, relative to
 #: what a dof costs it without: a pass over G's ``k N`` row per parameter (memory-bound) against
@@ -53,7 +74,7 @@ def modal_stiffness_pays(plan: StiffnessPlan, frames: int, n: int) -> bool:
     Without them a frame's sensitivity costs a product of ``n`` rows (one per dof, in units of a
     row of an N x N product); with them it costs a pass over G, ``PARAMETER_COST k`` rows, after
     ``plan.products`` rows made once. They are made when that costs less than half, and the
-    memory they take while made fits in :data:`MODAL_STIFFNESS_BYTES`.
+    memory they take while made fits in :func:`modal_stiffness_budget`.
 
     Parameters
     ----------
@@ -72,7 +93,7 @@ def modal_stiffness_pays(plan: StiffnessPlan, frames: int, n: int) -> bool:
     n = integer("n", n, 1)
     k = plan.n_params
     held = k + (len(plan.rows) if plan.by_group else 0)
-    if k == 0 or 8 * held * n * n > MODAL_STIFFNESS_BYTES:
+    if k == 0 or 8 * held * n * n > modal_stiffness_budget():
         return False
     return plan.products / frames + PARAMETER_COST * k < 0.5 * n
 
@@ -582,7 +603,7 @@ class SFEMModel(LinearObservation):
             # one material for every frame: with few parameters, their modal stiffness derivatives
             # once beat the O(n^3) product of every frame's sensitivity (same numbers to round-off)
             G = None
-            if 8 * J.shape[1] * (nx // 2) ** 2 <= MODAL_STIFFNESS_BYTES:   # else not even planned (per element)
+            if 8 * J.shape[1] * (nx // 2) ** 2 <= modal_stiffness_budget():   # else not even planned (per element)
                 plan = stiffness_plan(J, dofs)
                 if modal_stiffness_pays(plan, T - 1, nx // 2):
                     G = system.modal_stiffness_derivatives(dirs, dofs, J, plan)
