@@ -72,7 +72,7 @@ def profile_pass(model, y, theta, like, safeguards: Safeguards, label: int = 0) 
     z[:, nr:] = theta
     try:
         lin = linearise(model, z, sensitivity=False)
-        fwd = kalman_forward(lin, y, safeguards=safeguards, check_every_frame=False, label=label)
+        fwd = kalman_forward(lin, y, safeguards=safeguards, check_every_frame=False, label=label, store="mean")
     except (FloatingPointError, ValueError, np.linalg.LinAlgError):
         return np.inf, None
     return float(fwd.fit), (lin, fwd, z)

@@ -506,7 +506,7 @@ class IteratedSmoother:
         cannot step falls back to the prior mean.
         """
         check_model(model)
-        check_memory(model.dim_state, model.n_frames)     # before any pass, not when the kill comes
+        check_memory(model.dim_state, model.n_frames, covariance=self.covariance)   # before any pass, not at the kill
         if start is not None:
             start = as_float_array("start", start, shape=(model.n_frames, model.dim_state))
         if self.measurement_noise == "estimate":

@@ -38,7 +38,7 @@ def log_likelihood(model, observations, theta) -> float:
     z[:, nr:] = theta
     try:
         lin = linearise(model, z, sensitivity=False)
-        return float(kalman_forward(lin, check_observations(model, observations)).log_likelihood)
+        return float(kalman_forward(lin, check_observations(model, observations), store=False).log_likelihood)
     except (FloatingPointError, ValueError, np.linalg.LinAlgError):
         return -np.inf
 

@@ -16,13 +16,24 @@ the last frame,
 These are the RTS smoother's estimates exactly (:func:`rts_reference` computes them with the
 textbook gains ``G_t = P_t|t F_t^T P_t+1|t^-1`` by Cholesky solves; the tests compare the two)
 without any solve with an n x n matrix: smoothed means cost O(n^2) a frame, and covariances are
-formed only for the outputs asked for. Static parameters are part of the state, so the
-smoothed ``theta`` and its covariance are those of the whole cycle.
+formed only for the outputs asked for. ``Lambda~_t`` is a sum over the frames after t of
+observed rows carried back, so its rank is at most the number of rows observed from t on: while
+that is below n it is kept as a factor ``W W^T`` (n x r; the update appends ``H^T L_t^-T``,
+``S_t = L_t L_t^T``, to ``(I - K_t H)^T W``), which makes the covariance of c output columns
+O(c n r) instead of O(c n^2) (:data:`FACTOR_RANK`). Static parameters are part of the state, so
+the smoothed ``theta`` and its covariance are those of the whole cycle.
 
-Memory: the prior covariance of every frame is kept for the backward pass (n^2 floats a frame).
+Memory: smoothed means need only the gains and innovations (n m floats a frame,
+``store="mean"``: the disturbance smoother, :func:`smooth_backward`), and that is what
+:func:`smooth` keeps when no covariance is asked for, as in every pass of the iterated smoother
+but its last. Smoothed covariances need the prior covariance of every frame (n^2 floats a
+frame); where those do not fit the memory, only every k-th is kept and the backward pass
+recomputes the frames between, a segment at a time (checkpointing, :func:`covariance_interval`),
+with the same numbers.
 """
 from __future__ import annotations
 
+import math
 import resource
 import warnings
 from dataclasses import dataclass, field
@@ -36,30 +47,60 @@ from .base import DenseEngine
 from .linearised import LinearisedModel
 from .structured import joseph_update
 
-__all__ = ["LinearisedEngine", "ForwardPass", "SmoothedPass", "kalman_forward", "smooth_backward", "smooth",
-           "rts_reference", "available_memory", "check_memory", "InsufficientMemory", "MEMORY_ADVICE"]
+__all__ = ["STORE", "LinearisedEngine", "ForwardPass", "SmoothedPass", "kalman_forward", "smooth_backward", "smooth",
+           "rts_reference", "available_memory", "check_memory", "covariance_interval", "stored_bytes", "WORKING",
+           "InsufficientMemory", "MEMORY_ADVICE"]
 
 LOG_2PI = float(np.log(2.0 * np.pi))
+
+
+#: The covariance backward pass keeps ``Lambda`` as a factor ``W W^T`` (n x r) while its rank r,
+#: the rows observed after the frame, stays below this share of n; then the dense n x n recursion.
+#: With r < n the factor's products (O(c n r) per block of c output columns) are the cheaper.
+FACTOR_RANK = 1.0
+
+#: What a forward pass keeps for the backward pass (:func:`kalman_forward`'s ``store``).
+STORE = ("covariance", "mean", "none")
+
+
+def _store_mode(store) -> str:
+    """``store`` as one of :data:`STORE` (``True``: ``"covariance"``, ``False``: ``"none"``)."""
+    if store is True or store is False:
+        return "covariance" if store else "none"
+    if store not in STORE:
+        raise ValueError(f"store: expected one of {STORE} (or True / False), got {store!r}")
+    return store
 
 
 class LinearisedEngine(DenseEngine):
     """The Kalman filter of a :class:`LinearisedModel` in its coordinates ``[xi; theta]``.
 
-    Records, per frame, what the backward pass needs: the prior mean and covariance, and the
-    observed rows, innovation, Cholesky factor of S and gain of the update.
+    Records, per frame, what the backward pass needs. ``store="covariance"`` (or ``True``): the
+    prior mean and covariance, and the observed rows, innovation, Cholesky factor of S and gain of
+    the update (n^2 floats a frame, what smoothed covariances need); with ``every`` k > 1 the
+    prior mean and covariance of every k-th frame only (checkpoints, from which the backward pass
+    recomputes the frames between: :func:`smooth_backward`). ``"mean"``: the update's rows,
+    innovation, factor and gain only, and the initial mean and covariance (n m floats a frame,
+    what smoothed means need). ``"none"`` (``False``): nothing.
     """
 
-    def __init__(self, lin: LinearisedModel, theta_mean, theta_cov, store: bool = True):
-        self.lin, self.ljung, self.store = lin, None, bool(store)
+    def __init__(self, lin: LinearisedModel, theta_mean, theta_cov, store=True, every: int = 1):
+        self.lin, self.ljung, self.store = lin, None, _store_mode(store)
+        self.every = int(every)
+        if self.every < 1:
+            raise ValueError(f"every: expected an integer >= 1 (frames between stored covariances), got {every!r}")
         self.nr, self.p = lin.n_restart, lin.n_params
-        self.priors: list = []
+        self.priors: dict = {}          # frame -> (prior mean, prior covariance)
+        self.repaired: dict = {}        # frame -> (mean, covariance) after a safeguard's repair (checkpoints only)
+        self.observations = None        # what the backward pass replays between checkpoints
         self.updates: dict = {}
         self.log_likelihood = 0.0
         x0 = np.concatenate([lin.xi0, np.asarray(theta_mean, float)])
         P0 = sla.block_diag(lin.P0, np.asarray(theta_cov, float))
         self.reset(x0, P0)
-        if self.store:
-            self.priors.append((self._x.copy(), self._P.copy()))
+        self.initial = (self._x.copy(), self._P.copy()) if self.store == "mean" else None
+        if self.store == "covariance":
+            self.priors[0] = (self._x.copy(), self._P.copy())
 
     def predict(self, t):
         lin, nr = self.lin, self.nr
@@ -86,8 +127,8 @@ class LinearisedEngine(DenseEngine):
             xr += M @ (x[nr:] - lin.theta_bar)
         self._x = np.concatenate([xr, x[nr:]])
         self._set_P(new)
-        if self.store:
-            self.priors.append((self._x.copy(), self._P.copy()))
+        if self.store == "covariance" and (t + 1) % self.every == 0:
+            self.priors[t + 1] = (self._x.copy(), self._P.copy())
 
     def update(self, y, t, mask):
         lin, nr = self.lin, self.nr
@@ -103,7 +144,7 @@ class LinearisedEngine(DenseEngine):
         quad = float(e @ sla.cho_solve(cho, e))
         logdet = 2.0 * float(np.sum(np.log(np.diag(cho[0]))))
         self.log_likelihood -= 0.5 * (quad + logdet + len(e) * LOG_2PI)
-        self.updates[t] = (mask, e, cho, K, quad) if self.store else (mask, None, None, None, quad)
+        self.updates[t] = (mask, e, cho, K, quad) if self.store != "none" else (mask, None, None, None, quad)
         return e, S
 
 
@@ -147,9 +188,10 @@ class SmoothedPass:
         return getattr(self.forward, name)
 
 
-#: Peak memory of a smoothing run in units of the stored prior covariances: the filter's own
-#: covariance, the backward pass's information matrix and the model's dense operators come on top
-#: (the resident peaks of the README's whole runs: 2.0-3.0 times, the interpreter included).
+#: Head-room of a smoothing run over what :func:`check_memory` counts (the stored prior
+#: covariances and :data:`WORKING` n x n matrices): the model's dense operators, the interpreter
+#: and its libraries come on top (the resident peaks of the README's whole runs are 1.7-2.4 times
+#: the stored covariances of their last, covariance pass).
 PEAK_FACTOR = 3.0
 
 
@@ -218,13 +260,42 @@ class InsufficientMemory(MemoryError):
     gives the sizes and :data:`MEMORY_ADVICE`)."""
 
 
-def check_memory(n: int, frames: int, available: float | None = None) -> None:
-    """Refuse a forward pass whose stored covariances cannot fit, warn where the run's peak may not.
+#: n x n matrices a pass holds besides the stored ones: the filter's covariance and its next, the
+#: backward pass's information matrix, and the temporaries of a step.
+WORKING = 6
 
-    The backward pass needs the prior covariance of every frame: ``(frames + 1) n^2`` floats
-    (8 bytes each). More than the available memory is a :class:`MemoryError` that says how much
-    and what to reduce, instead of the operating system killing the process midway; more than a
-    :data:`PEAK_FACTOR` share of it is a ``RuntimeWarning``.
+
+def stored_bytes(n: int, frames: int, every: int = 1) -> float:
+    """Bytes of the prior covariances a covariance pass keeps (8-byte floats): one every ``every``
+    frames of ``frames + 1`` (:func:`kalman_forward`), and ``every - 1`` more while the backward
+    pass recomputes a segment between two of them."""
+    return 8.0 * float(n) ** 2 * (-(-(frames + 1) // every) + every - 1)
+
+
+def covariance_interval(n: int, frames: int, available: float | None = None) -> int:
+    """Frames between the prior covariances a covariance pass keeps (:func:`smooth`'s ``every``).
+
+    1 (every frame, no recomputation) where :data:`PEAK_FACTOR` times their bytes fit the
+    available memory (:func:`available_memory`, or ``available`` in bytes) or where the system
+    does not say; otherwise ``ceil(sqrt(frames + 1))``, which keeps about ``2 sqrt(frames) n^2``
+    floats instead of ``frames n^2`` (checkpointing, Griewank & Walther 2008, ch. 12) for one
+    forward pass more, with the same numbers.
+    """
+    available = available_memory() if available is None else float(available)
+    if available is None or PEAK_FACTOR * stored_bytes(n, frames) <= available:
+        return 1
+    return max(1, math.isqrt(frames) + 1) if frames > 0 else 1
+
+
+def check_memory(n: int, frames: int, available: float | None = None, covariance: bool = True) -> None:
+    """Refuse a run whose passes cannot fit the memory, warn where the run's peak may not.
+
+    A pass without covariances holds :data:`WORKING` n x n matrices; a covariance pass also keeps
+    the prior covariances its backward pass needs, every frame's or, where those do not fit,
+    checkpoints (:func:`covariance_interval`, :func:`stored_bytes`). More than the available memory
+    is a :class:`MemoryError` that says how much and what to reduce, instead of the operating
+    system killing the process midway; more than a :data:`PEAK_FACTOR` share of it is a
+    ``RuntimeWarning``.
 
     Parameters
     ----------
@@ -234,35 +305,51 @@ def check_memory(n: int, frames: int, available: float | None = None) -> None:
         Frames of the pass.
     available : float, optional
         Bytes available (default :func:`available_memory`; nothing is checked where unknown).
+    covariance : bool
+        Whether the run makes a covariance pass (smoothed variances of the kinematics).
     """
     available = available_memory() if available is None else float(available)
     if available is None:
         return
-    stored = 8.0 * (frames + 1) * float(n) ** 2
-    gb = 1e-9
-    what = (f"the smoother keeps a {n} x {n} covariance for each of {frames + 1} frames ({stored * gb:.1f} GB; "
-            f"about {PEAK_FACTOR * stored * gb:.1f} GB at the run's peak)")
-    if stored > available:
+    gb, working = 1e-9, 8.0 * WORKING * float(n) ** 2
+    if covariance:
+        every = covariance_interval(n, frames, available)
+        stored = stored_bytes(n, frames, every)
+        kept = (f"a {n} x {n} covariance for each of {frames + 1} frames" if every == 1 else
+                f"a {n} x {n} covariance for every {every}th of {frames + 1} frames, recomputing the others")
+    else:
+        stored, kept = 0.0, f"no covariance of any frame (means only) but {WORKING} {n} x {n} matrices"
+    need = stored + working
+    what = f"the smoother keeps {kept} ({need * gb:.1f} GB; about {PEAK_FACTOR * need * gb:.1f} GB at the run's peak)"
+    if need > available:
         raise InsufficientMemory(f"model: {what}, more than the {available * gb:.1f} GB available; {MEMORY_ADVICE}")
-    if PEAK_FACTOR * stored > available:
+    if PEAK_FACTOR * need > available:
         warnings.warn(f"{what}, while {available * gb:.1f} GB are available: the run may run out of memory; "
                       f"{MEMORY_ADVICE}", RuntimeWarning, stacklevel=3)
 
 
 def kalman_forward(lin: LinearisedModel, observations, theta_mean=None, theta_cov=None, *, safeguards=None,
                    check_every_frame: bool = True, monitor_nis: bool = False, label: int = 0,
-                   store: bool = True) -> ForwardPass:
+                   store=True, every: int = 1) -> ForwardPass:
     """The forward (filter) half of :func:`smooth`.
 
     ``safeguards`` checks (and repairs) P after every frame when ``check_every_frame``, else only
     after the last one (a Cholesky factor costs n^3/3, more than the rest of a frame's work here);
     finiteness and positive variances are checked every frame either way. ``monitor_nis`` also
-    watches the NIS for divergence. ``store=False`` keeps nothing for a backward pass (the
-    filter's own results only: n^2 floats a frame less).
+    watches the NIS for divergence. ``store`` (:data:`STORE`): what is kept for a backward pass,
+    ``"covariance"`` (``True``, the default) the prior covariance of every frame, n^2 floats a
+    frame, for smoothed covariances; ``"mean"`` the gains and innovations only, n m floats a frame,
+    for smoothed means; ``"none"`` (``False``) nothing (the filter's own results only). ``every``
+    (with ``"covariance"``): keep the prior covariance of every ``every``-th frame only, and let
+    the backward pass recompute the others from them, a segment at a time (checkpointing:
+    ``(frames / every + every) n^2`` floats instead of ``frames n^2``, for one forward pass more;
+    :func:`covariance_interval`).
     """
     y = np.asarray(observations, float)
     eng = LinearisedEngine(lin, lin.theta0 if theta_mean is None else theta_mean,
-                           lin.P_theta0 if theta_cov is None else theta_cov, store=store)
+                           lin.P_theta0 if theta_cov is None else theta_cov, store=store, every=every)
+    if eng.store == "covariance" and eng.every > 1:
+        eng.observations = y
     T, m = lin.n_frames, lin.dim_obs
     filtered = np.empty((T, lin.dim_state))
     innov = np.full((T, m), np.nan)
@@ -284,7 +371,10 @@ def kalman_forward(lin: LinearisedModel, observations, theta_mean=None, theta_co
             raise FloatingPointError(f"the smoother's forward pass lost its covariance (non-finite or a variance "
                                      f"<= 0) at pass {label}, frame {t}")
         if safeguards is not None and (check_every_frame or t == T - 1):
+            repairs = len(safeguards.repairs)
             safeguards.check_covariance(eng, label, t)
+            if len(safeguards.repairs) > repairs and eng.observations is not None:
+                eng.repaired[t] = (eng.x.copy(), eng.P.copy())     # the replay between checkpoints resumes here
         if safeguards is not None and monitor_nis:
             safeguards.check_nis(run, label, t, nis[t], n_obs[t])
         filtered[t] = eng.x
@@ -297,6 +387,19 @@ def _transpose_step(A, M, lt, nr):
     out[:nr] = np.asarray(A.T @ lt[:nr]).ravel()
     out[nr:] = M.T @ lt[:nr] + lt[nr:]
     return out
+
+
+def _transpose_columns(A, M, W, nr):
+    """``F^T W`` for F = [[A, M], [0, I]] and an (n, r) W, column by column as :func:`_transpose_step`."""
+    out = np.empty_like(W)
+    out[:nr] = np.asarray(A.T @ W[:nr])
+    out[nr:] = M.T @ W[:nr] + W[nr:]
+    return out
+
+
+def _dense(H):
+    """H as a dense array (a sparse observation matrix densified)."""
+    return H.toarray() if sp.issparse(H) else np.asarray(H)
 
 
 def _congruence_step(A, M, Lam, nr):
@@ -319,7 +422,7 @@ def _congruence_step(A, M, Lam, nr):
 
 def smooth(lin: LinearisedModel, observations, theta_mean=None, theta_cov=None, *, outputs=None,
            covariance: bool = False, safeguards=None, check_every_frame: bool = True, monitor_nis: bool = False,
-           label: int = 0) -> SmoothedPass:
+           label: int = 0, every: int | None = None) -> SmoothedPass:
     """Kalman filter forward, modified Bryson-Frazier (RTS) smoother backward (module docstring).
 
     Parameters
@@ -342,36 +445,74 @@ def smooth(lin: LinearisedModel, observations, theta_mean=None, theta_cov=None, 
         either way (for static parameters it is the forward pass's last).
     safeguards, check_every_frame, monitor_nis :
         See :func:`kalman_forward`.
+    every : int, optional
+        With ``covariance``: frames between the prior covariances kept (:func:`kalman_forward`);
+        default :func:`covariance_interval`, 1 where every frame's fit the available memory.
+        The same numbers whatever it is.
     """
+    if covariance and every is None:
+        every = covariance_interval(lin.dim_state, lin.n_frames)
     fwd = kalman_forward(lin, observations, theta_mean, theta_cov, safeguards=safeguards,
-                         check_every_frame=check_every_frame, monitor_nis=monitor_nis, label=label)
+                         check_every_frame=check_every_frame, monitor_nis=monitor_nis, label=label,
+                         store="covariance" if covariance else "mean", every=every if covariance else 1)
     return smooth_backward(lin, fwd, outputs=outputs, covariance=covariance)
 
 
 def smooth_backward(lin: LinearisedModel, forward: ForwardPass, *, outputs=None,
                     covariance: bool = False) -> SmoothedPass:
-    """The backward half of :func:`smooth`, on a :func:`kalman_forward` pass."""
+    """The backward half of :func:`smooth`, on a :func:`kalman_forward` pass.
+
+    On a pass run with ``store="mean"`` the smoothed means come from the adjoint ``lambda~_t``
+    alone (no prior covariance of any frame): the smoothed initial state ``x_0- - P_0- lambda~_0``
+    and the smoothed process noise ``w_t-1|T = -Q lambda~_t`` (the disturbance smoother, de Jong
+    1988; Durbin & Koopman 2012, sec. 4.5.3) give the trajectory forward,
+    ``x_t|T = F_t-1 x_t-1|T + w_t-1|T``, the same as ``x_t- - P_t- lambda~_t`` to round-off.
+    Covariances need ``store="covariance"``.
+    """
     nr = lin.n_restart
     eng = forward.engine
-    if not eng.store:
-        raise ValueError("forward: expected a pass run with store=True (it keeps what the backward pass needs)")
+    if eng.store == "none":
+        raise ValueError("forward: expected a pass run with store='covariance' or 'mean' (it keeps what the "
+                         "backward pass needs)")
+    if eng.store == "mean":
+        if covariance:
+            raise ValueError("forward: covariance=True needs a pass run with store='covariance' (the prior "
+                             "covariance of every frame); this one kept the means' part only")
+        return _smooth_means(lin, forward)
     T, n = lin.n_frames, lin.dim_state
     lam = np.zeros(n)
-    Lam = np.zeros((n, n)) if covariance else None
+    # Lambda as a factor W W^T while its rank (the observations after the frame) is below n, then dense
+    W = np.zeros((n, 0)) if covariance else None
+    Lam = None
     outputs = _checked_outputs(outputs, nr) if covariance else {}
     groups = _output_blocks(outputs)
     var = {name: np.zeros((T, L.shape[0])) for name, L in outputs.items()}
     smoothed = np.empty((T, n))
+    segment: dict = {}
     for t in range(T - 1, -1, -1):
-        xb, Pb = eng.priors[t]
-        lt, LamT = lam, Lam
+        if t in eng.priors:
+            xb, Pb = eng.priors[t]
+        else:
+            if t not in segment:
+                segment = _replay(lin, eng, t - t % eng.every, t)     # one segment's priors at a time
+            xb, Pb = segment.pop(t)
+        lt, LamT, WT = lam, Lam, W
         if t in eng.updates:
             mask, e, cho, K, _ = eng.updates[t]
             H = lin.H[mask]
             Sie = sla.cho_solve(cho, e)
             lt = lam.copy()
             lt[:nr] -= H.T @ (K.T @ lam + Sie)
-            if covariance:
+            if covariance and W is not None and W.shape[1] + len(e) >= FACTOR_RANK * n:
+                Lam, W, WT = W @ W.T, None, None                         # the factor is no longer the cheaper
+            if covariance and W is not None:
+                # (I - K H)^T W W^T (I - K H) + H^T S^-1 H = W~ W~^T, W~ = [(I - K H)^T W, H^T L^-T]
+                WT = np.empty((n, W.shape[1] + len(e)))
+                WT[:, :W.shape[1]] = W
+                WT[:nr, :W.shape[1]] -= H.T @ (K.T @ W)
+                WT[:, W.shape[1]:] = 0.0
+                WT[:nr, W.shape[1]:] = sla.solve_triangular(cho[0], _dense(H), lower=True).T
+            elif covariance:
                 G = Lam @ K
                 GH = G @ H
                 LamT = Lam.copy()
@@ -382,18 +523,71 @@ def smooth_backward(lin: LinearisedModel, forward: ForwardPass, *, outputs=None,
         smoothed[t] = xb - Pb @ lt
         for cols, rows, members in groups:
             PC = Pb[cols, :]
-            Ps = Pb[np.ix_(cols, cols)] - (PC @ LamT) @ PC.T          # smoothed covariance of the block's columns
+            if WT is not None:
+                PW = PC @ WT
+                Ps = Pb[np.ix_(cols, cols)] - PW @ PW.T                 # smoothed covariance of the block's columns
+            else:
+                Ps = Pb[np.ix_(cols, cols)] - (PC @ LamT) @ PC.T
             v = np.einsum("ij,ij->i", rows @ Ps, rows)
             for name, where, which in members:
                 var[name][t, where] = v[which]
         if t > 0:
             A, M = lin.A_at(t - 1), lin.M[t - 1]
             lam = _transpose_step(A, M, lt, nr)
-            if covariance:
+            if covariance and WT is not None:
+                W = _transpose_columns(A, M, WT, nr)
+            elif covariance:
                 Lam = _congruence_step(A, M, LamT, nr)
     # theta is static: its smoothed covariance is that of the last frame's filter (the whole cycle)
     return SmoothedPass(forward=forward, smoothed=smoothed, theta=smoothed[0, nr:].copy(),
                         P_theta=eng.P[nr:, nr:].copy(), variances=var)
+
+
+def _replay(lin: LinearisedModel, eng: LinearisedEngine, start: int, stop: int) -> dict:
+    """The prior means and covariances of frames ``start + 1 .. stop``, recomputed from the
+    checkpoint at ``start`` by the forward pass's own steps (and its repairs, where a safeguard
+    made one): ``{frame: (x, P)}``."""
+    again = LinearisedEngine(lin, lin.theta0, lin.P_theta0, store="none")
+    again.reset(*eng.priors[start])
+    y, out = eng.observations, {}
+    for t in range(start, stop):
+        if t in eng.updates:
+            again.update(y[t], t, eng.updates[t][0])
+        if t in eng.repaired:
+            again.reset(*eng.repaired[t])
+        again.predict(t)
+        out[t + 1] = (again.x.copy(), again.P.copy())
+    return out
+
+
+def _smooth_means(lin: LinearisedModel, forward: ForwardPass) -> SmoothedPass:
+    """Smoothed means of a ``store="mean"`` pass: the adjoint backward, then the trajectory
+    forward from the smoothed initial state under the smoothed process noise
+    (:func:`smooth_backward`)."""
+    nr, eng = lin.n_restart, forward.engine
+    T, n = lin.n_frames, lin.dim_state
+    adjoint = np.empty((T, n))
+    lam = np.zeros(n)
+    for t in range(T - 1, -1, -1):
+        lt = lam
+        if t in eng.updates:
+            mask, e, cho, K, _ = eng.updates[t]
+            H = lin.H[mask]
+            lt = lam.copy()
+            lt[:nr] -= H.T @ (K.T @ lam + sla.cho_solve(cho, e))
+        adjoint[t] = lt
+        if t > 0:
+            lam = _transpose_step(lin.A_at(t - 1), lin.M[t - 1], lt, nr)
+    x0, P0 = eng.initial
+    smoothed = np.empty((T, n))
+    smoothed[0] = x0 - P0 @ adjoint[0]
+    theta = smoothed[0, nr:]
+    for t in range(1, T):
+        xr = np.asarray(lin.A_at(t - 1) @ smoothed[t - 1, :nr]).ravel() + lin.c[t - 1] - lin.Q @ adjoint[t, :nr]
+        if lin.n_params:
+            xr += lin.M[t - 1] @ (theta - lin.theta_bar)
+        smoothed[t, :nr], smoothed[t, nr:] = xr, theta
+    return SmoothedPass(forward=forward, smoothed=smoothed, theta=theta.copy(), P_theta=eng.P[nr:, nr:].copy())
 
 
 def _checked_outputs(outputs, nr: int) -> dict:

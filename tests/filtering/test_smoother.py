@@ -27,10 +27,18 @@ from sfem_filters.filtering import (
     one_cycle_covariance,
     rts_reference,
     smooth,
+    smooth_backward,
 )
 from sfem_filters.filtering.iterated import open_loop
 from sfem_filters.filtering import smoother as smoother_module
-from sfem_filters.filtering.smoother import PEAK_FACTOR, check_memory, kalman_forward
+from sfem_filters.filtering.smoother import (
+    PEAK_FACTOR,
+    WORKING,
+    check_memory,
+    covariance_interval,
+    kalman_forward,
+    stored_bytes,
+)
 
 
 def _spd(rng, k, scale=1.0):
@@ -71,6 +79,100 @@ def test_modified_bryson_frazier_equals_the_textbook_rts(seed, nr, p, m, T, spar
     np.testing.assert_allclose(sm.variances["L"], vL, rtol=1e-7, atol=1e-10 * vL.max())
     np.testing.assert_allclose(sm.variances["all"], vI, rtol=1e-7, atol=1e-10 * vI.max())
     assert np.ptp(sm.smoothed[:, nr:], axis=0).max(initial=0.0) <= 1e-9 * scale     # theta is static
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 10_000), nr=st.integers(1, 6), p=st.integers(0, 3), m=st.integers(1, 4),
+       T=st.integers(2, 7), sparse=st.booleans(), missing=st.floats(0.0, 0.8))
+def test_means_from_the_gains_alone_equal_the_textbook_rts(seed, nr, p, m, T, sparse, missing):
+    """A pass that keeps no covariance of any frame (``store="mean"``: gains and innovations
+    only) smooths the means by the disturbance smoother, forward from the smoothed initial state
+    under the smoothed process noise: the textbook RTS means and the same theta and covariance of
+    theta, with missing rows and empty frames; it keeps no n x n matrix a frame, and refuses to
+    give covariances."""
+    rng = np.random.default_rng(seed)
+    lin = _random_linearised(rng, nr, p, m, T, sparse)
+    y = rng.standard_normal((T, m))
+    y[rng.uniform(size=y.shape) < missing] = np.nan
+    fwd = kalman_forward(lin, y, store="mean")
+    sm = smooth_backward(lin, fwd)
+    xs, Ps = rts_reference(lin, y)
+    scale = max(np.abs(xs).max(), 1.0)
+    assert np.abs(sm.smoothed - xs).max() <= 1e-9 * scale
+    np.testing.assert_allclose(sm.theta, xs[0, nr:], rtol=1e-9, atol=1e-9 * scale)
+    np.testing.assert_allclose(sm.P_theta, Ps[0][nr:, nr:], rtol=1e-8, atol=1e-12)
+    assert not fwd.engine.priors and sm.variances == {}
+    full = smooth(lin, y)                                  # no covariance asked: the means' store
+    assert full.forward.engine.store == "mean"
+    np.testing.assert_array_equal(full.smoothed, sm.smoothed)
+    with pytest.raises(ValueError, match="covariance=True needs a pass run with store='covariance'"):
+        smooth_backward(lin, fwd, outputs={"all": np.eye(nr)}, covariance=True)
+    with pytest.raises(ValueError, match="store: expected one of"):
+        kalman_forward(lin, y, store="everything")
+    with pytest.raises(ValueError, match="expected a pass run with store='covariance' or 'mean'"):
+        smooth_backward(lin, kalman_forward(lin, y, store=False))
+
+
+@pytest.mark.parametrize("nr, p, m, T", [(9, 2, 1, 6), (3, 1, 3, 6), (6, 1, 2, 5)])
+def test_information_factor_and_its_switch_to_dense_give_the_textbook_variances(nr, p, m, T):
+    """The backward pass keeps Lambda as a factor W W^T while its rank (the rows observed after
+    the frame) stays below n, and switches to the dense recursion when it would not: the whole
+    pass factored (9 + 2 states, 6 rows), dense after two frames (3 + 1 states, 3 rows a frame),
+    and switching midway give the textbook RTS variances."""
+    rng = np.random.default_rng(nr * 100 + m)
+    lin = _random_linearised(rng, nr, p, m, T, sparse=False)
+    y = rng.standard_normal((T, m))
+    sm = smooth(lin, y, outputs={"all": np.eye(nr)}, covariance=True)
+    _, Ps = rts_reference(lin, y)
+    vI = np.array([np.diag(P[:nr, :nr]) for P in Ps])
+    np.testing.assert_allclose(sm.variances["all"], vI, rtol=1e-8, atol=1e-11 * vI.max())
+
+
+class _Repair:
+    """A safeguard that changes P at chosen frames, as a real repair would (and records it)."""
+
+    def __init__(self, frames):
+        self.frames, self.repairs = set(frames), []
+
+    def check_covariance(self, engine, loop, t):
+        if t in self.frames:
+            engine.reset(engine.x, engine.P + 0.3 * np.eye(len(engine.x)))
+            self.repairs.append((loop, t))
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 10_000), nr=st.integers(1, 5), p=st.integers(0, 2), m=st.integers(1, 3),
+       T=st.integers(2, 9), every=st.integers(2, 10), missing=st.floats(0.0, 0.6),
+       repaired=st.sets(st.integers(0, 8), max_size=3))
+def test_checkpointed_covariance_pass_gives_the_same_numbers(seed, nr, p, m, T, every, missing, repaired):
+    """Keeping the prior covariance of every k-th frame only and recomputing the others in the
+    backward pass, a segment at a time, gives every mean and variance of the pass that keeps them
+    all (the same arithmetic: equal to round-off, which BLAS kernels may vary with memory
+    alignment), also across frames where a safeguard changed P; it keeps ceil(T / k)."""
+    rng = np.random.default_rng(seed)
+    lin = _random_linearised(rng, nr, p, m, T, sparse=bool(seed % 2))
+    y = rng.standard_normal((T, m))
+    y[rng.uniform(size=y.shape) < missing] = np.nan
+    outputs = {"all": np.eye(nr), "L": rng.standard_normal((2, nr))}
+    full = smooth(lin, y, outputs=outputs, covariance=True, every=1, safeguards=_Repair(repaired))
+    part = smooth(lin, y, outputs=outputs, covariance=True, every=every, safeguards=_Repair(repaired))
+    assert len(full.forward.engine.priors) == T
+    assert sorted(part.forward.engine.priors) == list(range(0, T, every))
+    np.testing.assert_allclose(part.smoothed, full.smoothed, rtol=1e-12, atol=1e-12 * np.abs(full.smoothed).max())
+    for name in outputs:
+        v = full.variances[name]
+        np.testing.assert_allclose(part.variances[name], v, rtol=1e-10, atol=1e-12 * np.abs(v).max())
+    np.testing.assert_array_equal(part.P_theta, full.P_theta)             # the forward pass's own
+
+
+def test_covariance_interval_keeps_every_frame_where_they_fit():
+    n, T = 1000, 24
+    full = stored_bytes(n, T)
+    assert full == 8.0 * (T + 1) * n ** 2
+    assert covariance_interval(n, T, available=PEAK_FACTOR * full) == 1
+    k = covariance_interval(n, T, available=0.5 * PEAK_FACTOR * full)
+    assert k == 5                                               # ceil(sqrt(25))
+    assert stored_bytes(n, T, k) == 8.0 * (5 + 4) * n ** 2     # 5 checkpoints, a segment of 4 recomputed
 
 
 @settings(max_examples=30, deadline=None)
@@ -314,23 +416,33 @@ def test_bad_inputs_are_named(pinned):
 
 
 def test_a_run_too_large_for_the_memory_is_refused_before_any_pass(pinned, monkeypatch):
-    """(frames + 1) n^2 floats are kept for the backward pass: beyond the available memory a named
-    MemoryError says how much, beyond a PEAK_FACTOR share of it a warning, else nothing."""
+    """A covariance pass keeps (frames + 1) n^2 floats, or checkpoints where those do not fit, on
+    top of WORKING n x n matrices; a run without covariances keeps only the latter. Beyond the
+    available memory a named MemoryError says how much, beyond a PEAK_FACTOR share a warning."""
     n, T = 1000, 24
-    stored = 8.0 * (T + 1) * n ** 2
-    with pytest.raises(MemoryError, match=r"model: the smoother keeps a 1000 x 1000 covariance for each of "
-                                          r"25 frames \(0\.2 GB; about 0\.6 GB at the run's peak\), more than the "
-                                          r"0\.1 GB available; reduce the state"):
-        check_memory(n, T, available=0.5 * stored)
-    with pytest.warns(RuntimeWarning, match="the run may run out of memory"):
-        check_memory(n, T, available=0.5 * (1 + PEAK_FACTOR) * stored)
+    working = 8.0 * WORKING * n ** 2
+    full = stored_bytes(n, T) + working
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        check_memory(n, T, available=1.01 * PEAK_FACTOR * stored)
+        check_memory(n, T, available=1.01 * PEAK_FACTOR * full)
+    with pytest.warns(RuntimeWarning, match=r"the smoother keeps a 1000 x 1000 covariance for every 5th of 25 "
+                                            r"frames, recomputing the others \(0\.1 GB; about 0\.4 GB at the run's "
+                                            r"peak\), while 0\.2 GB are available: the run may run out of memory"):
+        check_memory(n, T, available=2.0 * (stored_bytes(n, T, 5) + working))
+    with pytest.raises(MemoryError, match=r"model: the smoother keeps a 1000 x 1000 covariance for every 5th of 25 "
+                                          r"frames, recomputing the others \(0\.1 GB; about 0\.4 GB at the run's "
+                                          r"peak\), more than the 0\.1 GB available; reduce the state"):
+        check_memory(n, T, available=0.5 * (stored_bytes(n, T, 5) + working))
+    with warnings.catch_warnings():                             # the means alone fit where no covariance pass does
+        warnings.simplefilter("error")
+        check_memory(n, T, available=1.01 * PEAK_FACTOR * working, covariance=False)
+    with pytest.raises(MemoryError, match=r"model: the smoother keeps no covariance of any frame \(means only\) "
+                                          r"but 6 1000 x 1000 matrices \(0\.0 GB"):
+        check_memory(n, T, available=0.5 * working, covariance=False)
     if os.path.exists("/proc/meminfo"):
         assert smoother_module.available_memory() > 0
     m = benchmark_model(pinned, "joint_ekf", parameterisation=Parameterisation.per_region(pinned.middle))
-    need = 8.0 * (m.n_frames + 1) * m.dim_state ** 2
+    need = stored_bytes(m.dim_state, m.n_frames, covariance_interval(m.dim_state, m.n_frames, 0.0))
     monkeypatch.setattr(smoother_module, "available_memory", lambda: 0.9 * need)
     passes = []
     monkeypatch.setattr(smoother_module, "kalman_forward", lambda *a, **k: passes.append(1))
@@ -440,3 +552,25 @@ def test_modal_stiffness_pays_by_cost_and_memory():
         model_module.modal_stiffness_pays(few, 0, n)
     with pytest.raises(ValueError, match="n: expected an integer >= 1"):
         model_module.modal_stiffness_pays(few, 30, 0.5)
+
+
+def test_modal_stiffness_budget_grows_with_the_memory_available(monkeypatch):
+    """Unset, the budget is a quarter of the memory available and at least its floor, so a
+    larger state, which needs them most, gets them where the machine holds them; set, it is the
+    setting."""
+    floor = model_module.MODAL_STIFFNESS_FLOOR
+    monkeypatch.setattr(model_module, "MODAL_STIFFNESS_BYTES", None)
+    for available, budget in ((16e9, 4e9), (1e9, floor), (None, floor)):
+        monkeypatch.setattr(model_module, "available_memory", lambda: available)
+        assert model_module.modal_stiffness_budget() == budget
+    rng = np.random.default_rng(0)
+    P, n = 60, 4000
+    few = fem.stiffness_plan(np.eye(4)[np.arange(P) % 4] @ rng.standard_normal((4, 3)), rng.integers(0, n, (P, 6)))
+    made = 8 * (3 + 4) * n * n                                 # 896 MB while made: above the floor
+    assert made > floor
+    monkeypatch.setattr(model_module, "available_memory", lambda: 4 * made)
+    assert model_module.modal_stiffness_pays(few, 30, n)
+    monkeypatch.setattr(model_module, "available_memory", lambda: 4 * made - 8)
+    assert not model_module.modal_stiffness_pays(few, 30, n)
+    monkeypatch.setattr(model_module, "MODAL_STIFFNESS_BYTES", made)
+    assert model_module.modal_stiffness_pays(few, 30, n)
