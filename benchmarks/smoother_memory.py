@@ -14,7 +14,7 @@ baseline in the same run on the same linearised model:
   frame's prior covariance (``store="covariance"``, what every pass kept before): the bytes kept
   for the backward pass (the arrays' own sizes, exact), forward plus backward time, both ratios,
   and the largest difference of the smoothed means relative to their scale;
-* ``checkpoint``: a covariance pass keeping every ``--every``-th frame's prior covariance and
+* ``every k`` (k = ``--every``): a covariance pass keeping every k-th frame's prior covariance and
   recomputing the others in the backward pass (what :func:`~sfem_filters.filtering.smoother.smooth`
   does where every frame's do not fit the memory) against one keeping all: the bytes at the
   backward pass's peak (checkpoints plus one recomputed segment), the time, and the largest
@@ -44,7 +44,7 @@ from sfem_filters.filtering.smoother import kalman_forward, smooth_backward
 
 def kept_bytes(engine) -> int:
     """Bytes of what a forward pass keeps for its backward pass (prior means and covariances,
-    gains, factors and innovations), and the checkpoint run's peak segment on top."""
+    gains, factors and innovations; a checkpoint run's recomputed segment is added by the caller)."""
     priors = sum(x.nbytes + P.nbytes for x, P in engine.priors.values())
     updates = sum(sum(a.nbytes for a in (e, c[0], K) if a is not None) for _, e, c, K, _ in engine.updates.values())
     initial = sum(a.nbytes for a in engine.initial) if engine.initial is not None else 0

@@ -41,7 +41,7 @@ from .filtering.smoother import available_memory
 #: ``None`` (the default): :func:`modal_stiffness_budget`, a share of the memory available.
 MODAL_STIFFNESS_BYTES: int | None = None
 
-#: The budget's floor (bytes), and its share of the memory available above that floor.
+#: The budget's floor (bytes), and the share of the memory available it takes where that is more.
 MODAL_STIFFNESS_FLOOR = 512 * 2 ** 20
 MODAL_STIFFNESS_SHARE = 0.25
 
@@ -67,7 +67,7 @@ def modal_stiffness_budget() -> float:
 PARAMETER_COST = 4.0
 
 
-def modal_stiffness_pays(plan: StiffnessPlan, frames: int, n: int) -> bool:
+def modal_stiffness_pays(plan: StiffnessPlan, frames: int, n: int, budget: float | None = None) -> bool:
     """Whether modal stiffness derivatives made by ``plan`` pay for themselves over ``frames``
     sensitivities of one material.
 
@@ -84,6 +84,8 @@ def modal_stiffness_pays(plan: StiffnessPlan, frames: int, n: int) -> bool:
         Sensitivities to be taken with this material (>= 1).
     n : int
         Free dofs (>= 1).
+    budget : float, optional
+        Bytes they may take while made (default :func:`modal_stiffness_budget`).
 
     Returns
     -------
@@ -93,7 +95,7 @@ def modal_stiffness_pays(plan: StiffnessPlan, frames: int, n: int) -> bool:
     n = integer("n", n, 1)
     k = plan.n_params
     held = k + (len(plan.rows) if plan.by_group else 0)
-    if k == 0 or 8 * held * n * n > modal_stiffness_budget():
+    if k == 0 or 8 * held * n * n > (modal_stiffness_budget() if budget is None else budget):
         return False
     return plan.products / frames + PARAMETER_COST * k < 0.5 * n
 
@@ -568,6 +570,15 @@ class SFEMModel(LinearObservation):
         out[np.ix_(dofs[ok], dofs[ok])] = Ke[np.ix_(ok, ok)]
         return out
 
+    def _stiffness_budget(self) -> float:
+        """:func:`modal_stiffness_budget`, the automatic one read once per model: every
+        linearisation of a run takes the same route, whatever else the machine's memory does."""
+        if MODAL_STIFFNESS_BYTES is not None:
+            return float(MODAL_STIFFNESS_BYTES)
+        if getattr(self, "_modal_budget", None) is None:
+            self._modal_budget = modal_stiffness_budget()
+        return self._modal_budget
+
     def linearise(self, states, sensitivity: bool = True) -> LinearisedModel:
         """The model about a trajectory, in modal coordinates (for the iterated smoother).
 
@@ -603,9 +614,10 @@ class SFEMModel(LinearObservation):
             # one material for every frame: with few parameters, their modal stiffness derivatives
             # once beat the O(n^3) product of every frame's sensitivity (same numbers to round-off)
             G = None
-            if 8 * J.shape[1] * (nx // 2) ** 2 <= modal_stiffness_budget():   # else not even planned (per element)
+            budget = self._stiffness_budget()
+            if 8 * J.shape[1] * (nx // 2) ** 2 <= budget:      # else not even planned (many parameters)
                 plan = stiffness_plan(J, dofs)
-                if modal_stiffness_pays(plan, T - 1, nx // 2):
+                if modal_stiffness_pays(plan, T - 1, nx // 2, budget):
                     G = system.modal_stiffness_derivatives(dirs, dofs, J, plan)
             for t in range(T - 1):
                 M[t, :nx] = system.sensitivity(z[t, :nx], self.load(z[t], t), dirs, dofs, combine=J, modal=True,

@@ -111,7 +111,7 @@ from tqdm.auto import tqdm
 from .._validate import integer, non_negative, probability
 from ..filtering import diagnostics
 from ..filtering.iterated import NOISE_LEVELS
-from ..filtering.smoother import PEAK_FACTOR, available_memory
+from ..filtering.smoother import PEAK_FACTOR, WORKING, available_memory
 from .crossval import DEFAULT_FOLDS, cross_validate, observation_folds, spline_cross_validation
 from .effects import CATALOGUE, EXPLICIT_ONLY, build_effects
 from .measured import (NOMINAL, Run, Setup, angle_from_origin, default_max_iterations, equivalent_eigenstrain,
@@ -458,16 +458,18 @@ def fit_workers(workers, n_state: int, n_frames: int, available: float | None = 
     """How many fits of the rounds run side by side (:func:`closing_the_loop` ``workers``).
 
     ``None`` (automatic): one per usable core (:func:`usable_cores`), but no more than the
-    available memory holds at a fit's estimated peak (:data:`~sfem_filters.filtering.smoother.PEAK_FACTOR`
-    times the ``(n_frames + 1) n_state^2`` stored covariances of 8 bytes) beside the fit this
-    process has just made; at least 1. An integer >= 1 is taken as given.
+    available memory holds at a conservative estimate of a fit's peak beside the fit this process
+    has just made: :data:`~sfem_filters.filtering.smoother.PEAK_FACTOR` times what a covariance
+    pass keeping every frame's covariance holds (``n_frames`` n_state x n_state covariances and
+    :data:`~sfem_filters.filtering.smoother.WORKING` more, 8 bytes a float), although the rounds'
+    fits keep no covariance at all; at least 1. An integer >= 1 is taken as given.
     """
     if workers is not None:
         return integer("workers", workers, 1)
     n = usable_cores()
     available = available_memory() if available is None else float(available)
     if available is not None:
-        peak = PEAK_FACTOR * 8.0 * (n_frames + 1) * float(n_state) ** 2
+        peak = PEAK_FACTOR * 8.0 * (n_frames + WORKING) * float(n_state) ** 2
         n = min(n, int(available // peak) if peak > 0 else n)
     return max(n, 1)
 

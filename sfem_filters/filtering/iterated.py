@@ -364,6 +364,8 @@ def with_covariance(model, observations, result: SmootherResult, *,
     if np.all(np.isfinite(np.asarray(result.P_diag, float)[:, :nr])):
         return result
     y = check_observations(model, observations)
+    check_memory(model.dim_state, model.n_frames, covariance=True,      # the search's passes kept no covariances
+                 observed=int(np.sum(~np.isnan(y))))
     guard = safeguards if safeguards is not None else Safeguards()
     done = IteratedSmoother(covariance=True)._final(model, y, result.states, result.cost, result.records,
                                                     result.stop_reason, result.converged, guard)
@@ -506,7 +508,8 @@ class IteratedSmoother:
         cannot step falls back to the prior mean.
         """
         check_model(model)
-        check_memory(model.dim_state, model.n_frames, covariance=self.covariance)   # before any pass, not at the kill
+        rows = int(np.sum(~np.isnan(check_observations(model, observations))))
+        check_memory(model.dim_state, model.n_frames, covariance=self.covariance, observed=rows)   # before any pass
         if start is not None:
             start = as_float_array("start", start, shape=(model.n_frames, model.dim_state))
         if self.measurement_noise == "estimate":

@@ -43,6 +43,7 @@ import scipy.linalg as sla
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
+from .._validate import integer
 from .base import DenseEngine
 from .linearised import LinearisedModel
 from .structured import joseph_update
@@ -65,7 +66,7 @@ STORE = ("covariance", "mean", "none")
 
 def _store_mode(store) -> str:
     """``store`` as one of :data:`STORE` (``True``: ``"covariance"``, ``False``: ``"none"``)."""
-    if store is True or store is False:
+    if isinstance(store, (bool, np.bool_)):
         return "covariance" if store else "none"
     if store not in STORE:
         raise ValueError(f"store: expected one of {STORE} (or True / False), got {store!r}")
@@ -86,12 +87,12 @@ class LinearisedEngine(DenseEngine):
 
     def __init__(self, lin: LinearisedModel, theta_mean, theta_cov, store=True, every: int = 1):
         self.lin, self.ljung, self.store = lin, None, _store_mode(store)
-        self.every = int(every)
-        if self.every < 1:
-            raise ValueError(f"every: expected an integer >= 1 (frames between stored covariances), got {every!r}")
+        self.every = integer("every", every, 1)
         self.nr, self.p = lin.n_restart, lin.n_params
         self.priors: dict = {}          # frame -> (prior mean, prior covariance)
-        self.repaired: dict = {}        # frame -> (mean, covariance) after a safeguard's repair (checkpoints only)
+        # frame -> what a safeguard's repair there changed: (mean, covariance) after it for the
+        # checkpoints' replay, its change of the covariance for the means' forward recursion
+        self.repaired: dict = {}
         self.observations = None        # what the backward pass replays between checkpoints
         self.updates: dict = {}
         self.log_likelihood = 0.0
@@ -190,8 +191,8 @@ class SmoothedPass:
 
 #: Head-room of a smoothing run over what :func:`check_memory` counts (the stored prior
 #: covariances and :data:`WORKING` n x n matrices): the model's dense operators, the interpreter
-#: and its libraries come on top (the resident peaks of the README's whole runs are 1.7-2.4 times
-#: the stored covariances of their last, covariance pass).
+#: and its libraries come on top (the resident peaks of the README's whole runs are 1.8-2.3 times
+#: what their last, covariance pass keeps).
 PEAK_FACTOR = 3.0
 
 
@@ -265,37 +266,76 @@ class InsufficientMemory(MemoryError):
 WORKING = 6
 
 
-def stored_bytes(n: int, frames: int, every: int = 1) -> float:
-    """Bytes of the prior covariances a covariance pass keeps (8-byte floats): one every ``every``
-    frames of ``frames + 1`` (:func:`kalman_forward`), and ``every - 1`` more while the backward
-    pass recomputes a segment between two of them."""
-    return 8.0 * float(n) ** 2 * (-(-(frames + 1) // every) + every - 1)
+def stored_bytes(n: int, frames: int, every: int = 1, observed: int = 0) -> float:
+    """Bytes a pass keeps for its backward pass (8-byte floats).
+
+    Parameters
+    ----------
+    n : int
+        State dimension.
+    frames : int
+        Frames of the pass (:func:`kalman_forward` keeps one prior covariance per frame).
+    every : int or None
+        A covariance pass keeping the prior covariance of one frame in ``every`` and recomputing
+        up to ``every - 1`` more at a time in the backward pass (:func:`smooth_backward`); None:
+        a pass for means, which keeps no covariance.
+    observed : int
+        Observed rows over all frames (the gains kept, n floats each, by either kind of pass).
+
+    Returns
+    -------
+    float
+        Bytes; a safeguard's repair between checkpoints keeps one n x n matrix more (rare, not
+        counted).
+    """
+    gains = 8.0 * float(observed) * n
+    if every is None or frames <= 0:
+        return gains
+    return gains + 8.0 * float(n) ** 2 * (-(-frames // every) + min(every, frames) - 1)
 
 
-def covariance_interval(n: int, frames: int, available: float | None = None) -> int:
+def covariance_interval(n: int, frames: int, available: float | None = None, observed: int = 0) -> int:
     """Frames between the prior covariances a covariance pass keeps (:func:`smooth`'s ``every``).
 
-    1 (every frame, no recomputation) where :data:`PEAK_FACTOR` times their bytes fit the
-    available memory (:func:`available_memory`, or ``available`` in bytes) or where the system
-    does not say; otherwise ``ceil(sqrt(frames + 1))``, which keeps about ``2 sqrt(frames) n^2``
-    floats instead of ``frames n^2`` (checkpointing, Griewank & Walther 2008, ch. 12) for one
-    forward pass more, with the same numbers.
+    1 (every frame, no recomputation) where :data:`PEAK_FACTOR` times what that pass holds
+    (:func:`stored_bytes` and :data:`WORKING` n x n matrices) fits the available memory, or
+    where the system does not say; otherwise ``ceil(sqrt(frames))``, which keeps about
+    ``2 sqrt(frames) n^2`` floats instead of ``frames n^2`` (checkpointing, Griewank & Walther
+    2008, ch. 12) for one forward pass more, with the same numbers.
+
+    Parameters
+    ----------
+    n, frames, observed :
+        As for :func:`stored_bytes`.
+    available : float, optional
+        Bytes available (default :func:`available_memory`).
+
+    Returns
+    -------
+    int, >= 1
     """
     available = available_memory() if available is None else float(available)
-    if available is None or PEAK_FACTOR * stored_bytes(n, frames) <= available:
+    working = 8.0 * WORKING * float(n) ** 2
+    if available is None or frames <= 1 or PEAK_FACTOR * (stored_bytes(n, frames, 1, observed) + working) <= available:
         return 1
-    return max(1, math.isqrt(frames) + 1) if frames > 0 else 1
+    return math.isqrt(frames - 1) + 1
 
 
-def check_memory(n: int, frames: int, available: float | None = None, covariance: bool = True) -> None:
+def _size(nbytes: float) -> str:
+    """Bytes as GB, or MB below one GB."""
+    return f"{nbytes * 1e-9:.1f} GB" if nbytes >= 1e9 else f"{nbytes * 1e-6:.0f} MB"
+
+
+def check_memory(n: int, frames: int, available: float | None = None, covariance: bool = True,
+                 observed: int = 0) -> None:
     """Refuse a run whose passes cannot fit the memory, warn where the run's peak may not.
 
-    A pass without covariances holds :data:`WORKING` n x n matrices; a covariance pass also keeps
-    the prior covariances its backward pass needs, every frame's or, where those do not fit,
-    checkpoints (:func:`covariance_interval`, :func:`stored_bytes`). More than the available memory
-    is a :class:`MemoryError` that says how much and what to reduce, instead of the operating
-    system killing the process midway; more than a :data:`PEAK_FACTOR` share of it is a
-    ``RuntimeWarning``.
+    Every pass holds :data:`WORKING` n x n matrices and the gains of the observed rows; a
+    covariance pass also keeps the prior covariances its backward pass needs, every frame's or,
+    where those do not fit, checkpoints (:func:`covariance_interval`, :func:`stored_bytes`).
+    More than the available memory is a :class:`MemoryError` that says how much and what to
+    reduce, instead of the operating system killing the process midway; more than a
+    :data:`PEAK_FACTOR` share of it is a ``RuntimeWarning``.
 
     Parameters
     ----------
@@ -307,24 +347,27 @@ def check_memory(n: int, frames: int, available: float | None = None, covariance
         Bytes available (default :func:`available_memory`; nothing is checked where unknown).
     covariance : bool
         Whether the run makes a covariance pass (smoothed variances of the kinematics).
+    observed : int
+        Observed rows over all frames (non-missing values of the observations).
     """
     available = available_memory() if available is None else float(available)
     if available is None:
         return
-    gb, working = 1e-9, 8.0 * WORKING * float(n) ** 2
+    working = 8.0 * WORKING * float(n) ** 2
     if covariance:
-        every = covariance_interval(n, frames, available)
-        stored = stored_bytes(n, frames, every)
-        kept = (f"a {n} x {n} covariance for each of {frames + 1} frames" if every == 1 else
-                f"a {n} x {n} covariance for every {every}th of {frames + 1} frames, recomputing the others")
+        every = covariance_interval(n, frames, available, observed)
+        stored = stored_bytes(n, frames, every, observed)
+        kept = (f"a {n} x {n} covariance for each of {frames} frames" if every == 1 else
+                f"a {n} x {n} covariance for one frame in {every} of {frames}, recomputing the others")
     else:
-        stored, kept = 0.0, f"no covariance of any frame (means only) but {WORKING} {n} x {n} matrices"
+        stored, kept = stored_bytes(n, frames, None, observed), "no covariance of any frame (means only)"
     need = stored + working
-    what = f"the smoother keeps {kept} ({need * gb:.1f} GB; about {PEAK_FACTOR * need * gb:.1f} GB at the run's peak)"
+    what = (f"the smoother keeps {kept} and gains ({_size(stored)}) and works in {WORKING} {n} x {n} matrices "
+            f"({_size(working)}; about {_size(PEAK_FACTOR * need)} at the run's peak)")
     if need > available:
-        raise InsufficientMemory(f"model: {what}, more than the {available * gb:.1f} GB available; {MEMORY_ADVICE}")
+        raise InsufficientMemory(f"model: {what}, more than the {_size(available)} available; {MEMORY_ADVICE}")
     if PEAK_FACTOR * need > available:
-        warnings.warn(f"{what}, while {available * gb:.1f} GB are available: the run may run out of memory; "
+        warnings.warn(f"{what}, while {_size(available)} are available: the run may run out of memory; "
                       f"{MEMORY_ADVICE}", RuntimeWarning, stacklevel=3)
 
 
@@ -371,10 +414,13 @@ def kalman_forward(lin: LinearisedModel, observations, theta_mean=None, theta_co
             raise FloatingPointError(f"the smoother's forward pass lost its covariance (non-finite or a variance "
                                      f"<= 0) at pass {label}, frame {t}")
         if safeguards is not None and (check_every_frame or t == T - 1):
-            repairs = len(safeguards.repairs)
+            before = eng.P
             safeguards.check_covariance(eng, label, t)
-            if len(safeguards.repairs) > repairs and eng.observations is not None:
-                eng.repaired[t] = (eng.x.copy(), eng.P.copy())     # the replay between checkpoints resumes here
+            if eng.P is not before:                                # repaired: what the backward pass must know
+                if eng.store == "mean":
+                    eng.repaired[t] = eng.P - before
+                elif eng.observations is not None:
+                    eng.repaired[t] = (eng.x.copy(), eng.P.copy())  # the replay between checkpoints resumes here
         if safeguards is not None and monitor_nis:
             safeguards.check_nis(run, label, t, nis[t], n_obs[t])
         filtered[t] = eng.x
@@ -441,17 +487,21 @@ def smooth(lin: LinearisedModel, observations, theta_mean=None, theta_cov=None, 
         Run the covariance recursion (O(n^2 (m + p)) a frame) and return the outputs' smoothed
         variances: the outputs' rows are split into blocks that read disjoint columns of xi
         (:func:`_output_blocks`), and a block of c columns and r distinct rows costs
-        O(c n^2 + r c^2) a frame; otherwise means only. The covariance of theta is returned
-        either way (for static parameters it is the forward pass's last).
+        O(c n k + r c^2) a frame, k the rank of the information matrix (the rows observed from
+        the frame on, at most n: module docstring); otherwise means only, from a pass that keeps
+        no covariance. The covariance of theta is returned either way (for static parameters it
+        is the forward pass's last).
     safeguards, check_every_frame, monitor_nis :
         See :func:`kalman_forward`.
     every : int, optional
-        With ``covariance``: frames between the prior covariances kept (:func:`kalman_forward`);
-        default :func:`covariance_interval`, 1 where every frame's fit the available memory.
+        With ``covariance`` (ignored without): frames between the prior covariances kept
+        (:func:`kalman_forward`); default :func:`covariance_interval`, 1 where every frame's fit
+        the available memory.
         The same numbers whatever it is.
     """
     if covariance and every is None:
-        every = covariance_interval(lin.dim_state, lin.n_frames)
+        every = covariance_interval(lin.dim_state, lin.n_frames,
+                                    observed=int(np.sum(~np.isnan(np.asarray(observations, float)))))
     fwd = kalman_forward(lin, observations, theta_mean, theta_cov, safeguards=safeguards,
                          check_every_frame=check_every_frame, monitor_nis=monitor_nis, label=label,
                          store="covariance" if covariance else "mean", every=every if covariance else 1)
@@ -466,8 +516,10 @@ def smooth_backward(lin: LinearisedModel, forward: ForwardPass, *, outputs=None,
     alone (no prior covariance of any frame): the smoothed initial state ``x_0- - P_0- lambda~_0``
     and the smoothed process noise ``w_t-1|T = -Q lambda~_t`` (the disturbance smoother, de Jong
     1988; Durbin & Koopman 2012, sec. 4.5.3) give the trajectory forward,
-    ``x_t|T = F_t-1 x_t-1|T + w_t-1|T``, the same as ``x_t- - P_t- lambda~_t`` to round-off.
-    Covariances need ``store="covariance"``.
+    ``x_t|T = F_t-1 x_t-1|T + w_t-1|T`` (after a safeguard's repair D of a frame's covariance,
+    from ``x_t-1|T - D lambda_t-1``), the same as ``x_t- - P_t- lambda~_t`` to round-off for
+    transitions that do not expand (the models' damped ones: round-off grows with the powers of
+    an expanding F). Covariances need ``store="covariance"``.
     """
     nr = lin.n_restart
     eng = forward.engine
@@ -567,8 +619,11 @@ def _smooth_means(lin: LinearisedModel, forward: ForwardPass) -> SmoothedPass:
     nr, eng = lin.n_restart, forward.engine
     T, n = lin.n_frames, lin.dim_state
     adjoint = np.empty((T, n))
+    carried = {}                                   # lambda_t = F^T lambda~_t+1 at repaired frames
     lam = np.zeros(n)
     for t in range(T - 1, -1, -1):
+        if t in eng.repaired:
+            carried[t] = lam.copy()
         lt = lam
         if t in eng.updates:
             mask, e, cho, K, _ = eng.updates[t]
@@ -581,13 +636,18 @@ def _smooth_means(lin: LinearisedModel, forward: ForwardPass) -> SmoothedPass:
     x0, P0 = eng.initial
     smoothed = np.empty((T, n))
     smoothed[0] = x0 - P0 @ adjoint[0]
-    theta = smoothed[0, nr:]
     for t in range(1, T):
-        xr = np.asarray(lin.A_at(t - 1) @ smoothed[t - 1, :nr]).ravel() + lin.c[t - 1] - lin.Q @ adjoint[t, :nr]
+        prev = smoothed[t - 1]
+        if t - 1 in eng.repaired:
+            # a repair D of the filtered covariance at t-1 moves the next prior by F D F^T, and so
+            # the step: x_t|T = F (x_t-1|T - D lambda_t-1) + w_t-1|T (the covariance pass's numbers)
+            prev = prev - eng.repaired[t - 1] @ carried[t - 1]
+        xr = np.asarray(lin.A_at(t - 1) @ prev[:nr]).ravel() + lin.c[t - 1] - lin.Q @ adjoint[t, :nr]
         if lin.n_params:
-            xr += lin.M[t - 1] @ (theta - lin.theta_bar)
-        smoothed[t, :nr], smoothed[t, nr:] = xr, theta
-    return SmoothedPass(forward=forward, smoothed=smoothed, theta=theta.copy(), P_theta=eng.P[nr:, nr:].copy())
+            xr += lin.M[t - 1] @ (prev[nr:] - lin.theta_bar)
+        smoothed[t, :nr], smoothed[t, nr:] = xr, prev[nr:]
+    return SmoothedPass(forward=forward, smoothed=smoothed, theta=smoothed[0, nr:].copy(),
+                        P_theta=eng.P[nr:, nr:].copy())
 
 
 def _checked_outputs(outputs, nr: int) -> dict:

@@ -382,7 +382,7 @@ def test_a_pool_that_cannot_start_or_breaks_leaves_the_fits_to_this_process(monk
 
 
 def test_fit_workers_one_per_core_as_far_as_the_memory_holds():
-    per_fit = closing.PEAK_FACTOR * 8.0 * (20 + 1) * 1000.0 ** 2           # a fit's estimated peak, bytes
+    per_fit = closing.PEAK_FACTOR * 8.0 * (20 + closing.WORKING) * 1000.0 ** 2     # a fit's estimated peak, bytes
     cores = closing.usable_cores()
     assert closing.fit_workers(None, 1000, 20, available=1e15) == cores
     assert closing.fit_workers(None, 1000, 20, available=2.5 * per_fit) == min(cores, 2)

@@ -28,6 +28,7 @@ from sfem_filters.filtering import (
     rts_reference,
     smooth,
     smooth_backward,
+    with_covariance,
 )
 from sfem_filters.filtering.iterated import open_loop
 from sfem_filters.filtering import smoother as smoother_module
@@ -109,20 +110,27 @@ def test_means_from_the_gains_alone_equal_the_textbook_rts(seed, nr, p, m, T, sp
         smooth_backward(lin, fwd, outputs={"all": np.eye(nr)}, covariance=True)
     with pytest.raises(ValueError, match="store: expected one of"):
         kalman_forward(lin, y, store="everything")
+    with pytest.raises(ValueError, match="every: expected an integer >= 1"):
+        kalman_forward(lin, y, every=0)
     with pytest.raises(ValueError, match="expected a pass run with store='covariance' or 'mean'"):
         smooth_backward(lin, kalman_forward(lin, y, store=False))
 
 
 @pytest.mark.parametrize("nr, p, m, T", [(9, 2, 1, 6), (3, 1, 3, 6), (6, 1, 2, 5)])
-def test_information_factor_and_its_switch_to_dense_give_the_textbook_variances(nr, p, m, T):
-    """The backward pass keeps Lambda as a factor W W^T while its rank (the rows observed after
-    the frame) stays below n, and switches to the dense recursion when it would not: the whole
-    pass factored (9 + 2 states, 6 rows), dense after two frames (3 + 1 states, 3 rows a frame),
-    and switching midway give the textbook RTS variances."""
+def test_information_factor_and_its_switch_to_dense_give_the_textbook_variances(nr, p, m, T, monkeypatch):
+    """The backward pass keeps Lambda as a factor W W^T while its rank (the rows observed from
+    the frame on) stays below n, and switches to the dense recursion when it would not: the
+    whole pass factored (9 + 2 states, 6 rows), dense from the second observed frame on (3 + 1
+    states, 3 rows a frame), and switching midway give the textbook RTS variances."""
     rng = np.random.default_rng(nr * 100 + m)
     lin = _random_linearised(rng, nr, p, m, T, sparse=False)
     y = rng.standard_normal((T, m))
+    factored = []
+    step = smoother_module._transpose_columns
+    monkeypatch.setattr(smoother_module, "_transpose_columns", lambda *a: factored.append(1) or step(*a))
     sm = smooth(lin, y, outputs={"all": np.eye(nr)}, covariance=True)
+    n = nr + p
+    assert len(factored) == sum(1 for t in range(1, T) if (T - t) * m < n)   # frames carried back as a factor
     _, Ps = rts_reference(lin, y)
     vI = np.array([np.diag(P[:nr, :nr]) for P in Ps])
     np.testing.assert_allclose(sm.variances["all"], vI, rtol=1e-8, atol=1e-11 * vI.max())
@@ -138,6 +146,23 @@ class _Repair:
         if t in self.frames:
             engine.reset(engine.x, engine.P + 0.3 * np.eye(len(engine.x)))
             self.repairs.append((loop, t))
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 10_000), nr=st.integers(1, 5), p=st.integers(0, 2), m=st.integers(1, 3),
+       T=st.integers(2, 8), missing=st.floats(0.0, 0.6), repaired=st.sets(st.integers(0, 7), max_size=3))
+def test_means_across_a_repair_equal_the_covariance_pass(seed, nr, p, m, T, missing, repaired):
+    """A safeguard's repair D of a frame's covariance breaks the disturbance smoother's step; the
+    pass for means records D and steps from x_t|T - D lambda_t: the covariance pass's means."""
+    rng = np.random.default_rng(seed)
+    lin = _random_linearised(rng, nr, p, m, T, sparse=bool(seed % 2))
+    y = rng.standard_normal((T, m))
+    y[rng.uniform(size=y.shape) < missing] = np.nan
+    full = smooth(lin, y, covariance=True, every=1, safeguards=_Repair(repaired))
+    mean = smooth(lin, y, safeguards=_Repair(repaired))
+    assert mean.forward.engine.store == "mean"
+    scale = max(np.abs(full.smoothed).max(), 1.0)
+    assert np.abs(mean.smoothed - full.smoothed).max() <= 1e-9 * scale
 
 
 @settings(max_examples=40, deadline=None)
@@ -166,13 +191,20 @@ def test_checkpointed_covariance_pass_gives_the_same_numbers(seed, nr, p, m, T, 
 
 
 def test_covariance_interval_keeps_every_frame_where_they_fit():
+    """One prior covariance a frame where the pass fits with head-room, else ceil(sqrt(T))
+    checkpoints and a segment of at most k - 1 recomputed; gains counted either way."""
     n, T = 1000, 24
-    full = stored_bytes(n, T)
-    assert full == 8.0 * (T + 1) * n ** 2
-    assert covariance_interval(n, T, available=PEAK_FACTOR * full) == 1
-    k = covariance_interval(n, T, available=0.5 * PEAK_FACTOR * full)
-    assert k == 5                                               # ceil(sqrt(25))
+    full, working = stored_bytes(n, T), 8.0 * WORKING * n ** 2
+    assert full == 8.0 * T * n ** 2
+    assert covariance_interval(n, T, available=PEAK_FACTOR * (full + working)) == 1
+    k = covariance_interval(n, T, available=PEAK_FACTOR * (full + working) - 1.0)
+    assert k == 5                                               # ceil(sqrt(24))
     assert stored_bytes(n, T, k) == 8.0 * (5 + 4) * n ** 2     # 5 checkpoints, a segment of 4 recomputed
+    assert stored_bytes(n, 3, 10) == 8.0 * (1 + 2) * n ** 2    # fewer frames than the interval
+    assert stored_bytes(n, T, None, observed=100) == 8.0 * 100 * n     # a pass for means: its gains
+    assert stored_bytes(n, T, 1, observed=100) == full + 8.0 * 100 * n
+    assert covariance_interval(n, 1, available=0.0) == 1       # nothing to recompute
+    assert covariance_interval(n, 2, available=0.0) == 2
 
 
 @settings(max_examples=30, deadline=None)
@@ -416,34 +448,40 @@ def test_bad_inputs_are_named(pinned):
 
 
 def test_a_run_too_large_for_the_memory_is_refused_before_any_pass(pinned, monkeypatch):
-    """A covariance pass keeps (frames + 1) n^2 floats, or checkpoints where those do not fit, on
-    top of WORKING n x n matrices; a run without covariances keeps only the latter. Beyond the
-    available memory a named MemoryError says how much, beyond a PEAK_FACTOR share a warning."""
+    """A covariance pass keeps a prior covariance a frame, or checkpoints where those do not fit,
+    every pass its gains and WORKING n x n matrices, a run without covariances nothing more.
+    Beyond the available memory a named MemoryError says how much, beyond a PEAK_FACTOR share a
+    warning."""
     n, T = 1000, 24
     working = 8.0 * WORKING * n ** 2
     full = stored_bytes(n, T) + working
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         check_memory(n, T, available=1.01 * PEAK_FACTOR * full)
-    with pytest.warns(RuntimeWarning, match=r"the smoother keeps a 1000 x 1000 covariance for every 5th of 25 "
-                                            r"frames, recomputing the others \(0\.1 GB; about 0\.4 GB at the run's "
-                                            r"peak\), while 0\.2 GB are available: the run may run out of memory"):
+    kept = (r"the smoother keeps a 1000 x 1000 covariance for one frame in 5 of 24, recomputing the others and "
+            r"gains \(72 MB\) and works in 6 1000 x 1000 matrices \(48 MB; about 360 MB at the run's peak\)")
+    with pytest.warns(RuntimeWarning, match=kept + r", while 240 MB are available: the run may run out of memory"):
         check_memory(n, T, available=2.0 * (stored_bytes(n, T, 5) + working))
-    with pytest.raises(MemoryError, match=r"model: the smoother keeps a 1000 x 1000 covariance for every 5th of 25 "
-                                          r"frames, recomputing the others \(0\.1 GB; about 0\.4 GB at the run's "
-                                          r"peak\), more than the 0\.1 GB available; reduce the state"):
+    with pytest.raises(MemoryError, match="model: " + kept + r", more than the 60 MB available; reduce the state"):
         check_memory(n, T, available=0.5 * (stored_bytes(n, T, 5) + working))
     with warnings.catch_warnings():                             # the means alone fit where no covariance pass does
         warnings.simplefilter("error")
-        check_memory(n, T, available=1.01 * PEAK_FACTOR * working, covariance=False)
+        check_memory(n, T, available=1.01 * PEAK_FACTOR * (working + 8.0 * 50 * n), covariance=False, observed=50)
     with pytest.raises(MemoryError, match=r"model: the smoother keeps no covariance of any frame \(means only\) "
-                                          r"but 6 1000 x 1000 matrices \(0\.0 GB"):
-        check_memory(n, T, available=0.5 * working, covariance=False)
+                                          r"and gains \(0 MB\) and works in 6 1000 x 1000 matrices \(48 MB"):
+        check_memory(n, T, available=0.5 * working, covariance=False, observed=50)
+    with pytest.raises(MemoryError, match=r"1\.2 GB available"):
+        check_memory(10_000, T, available=1.2e9)
     if os.path.exists("/proc/meminfo"):
         assert smoother_module.available_memory() > 0
     m = benchmark_model(pinned, "joint_ekf", parameterisation=Parameterisation.per_region(pinned.middle))
-    need = stored_bytes(m.dim_state, m.n_frames, covariance_interval(m.dim_state, m.n_frames, 0.0))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        lean = IteratedSmoother(max_iterations=1, covariance=False).run(m, pinned.observations)
+    need = stored_bytes(m.dim_state, m.n_frames, covariance_interval(m.dim_state, m.n_frames, 0.0))   # checkpoints
     monkeypatch.setattr(smoother_module, "available_memory", lambda: 0.9 * need)
+    with pytest.raises(MemoryError, match="model: the smoother keeps"):     # its covariance pass, made later
+        with_covariance(m, pinned.observations, lean)
     passes = []
     monkeypatch.setattr(smoother_module, "kalman_forward", lambda *a, **k: passes.append(1))
     with pytest.raises(MemoryError, match="model: the smoother keeps"):
