@@ -31,7 +31,9 @@ Chapelle's reduced-order UKF, simplex sigma points on the parameters), :mod:`~sf
 (Ljung's coupling, Eq. 40), :mod:`~sfem_filters.filtering.safeguards`,
 :mod:`~sfem_filters.filtering.cyclic` (the paper's cyclic driver),
 :mod:`~sfem_filters.filtering.linearised` and :mod:`~sfem_filters.filtering.smoother` (the model
-linearised about a trajectory, and its RTS smoother), :mod:`~sfem_filters.filtering.iterated`
+linearised about a trajectory, and its RTS smoother: smoothed means from the filter's gains alone,
+smoothed covariances from every frame's prior covariance or from checkpoints where those do not
+fit the memory), :mod:`~sfem_filters.filtering.iterated`
 (the iterated smoother: Gauss-Newton on the MAP of one cycle),
 :mod:`~sfem_filters.filtering.curvature` (the profile cost of the material, its exact gradient and
 its exact Hessian by differences: how far Gauss-Newton's curvature is from the truth),
