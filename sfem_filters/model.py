@@ -369,6 +369,16 @@ class SFEMModel(LinearObservation):
         mat = self.material_of_theta(theta)
         return np.concatenate([mat.E, mat.nu])
 
+    def physical_jacobian(self, theta):
+        """d(E, nu)/d theta at ``theta``, sparse (2 n_elements, n_params): the rows the stop
+        rule measures a step on (:class:`sfem_filters.filtering.protocol.PhysicalJacobian`),
+        ``E_e`` times the parameterisation's d log E_e / d theta, then d nu_e / d theta."""
+        if self.parameterisation is None:
+            return sp.csr_matrix((2 * self.mesh.n_elements, 0))
+        mat = self.material_of_theta(theta)
+        J = self.parameterisation.element_jacobian(mat)
+        return sp.diags(np.concatenate([mat.E, np.ones(mat.n_elements)])) @ J
+
     def load_response(self, load_matrix, z) -> np.ndarray:
         """Response ``H B(theta) G`` of the next predicted observation to unit loads (m per unit).
 

@@ -113,6 +113,31 @@ def test_basis_parameterisation_against_finite_differences():
     assert np.abs(Mt - fd).max() <= 1e-4 * np.abs(fd).max()
 
 
+@pytest.mark.parametrize("kind", ["element", "relative_regions", "basis_with_level"])
+def test_physical_jacobian_against_finite_differences(kind):
+    """d(E, nu)/d theta of the stop rule's rows equals central differences of
+    physical_parameters, for an element, a relative-region and a levelled basis map."""
+    rng = np.random.default_rng(11)
+    mesh = random_block_mesh(rng)
+    n = mesh.n_elements
+    if kind == "element":
+        param = Parameterisation.per_element(n)
+    elif kind == "relative_regions":
+        param = Parameterisation.relative_regions(np.arange(n) % 3, 1e4)
+    else:
+        c = mesh.centroids / 0.02
+        param = Parameterisation.from_basis(np.column_stack([c[:, 0] - 0.5, c[:, 1] - 0.5])).with_level(1e4)
+    model = small_model(rng, mesh=mesh, parameterisation=param, material=Material.uniform(n, 1e4, 0.4))
+    theta = 0.3 * rng.standard_normal(param.n_params)
+    J = model.physical_jacobian(theta).toarray()
+    assert J.shape == (2 * n, param.n_params)
+    h = 1e-6
+    fd = np.column_stack([(model.physical_parameters(theta + h * e) - model.physical_parameters(theta - h * e)) / (2 * h)
+                          for e in np.eye(param.n_params)])
+    scale = np.abs(fd).max(axis=1, keepdims=True) + 1e-300
+    assert np.abs((J - fd) / scale).max() < 1e-6
+
+
 @given(theta=st.lists(st.floats(-36.0, 36.0), min_size=8, max_size=8))
 def test_estimates_stay_admissible_for_any_theta(theta):
     """Every representable theta maps to E > 0 and 0 < nu < 0.5: nothing to clip."""

@@ -57,7 +57,7 @@ from .ljung import LJUNG_MAX_PARAMS, LjungCoupling
 from .marginal import MarginalCheck, laplace_check, log_likelihood, log_posterior
 from .roukf import ROUKFEngine, simplex_points
 from .protocol import (FilterModel, Fingerprinted, Linearisable, LoadResponse, OutputOperators, PerFrameNoise,
-                       PhysicalParameters, ScalableMeasurementNoise, ScalableProcessNoise, TransitionDerivatives,
+                       PhysicalJacobian, PhysicalParameters, ScalableMeasurementNoise, ScalableProcessNoise, TransitionDerivatives,
                        check_model, measurement_cov, scaled_measurement_noise, scaled_process_noise)
 from .safeguards import FilterDivergence, Safeguards, nearest_psd
 from .smoother import ForwardPass, SmoothedPass, kalman_forward, rts_reference, smooth, smooth_backward
@@ -68,7 +68,8 @@ from .unscented import UKFEngine, make_ukf
 __all__ = ["ROUKFEngine", "simplex_points", "UKFEngine", "make_ukf", "diagnostics", "Engine", "CyclicEKF", "CyclicResult", "cyclic_estimate", "filter_loop", "check_observations",
            "FilterpyEngine", "SFEMExtendedKalmanFilter", "StructuredEngine", "UDEngine", "ENGINES", "make_engine",
            "History", "LinearGaussianModel", "LinearObservation", "LjungCoupling", "LJUNG_MAX_PARAMS",
-           "FilterModel", "PerFrameNoise", "Fingerprinted", "PhysicalParameters", "TransitionDerivatives",
+           "FilterModel", "PerFrameNoise", "Fingerprinted", "PhysicalParameters", "PhysicalJacobian",
+           "TransitionDerivatives",
            "LoadResponse", "check_model", "measurement_cov", "Safeguards", "FilterDivergence", "nearest_psd",
            "joseph_update", "ud_factor", "psd_factor", "mwgs", "bierman_update", "CHECKPOINT_FORMAT",
            "save_checkpoint", "load_checkpoint", "run_fingerprint", "one_cycle_covariance", "IteratedSmoother",

@@ -23,11 +23,14 @@ exactly a Gauss-Newton step on J. Two things make the steps robust:
   pseudo-observation of ``theta_bar`` with the prior's shape, so it simply tightens the prior of
   the pass to ``N((theta0 + lambda theta_bar) / (1 + lambda), P3 / (1 + lambda))``. A failed step
   is tried at half its length, then lambda grows (Nielsen's rule, :class:`IteratedSmoother`).
+  A full step that lowered the cost by more than the model predicted, where the model predicts
+  little more, is doubled while the cost keeps falling (a plateau the Gauss-Newton curvature
+  hides; ``max_extrapolation``).
 
 Each iteration relinearises at the optimal trajectory of the last accepted theta and restarts
 from the prior. The run stops when an accepted step moves the material by less than ``tol``
-(relative, physical units) and by less than ``sd_tol`` posterior standard deviations (the step
-taken and the undamped one alike), when the cost stops falling (an accepted decrease below
+(relative, physical units) and by less than ``sd_tol`` posterior standard deviations of every
+physical quantity (the step taken and the undamped one alike; :func:`step_in_sd`), when the cost stops falling (an accepted decrease below
 ``cost_tol`` with a Newton decrement below it too, or no damping makes it fall), or at
 ``max_iterations``. No damping lowering the cost while the model still predicts a decrease is
 reported as stuck (``"damping"``), not converged. A secant correction that makes the quadratic
@@ -54,24 +57,61 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 import scipy.linalg as sla
+import scipy.sparse as sp
 
 from .._validate import as_float_array, integer, non_negative, positive
 from .checkpoint import load_checkpoint, run_fingerprint, save_checkpoint
 from .cyclic import check_observations
 from .history import History
 from .linearised import check_static_parameters, linearise
-from .protocol import (OutputOperators, check_model, measurement_cov, parameter_prior, physical_parameters,
-                       scaled_measurement_noise, scaled_process_noise)
+from .protocol import (OutputOperators, check_model, measurement_cov, parameter_prior, physical_jacobian,
+                       physical_parameters, scaled_measurement_noise, scaled_process_noise)
 from .safeguards import Safeguards
 from .curvature import ProfileHessian, gauss_newton_pass, optimal_trajectory, profile_hessian, profile_pass
 from .smoother import check_memory, smooth
 
 __all__ = ["IteratedSmoother", "SmootherResult", "MapObjective", "iterated_smoother", "open_loop", "exact_laplace",
-           "with_covariance", "NOISE_LEVELS"]
+           "with_covariance", "step_in_sd", "NOISE_LEVELS"]
 
 #: How a noise level is set (``process_noise=``, ``measurement_noise=``): as the model gives it, or
 #: by type-II maximum likelihood.
 NOISE_LEVELS = ("fixed", "estimate")
+
+#: An accepted full step whose actual decrease is at least this many times the predicted one ...
+EXTRAPOLATE_GAIN = 1.25
+#: ... while the quadratic model predicts less than this much more (nats) is extended
+#: (:class:`IteratedSmoother` ``max_extrapolation``).
+EXTRAPOLATE_DECREMENT = 1.0
+
+def step_in_sd(step, P_theta, jacobian=None) -> float:
+    """The largest move of a physical quantity in its posterior standard deviations.
+
+    ``max_i |j_i @ step| / sqrt(j_i P j_i^T)`` over the rows ``j_i`` of ``jacobian`` (d physical
+    quantity / d theta, :class:`sfem_filters.filtering.protocol.PhysicalJacobian`; ``None``: the
+    parameters themselves). A row's scale cancels, and so does any invertible recombination of
+    the parameters (renumbered regions, rotated contrasts or basis modes): the rule judges the
+    material, not its coordinates. Rows that do not move with theta are left out.
+
+    Parameters
+    ----------
+    step : (p,) array
+        Step in theta.
+    P_theta : (p, p) array
+        Posterior covariance of theta.
+    jacobian : (q, p) array or sparse matrix, optional
+        Rows of the physical quantities' derivatives.
+    """
+    step = np.asarray(step, float)
+    if jacobian is None:
+        return float(np.max(np.abs(step) / np.sqrt(np.diag(P_theta))))
+    J = sp.csr_matrix(jacobian)
+    moved = np.abs(J @ step)
+    var = np.asarray(J.multiply(J @ np.asarray(P_theta, float)).sum(axis=1)).ravel()
+    keep = np.asarray(abs(J).max(axis=1).todense()).ravel() > 0.0
+    if not np.any(keep):
+        return 0.0
+    return float(np.max(moved[keep] / np.sqrt(np.maximum(var[keep], np.finfo(float).tiny))))
+
 
 class _InverseRoot:
     """``x -> L^-1 x`` with ``C = L L^T`` (Cholesky), or the pseudo-inverse square root of a
@@ -223,7 +263,7 @@ class SmootherResult:
         ``"no parameters"``.
     records : list of dict
         Per accepted iteration: ``cost``, ``damping``, ``rejected`` (damped retries),
-        ``rel_change``, ``step_sd`` (max over parameters of |step| / posterior sd),
+        ``rel_change``, ``step_sd`` (max over physical quantities of |step| / posterior sd, :func:`step_in_sd`),
         ``full_step_sd`` (the same for the undamped step), ``newton_decrement`` (nats),
         ``seconds``.
     history : History
@@ -441,11 +481,20 @@ class IteratedSmoother:
         hessian_check.py``). Not positive definite there (a run stopped short of a minimum): a
         warning, and the Gauss-Newton covariance is kept.
 
+    max_extrapolation : float
+        Longest multiple of an accepted full step tried (>= 1; 1 turns extrapolation off). When
+        the cost fell by at least :data:`EXTRAPOLATE_GAIN` times the decrease the quadratic model
+        predicted and the model's Newton decrement is below :data:`EXTRAPOLATE_DECREMENT` nats,
+        the Gauss-Newton curvature along the step is too large (the model misses a falling
+        stretch of the cost, as on a plateau), and the step is doubled while the cost keeps
+        falling, up to this multiple: one profile pass per try. Near a start far from the mode
+        (a large decrement) steps are not extended.
+
     The damping follows Nielsen's rule: after an accepted full step lambda is multiplied by
     ``max(1/3, 1 - (2 rho - 1)^3)``, rho the ratio of the cost's actual to its predicted decrease;
     after an accepted half step it doubles; after a rejection it grows by a factor that doubles
     with every rejection in a row. The settings that shape the iterates (damping, max_damping,
-    the safeguards) enter the checkpoint fingerprint; the stopping rules (max_iterations, tol,
+    max_extrapolation, the safeguards) enter the checkpoint fingerprint; the stopping rules (max_iterations, tol,
     sd_tol, cost_tol) and ``covariance`` do not, so a finished run can be resumed with a
     stricter rule.
     """
@@ -463,6 +512,7 @@ class IteratedSmoother:
     noise_range: tuple = (4.0 ** -8, 4.0 ** 3)
     noise_tol: float = 0.05
     laplace: str = "gauss-newton"
+    max_extrapolation: float = 8.0
 
     def __post_init__(self):
         integer("max_iterations", self.max_iterations, 1)
@@ -488,11 +538,15 @@ class IteratedSmoother:
         positive("noise_tol", self.noise_tol)
         if self.laplace not in ("gauss-newton", "exact"):
             raise ValueError(f"laplace: expected 'gauss-newton' or 'exact', got {self.laplace!r}")
+        if not (isinstance(self.max_extrapolation, (int, float, np.integer, np.floating))
+                and not isinstance(self.max_extrapolation, bool) and 1.0 <= float(self.max_extrapolation) < np.inf):
+            raise ValueError(f"max_extrapolation: expected a finite multiple >= 1 of a step (1: never extend a "
+                             f"step), got {self.max_extrapolation!r}")
 
     def trajectory_settings(self) -> dict:
         guard = self.safeguards if self.safeguards is not None else Safeguards()
         return {"method": "iterated_smoother", "damping": float(self.damping), "max_damping": float(self.max_damping),
-                **guard.settings()}
+                "max_extrapolation": float(self.max_extrapolation), **guard.settings()}
 
     def run(self, model, observations, *, progress: bool = False, checkpoint=None,
             description: str = "iterated smoother", start=None) -> SmootherResult:
@@ -670,7 +724,8 @@ class IteratedSmoother:
                 # the undamped step of the quadratic model and its predicted decrease (the Newton
                 # decrement): how far the mode still is, whatever the damping does to the step taken
                 full = -sla.cho_solve(cho_model, g)
-                full_sd = float(np.max(np.abs(full) / np.sqrt(np.diag(P_theta))))
+                J = physical_jacobian(model, theta_bar)
+                full_sd = step_in_sd(full, P_theta, J)
                 newton_decrement = float(-0.5 * g @ full)
                 rejected = 0
                 while True:
@@ -706,12 +761,25 @@ class IteratedSmoother:
                     lam, nu = max(lam, 1e-3) * nu, 2.0 * nu
                 if stop:
                     break
+                if (alpha == 1.0 and gain >= EXTRAPOLATE_GAIN and newton_decrement < EXTRAPOLATE_DECREMENT
+                        and self.max_extrapolation > 1.0):
+                    # the cost fell by more than the model predicted, and the model predicts
+                    # little more: its curvature along the step is too large (a plateau the
+                    # Gauss-Newton model cannot see), so the mode lies further along; double the
+                    # step while the cost keeps falling
+                    factor = 2.0
+                    while factor <= self.max_extrapolation:
+                        trial_cost, trial_found = profile(theta_bar + factor * step, z)
+                        if not trial_cost < new_cost:
+                            break
+                        new_cost, found, alpha = trial_cost, trial_found, factor
+                        factor *= 2.0
                 taken = alpha * step
                 secant.taken(taken, g)
                 before = physical_parameters(model, theta_bar)
                 moved, size = np.linalg.norm(physical_parameters(model, theta_bar + taken) - before), np.linalg.norm(before)
                 rel = float(moved / size) if size > 0 else np.inf    # no relative change from zero parameters
-                step_sd = float(np.max(np.abs(taken) / np.sqrt(np.diag(P_theta))))
+                step_sd = step_in_sd(taken, P_theta, J)
                 records.append({"iteration": len(records) + 1, "cost": new_cost, "decrease": cost - new_cost,
                                 "damping": lam_used, "step_length": alpha, "gain_ratio": float(gain), "rejected": rejected,
                                 "rel_change": rel, "step_sd": step_sd, "max_abs_step": float(np.max(np.abs(taken))),

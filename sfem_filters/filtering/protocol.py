@@ -27,9 +27,10 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-__all__ = ["FilterModel", "PerFrameNoise", "Fingerprinted", "PhysicalParameters", "TransitionDerivatives",
+__all__ = ["FilterModel", "PerFrameNoise", "Fingerprinted", "PhysicalParameters", "PhysicalJacobian",
+           "TransitionDerivatives",
            "LoadResponse", "Linearisable", "OutputOperators", "ScalableProcessNoise", "ScalableMeasurementNoise", "check_model", "measurement_cov",
-           "model_fingerprint", "physical_parameters", "n_parameters", "parameter_prior", "scaled_process_noise",
+           "model_fingerprint", "physical_parameters", "physical_jacobian", "n_parameters", "parameter_prior", "scaled_process_noise",
            "scaled_measurement_noise"]
 
 
@@ -111,6 +112,20 @@ class PhysicalParameters(Protocol):
 
     def physical_parameters(self, theta) -> np.ndarray:
         """1D array of the physical quantities ``theta`` stands for (e.g. E in Pa and nu)."""
+
+
+@runtime_checkable
+class PhysicalJacobian(Protocol):
+    """Optional: how the physical quantities move with ``theta``, for the step-in-sd stop rule.
+
+    The rule measures a step in posterior standard deviations of each physical quantity (a
+    row ``j`` moves by ``j @ step`` against an sd of ``sqrt(j P j^T)``), so that it does not
+    depend on how the parameters are numbered or combined (relative-region contrasts, basis
+    modes). Fallback: the rows of the identity (the step in each parameter's own sd).
+    """
+
+    def physical_jacobian(self, theta):
+        """(q, p) array or sparse matrix: d physical_parameters / d theta at ``theta``."""
 
 
 @runtime_checkable
@@ -204,6 +219,13 @@ def physical_parameters(model, theta) -> np.ndarray:
     if isinstance(model, PhysicalParameters):
         return np.asarray(model.physical_parameters(theta), float)
     return np.asarray(theta, float)
+
+
+def physical_jacobian(model, theta):
+    """:meth:`PhysicalJacobian.physical_jacobian` at ``theta``, or ``None`` (the identity)."""
+    if isinstance(model, PhysicalJacobian):
+        return model.physical_jacobian(theta)
+    return None
 
 
 def scaled_process_noise(model, scale: float):

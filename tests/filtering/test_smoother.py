@@ -30,7 +30,7 @@ from sfem_filters.filtering import (
     smooth_backward,
     with_covariance,
 )
-from sfem_filters.filtering.iterated import open_loop
+from sfem_filters.filtering.iterated import open_loop, step_in_sd
 from sfem_filters.filtering import smoother as smoother_module
 from sfem_filters.filtering.smoother import (
     PEAK_FACTOR,
@@ -397,6 +397,47 @@ def test_damped_smoother_converges_where_undamped_gauss_newton_does_not():
     assert res.converged
     assert np.all(np.diff([r["cost"] for r in res.records]) < 0)
     assert res.cost < costs[0] / 5
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 10_000), p=st.integers(1, 6), q=st.integers(1, 12))
+def test_step_in_sd_does_not_depend_on_the_parameters_coordinates(seed, p, q):
+    """Recombining the parameters (theta = T theta', so step = T step', P = T P' T^T and the
+    physical rows J' = J T) leaves the step in sd of the physical quantities unchanged, and so does
+    scaling a row; without rows it is the largest |step| / sd over the parameters."""
+    rng = np.random.default_rng(seed)
+    P = _spd(rng, p)
+    step = rng.standard_normal(p)
+    J = rng.standard_normal((q, p))
+    J[rng.random(q) < 0.2] = 0.0                        # quantities theta does not move are left out
+    T = rng.standard_normal((p, p)) + 3 * np.eye(p)
+    Ti = np.linalg.inv(T)
+    a = step_in_sd(step, P, J)
+    b = step_in_sd(Ti @ step, Ti @ P @ Ti.T, sp.csr_matrix(J @ T))
+    c = step_in_sd(step, P, np.diag(rng.uniform(0.1, 10, q)) @ J)
+    assert b == pytest.approx(a, rel=1e-8) and c == pytest.approx(a, rel=1e-10)
+    keep = np.any(J != 0, axis=1)
+    want = max((abs(j @ step) / np.sqrt(j @ P @ j) for j in J[keep]), default=0.0)
+    assert a == pytest.approx(want, rel=1e-10)
+    assert step_in_sd(step, P) == pytest.approx(np.max(np.abs(step) / np.sqrt(np.diag(P))), rel=1e-12)
+
+
+def test_stop_rule_does_not_depend_on_how_the_regions_are_numbered():
+    """The relative-region map's contrasts depend on the order of the region labels; renumbered
+    regions give the same MAP path, and now the same step/sd rows and stop, to round-off."""
+    seq = annulus_sequence("active_polar", n_frames=10, seed=1, amplitude=(0.2, -0.4))
+    setup = prepare(seq, 8)
+    perm = np.random.default_rng(0).permutation(int(setup.regions.max()) + 1)
+    runs = []
+    for labels in (setup.regions, perm[setup.regions]):
+        setup.regions = labels
+        m, y = build_model(setup, (), "penalty", "region")
+        runs.append(IteratedSmoother().run(m, y))
+    a, b = runs
+    assert a.iterations == b.iterations and a.stop_reason == b.stop_reason
+    np.testing.assert_allclose([r["cost"] for r in a.records], [r["cost"] for r in b.records], rtol=1e-8)
+    for key in ("step_sd", "full_step_sd"):
+        np.testing.assert_allclose([r[key] for r in a.records], [r[key] for r in b.records], rtol=1e-5)
 
 
 def test_checkpoint_resumes_to_the_uninterrupted_result(pinned, tmp_path):
