@@ -13,7 +13,8 @@ gradient passes), a Levenberg-Marquardt step in the prior's metric with Nielsen'
 (the damping also makes an indefinite Hessian positive definite), accepted only if ``J_p`` falls,
 from the prior's material as the smoother starts. It stops by the smoother's step rule: relative
 material change below 1e-3 and both the step and the undamped Newton step below 0.1 Gauss-Newton
-posterior sd. Per iteration it prints the MAP cost, the step and the undamped Newton step in sd
+posterior sd of every element's E and nu (``step_in_sd``; per parameter before 6a40b72, when the
+README's table was printed). Per iteration it prints the MAP cost, the step and the undamped Newton step in sd
 (``inf`` where the exact Hessian is indefinite), the damping, the extreme eigenvalues of the exact
 Hessian relative to Gauss-Newton's, and the seconds. It answers how many iterations exact
 curvature needs, not how fast it could be: by differences each iteration costs 47 gradient passes
@@ -31,8 +32,8 @@ import scipy.linalg as sla
 from sfem_filters.cardiac import measured
 from sfem_filters.cardiac.sequence import example_path, load_sequence
 from sfem_filters.filtering.curvature import gauss_newton_pass, optimal_trajectory, profile_hessian, profile_pass
-from sfem_filters.filtering.iterated import open_loop
-from sfem_filters.filtering.protocol import parameter_prior, physical_parameters
+from sfem_filters.filtering.iterated import open_loop, step_in_sd
+from sfem_filters.filtering.protocol import parameter_prior, physical_jacobian, physical_parameters
 from sfem_filters.filtering.safeguards import Safeguards
 
 
@@ -66,11 +67,11 @@ def main(argv=None):
         t0 = time.perf_counter()
         curv = profile_hessian(model, y, z)
         H, g = curv.hessian, curv.gradient
-        sd = np.sqrt(np.diag(gauss_newton_pass(model, y, z, guard)[2]))
+        P_gn = gauss_newton_pass(model, y, z, guard)[2]
         eig = curv.relative_eigenvalues()
-        full_sd = (float(np.max(np.abs(sla.cho_solve(sla.cho_factor(H), g)) / sd)) if curv.positive_definite()
-                   else np.inf)
         theta = z[0, nr:]
+        J = physical_jacobian(model, theta)
+        full_sd = step_in_sd(-sla.cho_solve(sla.cho_factor(H), g), P_gn, J) if curv.positive_definite() else np.inf
         while True:
             try:
                 step = -sla.cho_solve(sla.cho_factor(H + lam * P3_inv), g)
@@ -92,7 +93,7 @@ def main(argv=None):
             break
         before = physical_parameters(model, theta)
         rel = np.linalg.norm(physical_parameters(model, theta + step) - before) / np.linalg.norm(before)
-        step_sd = float(np.max(np.abs(step) / sd))
+        step_sd = step_in_sd(step, P_gn, J)
         z, cost = optimal_trajectory(model, found), new
         print(f"{it:>4}{cost:>12.3f}{step_sd:>9.3f}{full_sd:>11.3f}{lam:>10.2g}{eig[0]:>9.3f}{eig[-1]:>9.3f}"
               f"{time.perf_counter() - t0:>7.0f}", flush=True)

@@ -34,7 +34,8 @@ Chapelle's reduced-order UKF, simplex sigma points on the parameters), :mod:`~sf
 linearised about a trajectory, and its RTS smoother: smoothed means from the filter's gains alone,
 smoothed covariances from every frame's prior covariance or from checkpoints where those do not
 fit the memory), :mod:`~sfem_filters.filtering.iterated`
-(the iterated smoother: Gauss-Newton on the MAP of one cycle),
+(the iterated smoother: Gauss-Newton on the MAP of one cycle, stopped by the step of the
+physical material in its posterior sd, :func:`step_in_sd`),
 :mod:`~sfem_filters.filtering.curvature` (the profile cost of the material, its exact gradient and
 its exact Hessian by differences: how far Gauss-Newton's curvature is from the truth),
 :mod:`~sfem_filters.filtering.marginal` (the exact marginal posterior of a few parameters),
@@ -50,15 +51,16 @@ from .cyclic import CyclicEKF, CyclicResult, check_observations, cyclic_estimate
 from .ekf import FilterpyEngine, SFEMExtendedKalmanFilter
 from .engines import ENGINES, make_engine
 from .history import History
-from .iterated import IteratedSmoother, MapObjective, SmootherResult, exact_laplace, iterated_smoother, with_covariance
+from .iterated import (IteratedSmoother, MapObjective, SmootherResult, exact_laplace, iterated_smoother, step_in_sd,
+                       with_covariance)
 from .linear import LinearGaussianModel, LinearObservation
 from .linearised import LinearisedModel, linearise, linearise_dense
 from .ljung import LJUNG_MAX_PARAMS, LjungCoupling
 from .marginal import MarginalCheck, laplace_check, log_likelihood, log_posterior
 from .roukf import ROUKFEngine, simplex_points
 from .protocol import (FilterModel, Fingerprinted, Linearisable, LoadResponse, OutputOperators, PerFrameNoise,
-                       PhysicalJacobian, PhysicalParameters, ScalableMeasurementNoise, ScalableProcessNoise, TransitionDerivatives,
-                       check_model, measurement_cov, scaled_measurement_noise, scaled_process_noise)
+                       PhysicalJacobian, PhysicalParameters, ScalableMeasurementNoise, ScalableProcessNoise,
+                       TransitionDerivatives, check_model, measurement_cov, scaled_measurement_noise, scaled_process_noise)
 from .safeguards import FilterDivergence, Safeguards, nearest_psd
 from .smoother import ForwardPass, SmoothedPass, kalman_forward, rts_reference, smooth, smooth_backward
 from .structured import StructuredEngine, joseph_update
@@ -78,4 +80,4 @@ __all__ = ["ROUKFEngine", "simplex_points", "UKFEngine", "make_ukf", "diagnostic
            "Linearisable", "OutputOperators", "ScalableProcessNoise", "scaled_process_noise",
            "ScalableMeasurementNoise", "scaled_measurement_noise", "MarginalCheck", "laplace_check", "log_likelihood", "log_posterior",
            "ProfileHessian", "profile_hessian", "profile_pass", "optimal_trajectory", "gauss_newton_pass", "exact_laplace",
-           "with_covariance"]
+           "with_covariance", "step_in_sd"]

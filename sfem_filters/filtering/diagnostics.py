@@ -319,7 +319,11 @@ def material_drift(model, history) -> dict:
     carried covariance counts the cycle once more in every loop, so sd_k is the filter's own
     (shrinking) confidence: a loop that still moves a parameter by a sizeable fraction of it
     (``max_sd`` of 0.1 or more) has not converged in a statistical sense, whatever the relative
-    change of (E, nu). Parameters are the model's (log E, logit 2 nu for the SFEM model).
+    change of (E, nu). Parameters are the model's (log E, logit 2 nu for the SFEM model), and the
+    sd per parameter: only the loop's diagonal variances are in the history, so this is not the
+    iterated smoother's ``step_sd`` (:func:`sfem_filters.filtering.iterated.step_in_sd`, the move
+    of each element's E and nu in its own sd): the two measure alike for a map with one parameter
+    per element or region, and may differ for contrasts or modes.
 
     Returns
     -------

@@ -30,8 +30,8 @@ exactly a Gauss-Newton step on J. Two things make the steps robust:
 Each iteration relinearises at the optimal trajectory of the last accepted theta and restarts
 from the prior. The run stops when an accepted step moves the material by less than ``tol``
 (relative, physical units) and by less than ``sd_tol`` posterior standard deviations of every
-physical quantity (the step taken and the undamped one alike; :func:`step_in_sd`), when the cost stops falling (an accepted decrease below
-``cost_tol`` with a Newton decrement below it too, or no damping makes it fall), or at
+physical quantity (the step taken and the undamped one alike; :func:`step_in_sd`), when the
+cost stops falling (an accepted decrease below ``cost_tol`` with a Newton decrement below it too, or no damping makes it fall), or at
 ``max_iterations``. No damping lowering the cost while the model still predicts a decrease is
 reported as stuck (``"damping"``), not converged. A secant correction that makes the quadratic
 model indefinite is dropped instead of being covered by a larger damping. The reported posterior is the Laplace
@@ -83,6 +83,7 @@ EXTRAPOLATE_GAIN = 1.25
 #: (:class:`IteratedSmoother` ``max_extrapolation``).
 EXTRAPOLATE_DECREMENT = 1.0
 
+
 def step_in_sd(step, P_theta, jacobian=None) -> float:
     """The largest move of a physical quantity in its posterior standard deviations.
 
@@ -100,17 +101,28 @@ def step_in_sd(step, P_theta, jacobian=None) -> float:
         Posterior covariance of theta.
     jacobian : (q, p) array or sparse matrix, optional
         Rows of the physical quantities' derivatives.
+
+    Returns
+    -------
+    float
+        The largest move in sd (0 when no row moves with theta).
     """
-    step = np.asarray(step, float)
+    step = as_float_array("step", step, shape=(None,))
+    p = len(step)
+    P = as_float_array("P_theta", P_theta, shape=(p, p))
     if jacobian is None:
-        return float(np.max(np.abs(step) / np.sqrt(np.diag(P_theta))))
+        return float(np.max(np.abs(step) / np.sqrt(np.diag(P))))
     J = sp.csr_matrix(jacobian)
-    moved = np.abs(J @ step)
-    var = np.asarray(J.multiply(J @ np.asarray(P_theta, float)).sum(axis=1)).ravel()
-    keep = np.asarray(abs(J).max(axis=1).todense()).ravel() > 0.0
+    if J.shape[1] != p:
+        raise ValueError(f"jacobian: expected {p} columns (one per parameter), got shape {J.shape}")
+    scale = np.asarray(abs(J).max(axis=1).todense(), float).ravel()
+    keep = scale > 0.0
     if not np.any(keep):
         return 0.0
-    return float(np.max(moved[keep] / np.sqrt(np.maximum(var[keep], np.finfo(float).tiny))))
+    J = sp.diags(1.0 / scale[keep]) @ J[keep]           # rows of unit size: their scale cancels anyway
+    moved = np.abs(J @ step)
+    var = np.asarray(J.multiply(J @ P).sum(axis=1)).ravel()
+    return float(np.max(moved / np.sqrt(np.maximum(var, np.finfo(float).tiny))))
 
 
 class _InverseRoot:
@@ -262,10 +274,13 @@ class SmootherResult:
         model still predicted a decrease: stuck, not converged), ``"max_iterations"`` or
         ``"no parameters"``.
     records : list of dict
-        Per accepted iteration: ``cost``, ``damping``, ``rejected`` (damped retries),
-        ``rel_change``, ``step_sd`` (max over physical quantities of |step| / posterior sd, :func:`step_in_sd`),
-        ``full_step_sd`` (the same for the undamped step), ``newton_decrement`` (nats),
-        ``seconds``.
+        Per accepted iteration: ``cost``, ``decrease`` (nats), ``damping``, ``rejected``
+        (damped retries), ``step_length`` (the multiple of the damped step taken: 0.1-0.5 after
+        the line search, 1, or 2, 4, 8 when extended), ``gain_ratio`` (actual over predicted
+        decrease of the damped step before any extension, the ratio Nielsen's rule uses),
+        ``rel_change``, ``step_sd`` (the largest move of a physical quantity in its posterior sd,
+        :func:`step_in_sd`), ``max_abs_step``, ``full_step_sd`` (the same for the undamped step),
+        ``newton_decrement`` (nats), ``seconds``.
     history : History
         One row per frame (loop 0): the reported states (``states``, the trajectory the final pass
         was linearised at), the final pass's marginal variances, and its forward innovations, S
@@ -430,14 +445,15 @@ class IteratedSmoother:
     tol : float
         Relative change of the physical parameters below which a step may end the run (> 0).
     sd_tol : float
-        ... and its largest component in posterior standard deviations (> 0), for the step taken
-        and for the undamped step of the quadratic model from the same point (a step shortened by
-        a large damping says nothing about the distance to the mode).
+        ... and the largest move of a physical quantity in its posterior standard deviations
+        (> 0; :func:`step_in_sd`, per parameter for a model without ``physical_jacobian``), for the
+        step taken and for the undamped step of the quadratic model from the same point (a step
+        shortened by a large damping says nothing about the distance to the mode).
     cost_tol : float
         An accepted step that lowers the MAP cost by less than this (nats, > 0), when the undamped
         quadratic model also predicts less (its Newton decrement ``g^T H^-1 g / 2``), ends the
         run: the cost has stopped falling. The default is ``sd_tol^2 / 2``, what a move of
-        ``sd_tol`` posterior sd along one parameter changes the cost by near the mode.
+        ``sd_tol`` posterior sd along one direction changes the cost by near the mode.
     damping : float
         Initial Levenberg-Marquardt lambda, in units of the prior precision of theta (>= 0;
         0 starts with an undamped Gauss-Newton step).
@@ -487,8 +503,9 @@ class IteratedSmoother:
         predicted and the model's Newton decrement is below :data:`EXTRAPOLATE_DECREMENT` nats,
         the Gauss-Newton curvature along the step is too large (the model misses a falling
         stretch of the cost, as on a plateau), and the step is doubled while the cost keeps
-        falling, up to this multiple: one profile pass per try. Near a start far from the mode
-        (a large decrement) steps are not extended.
+        falling (2, 4, 8, ...: powers of two up to this multiple), one profile pass per try. Near
+        a start far from the mode (a large decrement) steps are not extended. The records keep
+        the extended step's decrease and length, and the unextended step's gain ratio.
 
     The damping follows Nielsen's rule: after an accepted full step lambda is multiplied by
     ``max(1/3, 1 - (2 rho - 1)^3)``, rho the ratio of the cost's actual to its predicted decrease;
@@ -545,8 +562,12 @@ class IteratedSmoother:
 
     def trajectory_settings(self) -> dict:
         guard = self.safeguards if self.safeguards is not None else Safeguards()
-        return {"method": "iterated_smoother", "damping": float(self.damping), "max_damping": float(self.max_damping),
-                "max_extrapolation": float(self.max_extrapolation), **guard.settings()}
+        out = {"method": "iterated_smoother", "damping": float(self.damping), "max_damping": float(self.max_damping),
+               **guard.settings()}
+        if float(self.max_extrapolation) != 1.0:
+            # without extrapolation the iterates are those of earlier versions: their checkpoints resume
+            out["max_extrapolation"] = float(self.max_extrapolation)
+        return out
 
     def run(self, model, observations, *, progress: bool = False, checkpoint=None,
             description: str = "iterated smoother", start=None) -> SmootherResult:
