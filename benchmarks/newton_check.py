@@ -14,9 +14,9 @@ gradient passes), a Levenberg-Marquardt step in the prior's metric with Nielsen'
 from the prior's material as the smoother starts. It stops by the smoother's step rule: relative
 material change below 1e-3 and both the step and the undamped Newton step below 0.1 Gauss-Newton
 posterior sd of every element's E and nu (``step_in_sd``; per parameter before 6a40b72, when the
-README's table was printed). Per iteration it prints the MAP cost, the step and the undamped Newton step in sd
-(``inf`` where the exact Hessian is indefinite), the damping, the extreme eigenvalues of the exact
-Hessian relative to Gauss-Newton's, and the seconds. It answers how many iterations exact
+README's table was printed). Per iteration it prints the MAP cost, the step and the undamped
+Newton step in sd (``inf`` where the exact Hessian is indefinite), the damping, the extreme
+eigenvalues of the exact Hessian relative to Gauss-Newton's, and the seconds. It answers how many iterations exact
 curvature needs, not how fast it could be: by differences each iteration costs 47 gradient passes
 (p = 23).
 """
@@ -71,7 +71,8 @@ def main(argv=None):
         eig = curv.relative_eigenvalues()
         theta = z[0, nr:]
         J = physical_jacobian(model, theta)
-        full_sd = step_in_sd(-sla.cho_solve(sla.cho_factor(H), g), P_gn, J) if curv.positive_definite() else np.inf
+        full_sd = (step_in_sd(-sla.cho_solve(sla.cho_factor(H), g), P_gn, J) if curv.positive_definite()
+                   else np.inf)
         while True:
             try:
                 step = -sla.cho_solve(sla.cho_factor(H + lam * P3_inv), g)

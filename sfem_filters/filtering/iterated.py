@@ -31,9 +31,9 @@ Each iteration relinearises at the optimal trajectory of the last accepted theta
 from the prior. The run stops when an accepted step moves the material by less than ``tol``
 (relative, physical units) and by less than ``sd_tol`` posterior standard deviations of every
 physical quantity (the step taken and the undamped one alike; :func:`step_in_sd`), when the
-cost stops falling (an accepted decrease below ``cost_tol`` with a Newton decrement below it too, or no damping makes it fall), or at
-``max_iterations``. No damping lowering the cost while the model still predicts a decrease is
-reported as stuck (``"damping"``), not converged. A secant correction that makes the quadratic
+cost stops falling (an accepted decrease below ``cost_tol`` with a Newton decrement below it too,
+or no damping makes it fall), or at ``max_iterations``. No damping lowering the cost while the
+model still predicts a decrease is reported as stuck (``"damping"``), not converged. A secant correction that makes the quadratic
 model indefinite is dropped instead of being covered by a larger damping. The reported posterior is the Laplace
 approximation at the mode: the mode itself, and the covariance of an undamped pass linearised
 there (the inverse Gauss-Newton Hessian), with smoothed marginal variances of the kinematics
@@ -511,8 +511,8 @@ class IteratedSmoother:
     ``max(1/3, 1 - (2 rho - 1)^3)``, rho the ratio of the cost's actual to its predicted decrease;
     after an accepted half step it doubles; after a rejection it grows by a factor that doubles
     with every rejection in a row. The settings that shape the iterates (damping, max_damping,
-    max_extrapolation, the safeguards) enter the checkpoint fingerprint; the stopping rules (max_iterations, tol,
-    sd_tol, cost_tol) and ``covariance`` do not, so a finished run can be resumed with a
+    max_extrapolation unless it is 1, the safeguards) enter the checkpoint fingerprint; the
+    stopping rules (max_iterations, tol, sd_tol, cost_tol) and ``covariance`` do not, so a finished run can be resumed with a
     stricter rule.
     """
 
