@@ -710,7 +710,7 @@ def evaluate(setup: Setup, model: SFEMModel, result, seconds: float = 0.0, obser
         metrics.update({"E_relative": (mat.E / NOMINAL["E"]).tolist(), "nu": mat.nu.tolist(),
                         "E_sd_log": sd_logE.tolist(), "nu_sd": sd_nu.tolist(),
                         "E_sd_log_median": float(np.median(sd_logE)), "nu_sd_median": float(np.median(sd_nu))})
-    # transmural shear 2 E_rc at the data's systolic peak (largest wall area): model vs measured
+    # transmural shear 2 E_rc at the data's systolic peak (largest wall area, _peak_frame): model vs measured
     # (measured data only: nodes whose strain needs a missing datum are left out)
     peak = _peak_frame(wall_area_ratios(setup, meas))
     shear_data = strain_maps(setup, meas)[peak, :, 2]
@@ -954,9 +954,26 @@ def wall_area_ratios(setup: Setup, U_px) -> np.ndarray:
 
 
 def _peak_frame(area_ratio) -> int:
-    """The systolic peak: the frame of largest wall area with data (0 when no frame has any)."""
+    """The systolic peak: the frame of largest wall area with data (0 when no frame has any).
+
+    Each frame with data is ranked by its three-frame window (itself and its neighbours, the end
+    frames' windows padded with themselves, frames without data left out): first by the window's
+    second-largest ratio (a running median), then by its third, then by the frame's own ratio.
+    So one interior frame's outlier between ordinary frames cannot be the peak (its window's
+    second-largest ratio is an ordinary one): on a curve symmetric about its maximum the peak is
+    that maximum's frame, whatever one frame at least three frames away from it carries (one
+    nearer can move it by a frame); an outlier in the first or last frame is not recognised.
+    """
     a = np.asarray(area_ratio, float)
-    return int(np.nanargmax(a)) if np.any(np.isfinite(a)) else 0
+    if not np.any(np.isfinite(a)):
+        return 0
+    F = len(a)
+    keys = []
+    for t in np.flatnonzero(np.isfinite(a)):
+        w = a[[max(t - 1, 0), t, min(t + 1, F - 1)]]
+        w = np.sort(np.where(np.isfinite(w), w, -np.inf))[::-1]
+        keys.append((w[1], w[2], a[t], -t))
+    return int(-max(keys)[3])
 
 
 def equivalent_eigenstrain(effect_states, nu: float = None) -> np.ndarray:

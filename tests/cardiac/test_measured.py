@@ -947,3 +947,23 @@ def test_running_out_of_memory_midway_is_an_error_that_says_what_to_do(monkeypat
     assert main(["dense", "example", "--no-progress"]) == 2
     assert capsys.readouterr().err.strip() == ("sfem-filters dense: error: model: the smoother keeps ...; reduce the "
                                                "state (fewer nodes)")
+
+
+@settings(max_examples=60, deadline=None)
+@given(frames=st.integers(6, 40), where=st.floats(0.0, 1.0), width=st.floats(1.0, 10.0),
+       height=st.floats(0.01, 0.3), spike=st.floats(0.01, 10.0), at=st.floats(0.0, 1.0), gap=st.booleans())
+def test_peak_frame_is_the_curves_maximum_and_not_a_one_frame_outlier(frames, where, width, height, spike, at, gap):
+    """The systolic peak is the frame of a single-maximum wall-area curve's maximum, whatever one
+    interior frame at least three frames away carries (an outlier of any size, or no data)."""
+    t = np.arange(frames)
+    c = 1 + int(round(where * (frames - 3)))                  # the maximum, an interior frame (symmetric)
+    a = 1.0 + height * np.exp(-((t - c) / width) ** 2)
+    assert measured._peak_frame(a) == c == int(np.argmax(a))
+    far = [s for s in range(1, frames - 1) if abs(s - c) >= 3]
+    if not far:
+        return
+    s = far[int(at * (len(far) - 1))]
+    b = a.copy()
+    b[s] = np.nan if gap else a.max() + spike                 # the raw largest ratio, or no data
+    assert measured._peak_frame(b) == c
+    assert measured._peak_frame(np.full(frames, np.nan)) == 0
