@@ -892,8 +892,8 @@ def measured_wall_kinematics(setup: Setup) -> dict:
     """What the data themselves say about the wall, per frame and at the systolic peak.
 
     Wall area ratio (deformed over reference area of the tissue mesh), mean wall thickness
-    (mean over angle of epicardial minus endocardial radius about the cavity centre, both
-    contours interpolated in angle), mean radial and circumferential strain w.r.t. frame 0, and
+    (mean over angle, every 2 degrees from ``setup.angle_origin_deg``, of epicardial minus
+    endocardial radius about the cavity centre, both contours interpolated in angle), mean radial and circumferential strain w.r.t. frame 0, and
     the mean and RMS over points of the engineering transmural shear 2 E_rc;
     the displacement RMS of the first frame (is it at rest?) and between the last and first
     frames (does the cycle close?). Data units (pixels).
@@ -903,7 +903,9 @@ def measured_wall_kinematics(setup: Setup) -> dict:
     U = np.asarray(seq.displacement, float)
     ok = np.all(np.isfinite(U), axis=-1)                                 # (F, P): a datum
     area_ratio = wall_area_ratios(setup, U)
-    grid = np.linspace(0, 2 * np.pi, 90, endpoint=False)
+    # every 2 degrees from the angle origin: the same directions of the heart however it lies in
+    # the image (its origin turned with it), and mapped onto themselves by quarter turns
+    grid = np.deg2rad(setup.angle_origin_deg) + np.linspace(0, 2 * np.pi, 180, endpoint=False)
 
     def thickness(t):
         endo, epi = g.endo[ok[t][g.endo]], g.epi[ok[t][g.epi]]

@@ -200,8 +200,8 @@ def test_an_angle_origin_turned_with_the_heart_gives_the_same_landmarks_sectors_
     """A quarter turn of the image maps the angle a about the cavity centre to a - 90 degrees. With
     the origin turned alike (as an anatomical origin, the RV insertion, would be), landmark k is the
     same point, every element is in the same sector (not merely a relabelling), and the six
-    segments' active-stress loads are the same loads seen in the turned axes, column by column.
-    With the origin left where it was, the sectors are others (a quarter turn) or relabelled (a
+    segments' active-stress loads are the same loads seen in the turned axes, column by column,
+    and the measured wall thickness and area are the same frame by frame. With the origin left where it was, the sectors are others (a quarter turn) or relabelled (a
     half turn)."""
     seq = load_sequence(example_path())
     moved = moved_on_lattice(seq, quarter_turns=quarter_turns)
@@ -218,6 +218,10 @@ def test_an_angle_origin_turned_with_the_heart_gives_the_same_landmarks_sectors_
     np.testing.assert_allclose(Gb, Rb @ Ga, rtol=0, atol=1e-9 * np.abs(Ga).max())
     fixed = measured.prepare(moved, 8, mesh="radial", angle_origin_deg=origin)
     assert not np.array_equal(a.regions[match], fixed.regions)
+    ka, kb = measured.measured_wall_kinematics(a), measured.measured_wall_kinematics(b)
+    np.testing.assert_allclose(kb["wall_thickness_px"], ka["wall_thickness_px"], rtol=1e-12)
+    np.testing.assert_allclose(kb["wall_area_ratio"], ka["wall_area_ratio"], rtol=1e-12)
+    assert kb["peak_frame"] == ka["peak_frame"]
     with pytest.raises(ValueError, match=r"angle_origin_deg: expected finite values"):
         measured.prepare(seq, 8, angle_origin_deg=np.nan)
     with pytest.raises(ValueError, match=r"angle_origin_deg: expected shape \(\)"):
