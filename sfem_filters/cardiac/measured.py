@@ -710,7 +710,7 @@ def evaluate(setup: Setup, model: SFEMModel, result, seconds: float = 0.0, obser
         metrics.update({"E_relative": (mat.E / NOMINAL["E"]).tolist(), "nu": mat.nu.tolist(),
                         "E_sd_log": sd_logE.tolist(), "nu_sd": sd_nu.tolist(),
                         "E_sd_log_median": float(np.median(sd_logE)), "nu_sd_median": float(np.median(sd_nu))})
-    # transmural shear 2 E_rc at the data's systolic peak (largest wall area, _peak_frame): model vs measured
+    # transmural shear 2 E_rc at the data's systolic peak (_peak_frame): model vs measured
     # (measured data only: nodes whose strain needs a missing datum are left out)
     peak = _peak_frame(wall_area_ratios(setup, meas))
     shear_data = strain_maps(setup, meas)[peak, :, 2]
@@ -892,8 +892,8 @@ def measured_wall_kinematics(setup: Setup) -> dict:
     """What the data themselves say about the wall, per frame and at the systolic peak.
 
     Wall area ratio (deformed over reference area of the tissue mesh), mean wall thickness
-    (mean over angle, every 2 degrees from ``setup.angle_origin_deg``, of epicardial minus
-    endocardial radius about the cavity centre, both contours interpolated in angle), mean radial and circumferential strain w.r.t. frame 0, and
+    (mean over angle, every 2 degrees, of epicardial minus endocardial radius about the cavity
+    centre, both contours interpolated in angle), mean radial and circumferential strain w.r.t. frame 0, and
     the mean and RMS over points of the engineering transmural shear 2 E_rc;
     the displacement RMS of the first frame (is it at rest?) and between the last and first
     frames (does the cycle close?). Data units (pixels).
@@ -903,9 +903,8 @@ def measured_wall_kinematics(setup: Setup) -> dict:
     U = np.asarray(seq.displacement, float)
     ok = np.all(np.isfinite(U), axis=-1)                                 # (F, P): a datum
     area_ratio = wall_area_ratios(setup, U)
-    # every 2 degrees from the angle origin: the same directions of the heart however it lies in
-    # the image (its origin turned with it), and mapped onto themselves by quarter turns
-    grid = np.deg2rad(setup.angle_origin_deg) + np.linspace(0, 2 * np.pi, 180, endpoint=False)
+    # every 2 degrees: quarter turns of the image map the directions onto themselves
+    grid = np.linspace(0, 2 * np.pi, 180, endpoint=False)
 
     def thickness(t):
         endo, epi = g.endo[ok[t][g.endo]], g.epi[ok[t][g.epi]]
@@ -956,25 +955,29 @@ def wall_area_ratios(setup: Setup, U_px) -> np.ndarray:
 
 
 def _peak_frame(area_ratio) -> int:
-    """The systolic peak: the frame of largest wall area with data (0 when no frame has any).
+    """The systolic peak: the frame of largest wall area, robust to a one-frame outlier (0 when no
+    frame has a finite ratio).
 
-    Each frame with data is ranked by its three-frame window (itself and its neighbours, the end
-    frames' windows padded with themselves, frames without data left out): first by the window's
-    second-largest ratio (a running median), then by its third, then by the frame's own ratio.
-    So one interior frame's outlier between ordinary frames cannot be the peak (its window's
-    second-largest ratio is an ordinary one): on a curve symmetric about its maximum the peak is
-    that maximum's frame, whatever one frame at least three frames away from it carries (one
-    nearer can move it by a frame); an outlier in the first or last frame is not recognised.
+    Each frame with a finite ratio is ranked by its three-frame window (itself and its two
+    neighbours; a neighbour beyond the ends or without a finite ratio counts as the frame itself):
+    first by the window's middle value (a running median), then by its smallest, then by the
+    frame's own ratio; the earliest of equals. So an outlier in one frame between two frames with
+    data is never the peak. On a curve that only falls away from its maximum, with a symmetric top
+    (the maximum's two neighbours equal), the peak is the maximum's frame whatever one frame at
+    least three frames away carries (an outlier, or no data); on a lopsided top it can be the
+    maximum's higher neighbour, whose window is the higher. An outlier in the first or last frame,
+    or next to a frame without data, is not recognised.
     """
     a = np.asarray(area_ratio, float)
-    if not np.any(np.isfinite(a)):
+    ok = np.isfinite(a)
+    if not ok.any():
         return 0
     F = len(a)
     keys = []
-    for t in np.flatnonzero(np.isfinite(a)):
-        w = a[[max(t - 1, 0), t, min(t + 1, F - 1)]]
-        w = np.sort(np.where(np.isfinite(w), w, -np.inf))[::-1]
-        keys.append((w[1], w[2], a[t], -t))
+    for t in np.flatnonzero(ok):
+        n = [max(t - 1, 0), t, min(t + 1, F - 1)]
+        w = np.sort(np.where(ok[n], a[n], a[t]))
+        keys.append((w[1], w[0], a[t], -t))
     return int(-max(keys)[3])
 
 

@@ -201,8 +201,9 @@ def test_an_angle_origin_turned_with_the_heart_gives_the_same_landmarks_sectors_
     the origin turned alike (as an anatomical origin, the RV insertion, would be), landmark k is the
     same point, every element is in the same sector (not merely a relabelling), and the six
     segments' active-stress loads are the same loads seen in the turned axes, column by column,
-    and the measured wall thickness and area are the same frame by frame. With the origin left where it was, the sectors are others (a quarter turn) or relabelled (a
-    half turn)."""
+    and the measured wall thickness and area are the same frame by frame. With the origin left
+    where it was, the sectors are others (a quarter turn) or relabelled (a half turn), and the
+    measured wall the same (it does not depend on where the angles start)."""
     seq = load_sequence(example_path())
     moved = moved_on_lattice(seq, quarter_turns=quarter_turns)
     a = measured.prepare(seq, 8, mesh="radial", angle_origin_deg=origin)
@@ -222,6 +223,8 @@ def test_an_angle_origin_turned_with_the_heart_gives_the_same_landmarks_sectors_
     np.testing.assert_allclose(kb["wall_thickness_px"], ka["wall_thickness_px"], rtol=1e-12)
     np.testing.assert_allclose(kb["wall_area_ratio"], ka["wall_area_ratio"], rtol=1e-12)
     assert kb["peak_frame"] == ka["peak_frame"]
+    np.testing.assert_allclose(measured.measured_wall_kinematics(fixed)["wall_thickness_px"], kb["wall_thickness_px"],
+                               rtol=1e-12)
     with pytest.raises(ValueError, match=r"angle_origin_deg: expected finite values"):
         measured.prepare(seq, 8, angle_origin_deg=np.nan)
     with pytest.raises(ValueError, match=r"angle_origin_deg: expected shape \(\)"):
@@ -957,17 +960,27 @@ def test_running_out_of_memory_midway_is_an_error_that_says_what_to_do(monkeypat
 @given(frames=st.integers(6, 40), where=st.floats(0.0, 1.0), width=st.floats(1.0, 10.0),
        height=st.floats(0.01, 0.3), spike=st.floats(0.01, 10.0), at=st.floats(0.0, 1.0), gap=st.booleans())
 def test_peak_frame_is_the_curves_maximum_and_not_a_one_frame_outlier(frames, where, width, height, spike, at, gap):
-    """The systolic peak is the frame of a single-maximum wall-area curve's maximum, whatever one
-    interior frame at least three frames away carries (an outlier of any size, or no data)."""
+    """The systolic peak is the frame of the maximum of a wall-area curve symmetric about it and
+    falling away from it, whatever one interior frame at least three frames away carries (an
+    outlier of any size, or no data); no data anywhere gives frame 0."""
+    assert measured._peak_frame(np.full(frames, np.nan)) == 0
     t = np.arange(frames)
-    c = 1 + int(round(where * (frames - 3)))                  # the maximum, an interior frame (symmetric)
+    c = 1 + int(round(where * (frames - 3)))                  # the maximum, an interior frame
     a = 1.0 + height * np.exp(-((t - c) / width) ** 2)
     assert measured._peak_frame(a) == c == int(np.argmax(a))
     far = [s for s in range(1, frames - 1) if abs(s - c) >= 3]
-    if not far:
-        return
-    s = far[int(at * (len(far) - 1))]
-    b = a.copy()
-    b[s] = np.nan if gap else a.max() + spike                 # the raw largest ratio, or no data
-    assert measured._peak_frame(b) == c
-    assert measured._peak_frame(np.full(frames, np.nan)) == 0
+    if far:
+        b = a.copy()
+        b[far[int(at * (len(far) - 1))]] = np.nan if gap else a.max() + spike   # the raw largest, or no data
+        assert measured._peak_frame(b) == c
+
+
+def test_peak_frame_cases_that_pin_the_rule():
+    """The documented edges of the rule: a missing maximum leaves one of its equal neighbours; a
+    lopsided top gives the higher neighbour; an outlier beside ordinary frames is skipped, one in
+    the first frame is not."""
+    assert measured._peak_frame([1.0, 2.0, np.nan, 2.0, 1.0]) == 1
+    assert measured._peak_frame([1.0, 2.0, 10.0, 9.0, 8.0, 1.0]) == 3
+    assert measured._peak_frame([1.0, 1.1, 1.2, 1.1, 1.0, 5.0, 1.0]) == 2
+    assert measured._peak_frame([5.0, 1.0, 1.1, 1.2, 1.1, 1.0]) == 0
+    assert measured._peak_frame([1.0]) == 0 and measured._peak_frame([np.nan, 1.0]) == 1
