@@ -1,7 +1,7 @@
 """Closing the loop in rounds where the answer is known: the issue-14 synthetic checks, with the spline beside.
 
     OPENBLAS_NUM_THREADS=1 python benchmarks/rounds_synthetic.py [--cases scale two akinetic clean harmonic]
-        [--selection best|first] [--max-tries 3] [--no-prune]
+        [--selection best|first] [--max-tries 3] [--no-prune] [--criterion evidence|cv]
 
 Synthetic annulus sequences drawn from the library's own generative model
 (:func:`sfem_filters.cardiac.annulus_sequence`), run through
@@ -18,9 +18,11 @@ Synthetic annulus sequences drawn from the library's own generative model
   default ``"best"`` fitting the 3 best-scored); not in the default list of cases.
 
 ``--selection`` and ``--max-tries`` are passed to every case but ``harmonic``, which runs both
-selections itself; ``--no-prune`` turns the backward steps off in every case. Per case: the effects the rounds added, why they stopped, NIS/dof and held-out RMSE of the
-final model, the thin-plate spline's held-out RMSE, and the case's own check. The same cases
-are asserted in ``tests/cardiac/test_rounds.py`` (slow marks).
+selections itself; ``--no-prune`` turns the backward steps off in every case; ``--criterion``
+(``evidence``, the default, or ``cv``) is the rounds' criterion in every case. Per case: the
+effects the rounds added, why they stopped, NIS/dof and held-out RMSE of the final model, the
+thin-plate spline's held-out RMSE, and the case's own check. The same cases are asserted in
+``tests/cardiac/test_rounds.py`` (slow marks), with the default criterion.
 """
 from __future__ import annotations
 
@@ -31,7 +33,7 @@ import warnings
 import numpy as np
 
 from sfem_filters.cardiac import annulus_sequence, closing_the_loop, measured, prepare
-from sfem_filters.cardiac.closing import DEFAULT_CANDIDATES, SELECTIONS
+from sfem_filters.cardiac.closing import CRITERIA, DEFAULT_CANDIDATES, SELECTIONS
 from sfem_filters.fem import Material
 
 CASES = ("scale", "two", "akinetic", "clean", "harmonic")
@@ -65,10 +67,15 @@ def main(argv=None):
                          "(closing_the_loop's measurement_noise)")
     ap.add_argument("--no-prune", action="store_true",
                     help="no backward steps (closing_the_loop's prune=False, the rule before this option)")
+    ap.add_argument("--criterion", choices=CRITERIA, default="evidence",
+                    help="what a step must improve (closing_the_loop's criterion)")
     args = ap.parse_args(argv)
+    if args.measurement_noise == "estimate" and args.criterion != "evidence":
+        ap.error("--measurement-noise estimate needs --criterion evidence (the cross-validation's folds would "
+                 "use the noise floor)")
     warnings.simplefilter("ignore", RuntimeWarning)
     pick = {"selection": args.selection, "max_tries": args.max_tries, "prune": not args.no_prune,
-            "measurement_noise": args.measurement_noise}
+            "measurement_noise": args.measurement_noise, "criterion": args.criterion}
     print(f"{'case':<30}{'effects added':<32} {'stopped':<25}{'NIS/dof':>8}{'held-out':>9}{'spline':>8}  check",
           flush=True)
     t0 = time.perf_counter()
@@ -122,6 +129,7 @@ def main(argv=None):
         for selection, tries in (("first", 2), ("best", 3)):
             out = closing_the_loop(seq, effects="auto", max_iterations=6, selection=selection, max_tries=tries,
                                    prune=pick["prune"], measurement_noise=pick["measurement_noise"],
+                                   criterion=args.criterion,
                                    candidates=list(DEFAULT_CANDIDATES) + ["active_harmonic"])
             gap = out.extended.metrics["versus_spline"]["model"]
             fitted = "; ".join(f"round {r.number}: " + ", ".join(f"{t['effect']} {t['evidence_gain']:+.1f}"
