@@ -566,9 +566,8 @@ def _corrections(cur: Round, material: str | None = None) -> list:
     follow a trend (integrated random walks) instead of holding their last value.
     ``springs:x10``: for spring drives, the springs ten times stiffer (soft springs let the tissue
     lag its border and leave the interior to the elastic response of a few updates; on isolated
-    landmarks stiff springs pull tents, which the evidence, blind to the inside of the wall, need
-    not reject: on a split of the measured slice it rose by 82 nats while the held-out error
-    nearly doubled, README "A second split"), always a candidate.
+    landmarks stiff springs pull tents, which the evidence need not reject: README, "A second
+    split", +82 nats while the held-out error nearly doubled). Always a candidate.
     ``noise:x2``: when the innovations are too large for their covariance (NIS z above +3) and no
     effect explains them, every process noise (kinematics, drive, effects) doubled. Not the other
     way: a NIS below 1 in the smoother's final pass comes from the parameters' prior as well as

@@ -963,10 +963,10 @@ def _peak_frame(area_ratio) -> int:
     first by the window's middle value (a running median), then by its smallest, then by the
     frame's own ratio; the earliest of equals. So an outlier in one frame between two frames with
     data is never the peak. On a curve that only falls away from its maximum, with a symmetric top
-    (the maximum's two neighbours equal), the peak is the maximum's frame whatever one frame at
-    least three frames away carries (an outlier, or no data); on a lopsided top it can be the
-    maximum's higher neighbour, whose window is the higher. An outlier in the first or last frame,
-    or next to a frame without data, is not recognised.
+    (the maximum's two neighbours equal), the peak is the maximum's frame whatever one interior
+    frame at least three frames away carries (an outlier, or no data); on a lopsided top it can be
+    the maximum's higher neighbour, whose window is the higher. An outlier in the first or last
+    frame, or next to a frame without data, is not recognised.
     """
     a = np.asarray(area_ratio, float)
     ok = np.isfinite(a)
