@@ -60,7 +60,8 @@ from .marginal import MarginalCheck, laplace_check, log_likelihood, log_posterio
 from .roukf import ROUKFEngine, simplex_points
 from .protocol import (FilterModel, Fingerprinted, Linearisable, LoadResponse, OutputOperators, PerFrameNoise,
                        PhysicalJacobian, PhysicalParameters, ScalableMeasurementNoise, ScalableProcessNoise,
-                       TransitionDerivatives, check_model, measurement_cov, scaled_measurement_noise, scaled_process_noise)
+                       TransitionDerivatives, check_model, measurement_cov, scaled_measurement_noise,
+                       scaled_process_noise)
 from .safeguards import FilterDivergence, Safeguards, nearest_psd
 from .smoother import ForwardPass, SmoothedPass, kalman_forward, rts_reference, smooth, smooth_backward
 from .structured import StructuredEngine, joseph_update

@@ -33,11 +33,12 @@ from the prior. The run stops when an accepted step moves the material by less t
 physical quantity (the step taken and the undamped one alike; :func:`step_in_sd`), when the
 cost stops falling (an accepted decrease below ``cost_tol`` with a Newton decrement below it too,
 or no damping makes it fall), or at ``max_iterations``. No damping lowering the cost while the
-model still predicts a decrease is reported as stuck (``"damping"``), not converged. A secant correction that makes the quadratic
-model indefinite is dropped instead of being covered by a larger damping. The reported posterior is the Laplace
-approximation at the mode: the mode itself, and the covariance of an undamped pass linearised
-there (the inverse Gauss-Newton Hessian), with smoothed marginal variances of the kinematics
-and of the model's output operators (strains).
+model still predicts a decrease is reported as stuck (``"damping"``), not converged. A secant
+correction that makes the quadratic model indefinite is dropped instead of being covered by a
+larger damping. The reported posterior is the Laplace approximation at the mode: the mode
+itself, and the covariance of an undamped pass linearised there (the inverse Gauss-Newton
+Hessian), with smoothed marginal variances of the kinematics and of the model's output
+operators (strains).
 
 The process noise Q is a modelling choice the data can judge. With ``process_noise="estimate"``
 its level (one factor on every process noise) is chosen by maximum evidence, log p(y | factor)
@@ -512,8 +513,8 @@ class IteratedSmoother:
     after an accepted half step it doubles; after a rejection it grows by a factor that doubles
     with every rejection in a row. The settings that shape the iterates (damping, max_damping,
     max_extrapolation unless it is 1, the safeguards) enter the checkpoint fingerprint; the
-    stopping rules (max_iterations, tol, sd_tol, cost_tol) and ``covariance`` do not, so a finished run can be resumed with a
-    stricter rule.
+    stopping rules (max_iterations, tol, sd_tol, cost_tol) and ``covariance`` do not, so a
+    finished run can be resumed with a stricter rule.
     """
 
     max_iterations: int = 20
