@@ -22,7 +22,17 @@ import tempfile
 import time
 
 from sfem_filters.batch import compare_jobs, run_batch
-from sfem_filters.cli import _seeds
+
+
+def seeds(text: str) -> list:
+    """``0``, ``0,1,2`` or ``0-4`` (as ``sfem-filters compare --seed`` reads them)."""
+    out = []
+    for part in text.split(","):
+        lo, _, hi = part.partition("-")
+        out += list(range(int(lo), int(hi or lo) + 1))
+    if not out or min(out) < 0:
+        raise argparse.ArgumentTypeError(f"expected seeds such as 0, 0,1,2 or 0-4, got {text!r}")
+    return out
 
 
 def _job_seconds(folder: str, jobs) -> float:
@@ -36,7 +46,7 @@ def _job_seconds(folder: str, jobs) -> float:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--seeds", type=_seeds, default=list(range(20)))
+    p.add_argument("--seeds", type=seeds, default=list(range(20)))
     p.add_argument("--workers", type=int, default=2)
     p.add_argument("--refine", type=int, default=1)
     p.add_argument("--keep", help="keep the two result folders under this directory")

@@ -1,82 +1,57 @@
-"""Wall time of the measured-data rounds: variances only for the fits kept, fits side by side.
+"""Wall time of the measured-data rounds with their fits side by side, against one after the other.
 
-    python benchmarks/rounds_parallel.py [--workers 2] [--max-iterations 6] [--max-rounds 2] [--landmarks 8]
+    python benchmarks/rounds_parallel.py [--subject slice|annulus] [--workers 2] [--max-iterations 6]
+        [--max-rounds 2] [--landmarks 8] [--frames 24]
 
-Figures as ratios against a baseline measured in the same run:
-
-* **BLAS threads.** One smoother fit of the shipped slice (subject_a, the `dense` command's
-  region map, `active_polar`, ``--max-iterations`` Gauss-Newton steps) on one BLAS thread and
-  on as many as the machine has. ``closing_the_loop`` holds every fit to one thread, so that a
-  fit's figures do not depend on how many run at once; this line says what that costs.
-* **Rounds.** ``closing_the_loop`` on the shipped slice (the `dense` command's settings, with
-  ``--max-iterations`` and ``--max-rounds`` as given) three ways: every fit with the variances of
-  its kinematics and strains, one after the other (the baseline: how the rounds ran before);
-  the variances made only for the fits kept, one after the other; the same with ``--workers``
-  fits side by side. The wall time of each, its ratio to the baseline, and whether the three
-  reports agree to the last bit (every figure but the wall times).
+:func:`sfem_filters.cardiac.closing_the_loop` on the shipped slice (``--subject slice``, the `dense`
+command's settings with ``--max-iterations`` and ``--max-rounds`` as given; needs the data set, see
+:mod:`sfem_filters.datasets`) or on a synthetic annulus (``--subject annulus``, ``--frames``
+frames), twice in the same run: one fit at a time (``workers=1``, the baseline) and ``--workers``
+fits side by side, each in its own process on one BLAS thread. Printed: both wall times, their
+ratio, the fits made, the rounds' path, and whether the two reports agree to the last bit (every
+figure but the wall times; exit status 1 if not). What one BLAS thread costs a fit is
+``benchmarks/blas_threads.py``'s to say. Only public names of :mod:`sfem_filters` are used
+(``tests/test_benchmarks.py`` runs it with ``--subject annulus --frames 6 --max-iterations 1
+--max-rounds 1``).
 """
 from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 
-from threadpoolctl import threadpool_info, threadpool_limits
-
 from sfem_filters.batch import split_timing
-from sfem_filters.cardiac import closing, measured
-from sfem_filters.cardiac.sequence import example_path, load_sequence
+from sfem_filters.cardiac import annulus_sequence, closing_the_loop, example_path, load_sequence
 
 
-def main() -> None:
+def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--subject", choices=("slice", "annulus"), default="slice")
+    ap.add_argument("--frames", type=int, default=24, help="frames of the synthetic annulus (default 24)")
     ap.add_argument("--workers", type=int, default=2, help="fits side by side (default 2)")
     ap.add_argument("--max-iterations", type=int, default=6, help="smoother iterations per fit (default 6)")
     ap.add_argument("--max-rounds", type=int, default=2, help="forward rounds (default 2)")
     ap.add_argument("--landmarks", type=int, default=8, help="landmarks per contour (default 8)")
-    args = ap.parse_args()
-    seq = load_sequence(example_path())
-
-    setup = measured.prepare(seq, args.landmarks)
-    blas = max((p.get("num_threads", 1) for p in threadpool_info() if p.get("user_api") == "blas"), default=1)
-    seconds = {}
-    for threads in sorted({1, blas}):
-        with threadpool_limits(limits=threads):
-            t0 = time.perf_counter()
-            measured.run(setup, ("active_polar",), "penalty", max_iterations=args.max_iterations)
-            seconds[threads] = time.perf_counter() - t0
-    print(f"one fit (subject_a, region map, active_polar, {args.max_iterations} iterations):")
-    for threads, s in seconds.items():
-        print(f"  {threads} BLAS thread{'s' if threads > 1 else ' '}  {s:7.1f} s   ratio {s / seconds[1]:.2f}")
-
+    args = ap.parse_args(argv)
+    seq = (load_sequence(example_path()) if args.subject == "slice"
+           else annulus_sequence("active_polar", n_frames=args.frames, landmarks=args.landmarks))
     kw = dict(landmarks=args.landmarks, max_iterations=args.max_iterations, max_rounds=args.max_rounds)
-    lean_run = closing.run
-
-    def every_fit_with_variances(*a, covariance=True, **options):
-        return lean_run(*a, **options)
-
-    ways = (("every fit with its variances, 1 worker", 1, every_fit_with_variances),
-            ("variances for the fits kept, 1 worker", 1, lean_run),
-            (f"variances for the fits kept, {args.workers} workers", args.workers, lean_run))
     reports, wall = [], []
-    for label, workers, fit in ways:
-        closing.run = fit                   # the baseline's fits all make their variances
-        try:
-            t0 = time.perf_counter()
-            out = closing.closing_the_loop(seq, workers=workers, **kw)
-            wall.append(time.perf_counter() - t0)
-        finally:
-            closing.run = lean_run
+    for workers in (1, args.workers):
+        t0 = time.perf_counter()
+        out = closing_the_loop(seq, workers=workers, **kw)
+        wall.append(time.perf_counter() - t0)
         reports.append(split_timing(json.loads(json.dumps(out.as_json(), default=str)))[0])
         fits = 1 + sum(len(r.tried) + len(r.backward) for r in out.rounds) + len(out.last_attempt.get("tried", []))
-        print(f"rounds, {label:<42s} {wall[-1]:7.1f} s   ratio {wall[-1] / wall[0]:.2f}   {fits} fits, "
-              f"path {' -> '.join(str(r.added or ('-' + str(r.removed) if r.removed else 'baseline')) for r in out.rounds)}"
-              f", stop: {out.stop_reason}")
-    same = all(r == reports[0] for r in reports[1:])
-    print(f"rounds: the three reports identical but for wall times: {same}")
-    if not same:
-        raise SystemExit("the reports differ")
+        path = " -> ".join(str(r.added or ("-" + str(r.removed) if r.removed else "baseline")) for r in out.rounds)
+        label = f"{workers} worker{'s' if workers > 1 else ' '}"
+        print(f"rounds, {label} {wall[-1]:8.1f} s   ratio {wall[-1] / wall[0]:.2f}"
+              f"   {fits} fits, path {path}, stop: {out.stop_reason}", flush=True)
+    same = reports[0] == reports[1]
+    print(f"rounds: the two reports identical but for wall times: {same}")
+    return 0 if same else 1
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

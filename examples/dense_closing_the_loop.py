@@ -1,11 +1,14 @@
 """Close the loop on measured DENSE data: residual, missing effect, error before and after.
 
-Run:  python examples/dense_closing_the_loop.py [--quick]    (a few minutes on 2 cores; --quick: the
-first 12 frames, two Gauss-Newton iterations per run, at most two candidates fitted per round and no
-backward steps, a smoke test of the workflow, not the README's numbers)
+Run:  python examples/dense_closing_the_loop.py [--quick] [--download]    (a few minutes on 2 cores;
+--quick: the first 12 frames, two Gauss-Newton iterations per run, at most two candidates fitted per
+round and no backward steps, a smoke test of the workflow, not the README's numbers)
 
-Uses the DENSE slice shipped with the package (any file of the documented format works: pass
-its path instead of example_path()).
+Uses the measured DENSE slice subject_a, which is not shipped with the package (its source has no
+licence): it is read from the data directory ``SFEM_FILTERS_DATA`` (``<folder>/dense/subject_a.npz``)
+or the download cache, or downloaded from its original repository with ``--download`` (see
+``sfem_filters.datasets``). Any file of the documented format works: pass its path instead of
+example_path().
 """
 import argparse
 
@@ -22,11 +25,17 @@ from sfem_filters.cardiac import (
 ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
 ap.add_argument("--quick", action="store_true", help="12 frames, two iterations per run, two candidates "
                                                      "fitted per round, no backward steps (smoke test)")
-quick = ap.parse_args().quick
+ap.add_argument("--download", action="store_true", help="download subject_a from its original repository "
+                                                        "if it is not in the data directory or the cache")
+args = ap.parse_args()
+quick = args.quick
 iterations = 2 if quick else 20
 tries = {"max_tries": 2, "prune": False} if quick else {}     # the defaults (3, True) otherwise
 
-seq = load_sequence(example_path("subject_a"))
+try:
+    seq = load_sequence(example_path("subject_a", download=args.download))
+except FileNotFoundError as exc:        # not in the data directory nor the cache: the message says how to get it
+    raise SystemExit(str(exc)) from None
 if quick:
     seq = make_sequence(seq.points, seq.displacement[:12], reference_mask=seq.reference_mask,
                         frame_masks=None if seq.frame_masks is None else seq.frame_masks[:12],

@@ -9,8 +9,11 @@ front-end section comes from this script.
    slice has no phase-contrast acquisition: velocity images are made from DENSE by central
    differences (``frontend.pseudo_phase_contrast``), their LPC from those images.
 
-Run:  python examples/front_end_subject_a.py [--json out/front_end.json] [--figures out/front_end]
+Run:  python examples/front_end_subject_a.py [--json out/front_end.json] [--figures out/front_end] [--download]
 (about 3-5 minutes on 2 cores; ``--max-iterations 1`` for a quicker smoke test, not the README's numbers).
+subject_a is not shipped with the package (its source has no licence): it is read from the data
+directory ``SFEM_FILTERS_DATA`` (``<folder>/dense/subject_a.npz``) or the download cache, or downloaded
+from its original repository with ``--download`` (see ``sfem_filters.datasets``).
 """
 import argparse
 import json
@@ -27,9 +30,14 @@ def main(argv=None):
     ap.add_argument("--json", help="write the numbers as JSON")
     ap.add_argument("--figures", help="directory for the figures")
     ap.add_argument("--max-iterations", type=int, default=20, help="Gauss-Newton iterations of the smoother")
+    ap.add_argument("--download", action="store_true", help="download subject_a from its original repository "
+                                                            "if it is not in the data directory or the cache")
     args = ap.parse_args(argv)
 
-    seq = load_sequence(example_path())
+    try:
+        seq = load_sequence(example_path(download=args.download))
+    except FileNotFoundError as exc:    # not in the data directory nor the cache: the message says how to get it
+        raise SystemExit(str(exc)) from None
     seq = frontend.rereference(replace(seq, pixel_spacing=NOMINAL["pixel_spacing"],
                                        frame_interval=NOMINAL["frame_interval"]))
     tracks = track_masks(seq.frame_masks)

@@ -15,8 +15,9 @@ from .filtering.cyclic import CyclicEKF, cyclic_estimate
 from .filtering.ekf import SFEMExtendedKalmanFilter
 from .filtering.iterated import IteratedSmoother, iterated_smoother
 from .model import SFEMModel
+from .resources import blas_threads
 
 __all__ = ["SFEMModel", "SFEMExtendedKalmanFilter", "CyclicEKF", "cyclic_estimate", "IteratedSmoother",
            "iterated_smoother", "Material", "Parameterisation",
-           "TriMesh", "rectangle_mesh", "delaunay_mesh"]
+           "TriMesh", "rectangle_mesh", "delaunay_mesh", "blas_threads"]
 __version__ = "0.1.0"

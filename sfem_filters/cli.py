@@ -6,9 +6,11 @@ parameterisations, effects), so the command line cannot drift from the library.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
 import os
 import sys
+import warnings
 
 from ._io import write_json
 from .cardiac.closing import CRITERIA, LAPLACE, SELECTIONS, not_converged_note
@@ -17,25 +19,39 @@ from .cardiac.measured import DRIVES, ESTIMATORS, MESHES, OBSERVE, PARAMETERISAT
 from .filtering.engines import ENGINES
 from .filtering.smoother import MEMORY_ADVICE, InsufficientMemory
 from .filtering.iterated import NOISE_LEVELS
+from .resources import blas_threads
+
+
+def _integer(text: str, expected: str) -> int:
+    """``int(text)``, or an argparse error saying what was expected (never argparse's
+    "invalid <function name> value", which names our internals)."""
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}") from None
 
 
 def _seeds(text: str) -> list:
+    expected = "seeds like 0 or 0,1,2 or 0-4 (non-negative integers)"
     out = []
     for part in text.split(","):
         part = part.strip()
         if "-" in part[1:]:
             a, b = part.split("-", 1)
-            out.extend(range(int(a), int(b) + 1))
+            out.extend(range(_integer(a, expected), _integer(b, expected) + 1))
         else:
-            out.append(int(part))
+            out.append(_integer(part, expected))
     if not out or min(out) < 0:
-        raise argparse.ArgumentTypeError(f"expected seeds like 0 or 0,1,2 or 0-4, got {text!r}")
+        raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}")
     return out
 
 
 def _positive_float(text: str) -> float:
-    v = float(text)
-    if not v > 0:
+    try:
+        v = float(text)
+    except ValueError:
+        v = float("nan")
+    if not v > 0 or not math.isfinite(v):
         raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}")
     return v
 
@@ -51,21 +67,21 @@ def _finite_float(text: str) -> float:
 
 
 def _positive_int(text: str) -> int:
-    v = int(text)
+    v = _integer(text, "an integer >= 1")
     if v < 1:
         raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {text!r}")
     return v
 
 
 def _landmarks(text: str) -> int:
-    v = int(text)
+    v = _integer(text, "an integer >= 3 (landmarks per contour)")
     if v < 3:
         raise argparse.ArgumentTypeError(f"expected an integer >= 3 (landmarks per contour), got {text!r}")
     return v
 
 
 def _folds(text: str) -> int:
-    v = int(text)
+    v = _integer(text, "an integer >= 2")
     if v < 2:
         raise argparse.ArgumentTypeError(f"expected an integer >= 2, got {text!r}")
     return v
@@ -95,6 +111,9 @@ def _batch_options(p, unit: str, workers_help: str = "") -> None:
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="sfem-filters", description=(
         "Stochastic finite-element filters for cardiac kinematics and material (Shi & Liu 2003)."))
+    p.add_argument("--blas-threads", type=_positive_int, metavar="N",
+                   help="BLAS threads of this run (default: the library's measured best, 1, or the environment "
+                        "variable SFEM_FILTERS_BLAS_THREADS)")
     sub = p.add_subparsers(dest="command", required=True)
     c = sub.add_parser("compare", help="the paper's three-way synthetic comparison (Table 1, Figs. 1-5), with the "
                                        "joint smoother as a fourth row",
@@ -113,7 +132,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "(Bierman-Thornton U-D factorised, for ill-conditioned covariances) or ukf (filterpy's "
                         "UnscentedKalmanFilter on the full state: slow). Moireau & Chapelle's reduced-order UKF "
                         "estimates parameters only, so it has no fixed-material rows: 'dense --estimator roukf' "
-                        "and benchmarks/peers.py run it")
+                        "and the validation suite's peers claim run it")
     c.add_argument("--max-loops", type=_positive_int, default=50, help="cyclic loop limit (default 50)")
     c.add_argument("--tol", type=_positive_float, default=1e-3,
                    help="relative material change that ends the loops (default 1e-3)")
@@ -130,8 +149,16 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Baseline run on a sequence file, then rounds: rank the candidate missing "
                                    "effects on the current innovations, add the best while it is significant and "
                                    "log p(y) rises; held-out errors of every round beside a thin-plate spline's.")
-    d.add_argument("path", nargs="+", help="sequence .npz file(s) (see the README for the format); 'example' for "
-                                           "the shipped DENSE slice; several files run as a batch, one job each")
+    d.add_argument("path", nargs="+", help="sequence .npz file(s): keys points (P, 2) and displacement (F, P, 2) "
+                                           "in pixels, optional sigma, confidence, point_kind, frame_interval, "
+                                           "pixel_spacing, pressure, frame_masks, ... (the docs' how-to page "
+                                           "'Formats and readers' lists every key); 'example' for the measured DENSE "
+                                           "slice subject_a (not shipped: read from the data directory "
+                                           "$SFEM_FILTERS_DATA or the download cache; --download fetches it); several "
+                                           "files run as a batch, one job each")
+    d.add_argument("--download", action="store_true",
+                   help="with 'example': download the slice from its original repository (checksum verified) "
+                        "when it is in neither the data directory nor the cache")
     d.add_argument("--effects", default="auto",
                    help="none, auto (rounds of ranking and adding effects) or a comma list of: "
                         + ", ".join(sorted(CATALOGUE)) + " (default auto)")
@@ -187,7 +214,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "evidence criterion only)")
     d.add_argument("--mesh", choices=MESHES, default="delaunay",
                    help="delaunay: Delaunay triangles, whose diagonal in each full pixel cell Qhull picks by the "
-                        "coordinates (default, the README's figures); radial: every diagonal towards the cavity "
+                        "coordinates (default); radial: every diagonal towards the cavity "
                         "centre, the same mesh wherever the heart lies in the image (pixel lattices only)")
     d.add_argument("--angle-origin", type=_finite_float, default=0.0, metavar="DEG",
                    help="where landmark 0, sector 0 of the regional map and segment 0 start: the angle about the "
@@ -263,7 +290,7 @@ def cmd_compare(args) -> int:
                               tol=args.tol, progress=not args.no_progress, checkpoint_dir=args.checkpoint_dir)
         if args.figures:
             from .plotting.comparison import comparison_figures
-            for path in comparison_figures(comp, args.figures):
+            for path in comparison_figures(comp, args.figures, ekf_tol=args.tol):
                 print(f"wrote {path}", file=sys.stderr)
         if args.export:
             from .export import export_comparison
@@ -319,7 +346,7 @@ def cmd_dense(args) -> int:
                                     for j in jobs if j.name in report.records])
         return 1 if report.failed or not report.records else 0
     path = args.path[0]
-    seq = load_sequence(example_path() if path == "example" else path)
+    seq = load_sequence(example_path(download=args.download) if path == "example" else path)
     # --workers changes how fast, not what: it is not part of the configuration (nor a batch fingerprint)
     out = closing_the_loop(seq, progress=not args.no_progress, workers=args.workers, **config)
     print(format_report(out))
@@ -389,10 +416,30 @@ def _write_json(path, payload):
     print(f"wrote {write_json(path, payload)}", file=sys.stderr)
 
 
+def _warning_line(message, category, filename, lineno, line=None) -> str:
+    """A warning as the command line shows it: one line, what happened, no source path."""
+    kind = "warning" if category in (UserWarning, RuntimeWarning) else f"warning ({category.__name__})"
+    return f"sfem-filters: {kind}: {' '.join(str(message).split())}\n"
+
+
+@contextlib.contextmanager
+def _warnings_as_lines():
+    """Show warnings as :func:`_warning_line` while the command runs (not at import: a library
+    user keeps Python's format); recorded warnings (``catch_warnings(record=True)``) stay records."""
+    saved = warnings.formatwarning
+    warnings.formatwarning = _warning_line
+    try:
+        yield
+    finally:
+        warnings.formatwarning = saved
+
+
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     try:
-        return {"compare": cmd_compare, "dense": cmd_dense, "observe": cmd_observe}[args.command](args)
+        # BLAS: --blas-threads, else SFEM_FILTERS_BLAS_THREADS, else the measured default
+        with blas_threads(args.blas_threads), _warnings_as_lines():
+            return {"compare": cmd_compare, "dense": cmd_dense, "observe": cmd_observe}[args.command](args)
     except MemoryError as exc:
         # the smoother's own refusal says what to reduce; an allocation that fails midway does not
         text = str(exc) if isinstance(exc, InsufficientMemory) else (

@@ -34,7 +34,7 @@ from .fem.strain import nodal_strain_operator
 from .filtering.linear import LinearObservation
 from .filtering.linearised import LinearisedModel, linearise_dense
 from .filtering.protocol import measurement_cov
-from .filtering.smoother import available_memory
+from .resources import available_memory
 
 #: Largest memory :meth:`SFEMModel.linearise` spends on modal stiffness derivatives (bytes):
 #: ``8 (k + groups) n^2`` while they are made (:func:`sfem_filters.fem.statespace.stiffness_plan`).
@@ -49,7 +49,7 @@ MODAL_STIFFNESS_SHARE = 0.25
 def modal_stiffness_budget() -> float:
     """Bytes the modal stiffness derivatives may take while made: :data:`MODAL_STIFFNESS_BYTES`
     where set, else a quarter of the memory available
-    (:func:`sfem_filters.filtering.smoother.available_memory`) and at least 512 MiB.
+    (:func:`sfem_filters.resources.available_memory`) and at least 512 MiB.
 
     A larger state needs them most (without them every frame's sensitivity is an O(n^3)
     product), and they grow as n^2, so a fixed cap would refuse them exactly there.

@@ -1,11 +1,51 @@
 """Shared pytest configuration and hypothesis strategies."""
 from __future__ import annotations
 
+import os
+import pathlib
+
 import numpy as np
+import pytest
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
+from sfem_filters import datasets
 from sfem_filters.fem.mesh import delaunay_mesh
+
+# ---------------------------------------------------------------------------
+# Third-party data sets (sfem_filters.datasets): not in the package. The tests read them from the
+# data directory SFEM_FILTERS_DATA, set here to the project's ../shared/data when unset and present
+# (subprocesses inherit it). A test that needs one is marked ``@pytest.mark.needs_data("name")``:
+# without it, the test is skipped with the reason and how to get it, except in CI (CI=true), which
+# has the data, where a missing data set is an error.
+# ---------------------------------------------------------------------------
+SHARED_DATA = pathlib.Path(__file__).resolve().parents[2] / "shared" / "data"
+if not os.environ.get(datasets.ENV_VAR) and SHARED_DATA.is_dir():
+    os.environ[datasets.ENV_VAR] = str(SHARED_DATA)
+
+
+def in_ci() -> bool:
+    return os.environ.get("CI", "").strip().lower() in ("true", "1", "yes")
+
+
+def pytest_configure(config):
+    config.addinivalue_line("markers", "needs_data(*names): the test reads these registered data sets "
+                                       "(sfem_filters.datasets); skipped without them, an error in CI")
+
+
+def pytest_runtest_setup(item):
+    for marker in item.iter_markers("needs_data"):
+        for name in marker.args:
+            try:
+                datasets.dataset_path(name)
+                continue
+            except datasets.DatasetNotFoundError as exc:
+                missing = str(exc)
+            if in_ci():
+                pytest.fail(f"CI=true but the data set is missing:\n{missing}", pytrace=False)
+            pytest.skip(f"data set {name!r} not found: set {datasets.ENV_VAR} to a folder with "
+                        f"{datasets.DATASETS[name].path}, or run sfem_filters.datasets.fetch({name!r})")
+
 
 # ---------------------------------------------------------------------------
 # Hypothesis strategies for meshes and materials

@@ -13,7 +13,9 @@ import pytest
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 EXAMPLES = ROOT / "examples"
-README = " ".join((ROOT / "README.md").read_text().split())      # whitespace-insensitive
+# The README and the docs' frozen results (docs/frozen/), whitespace-insensitive: the numbers they quote
+QUOTING = [ROOT / "README.md", *sorted((ROOT / "docs" / "frozen").glob("*.md"))]
+README = " ".join(" ".join(p.read_text() for p in QUOTING).split())
 TESTED = {"synthetic_comparison.py", "dense_closing_the_loop.py", "front_end_subject_a.py"}
 
 
@@ -40,9 +42,10 @@ def test_synthetic_comparison_prints_the_readme_table_of_seed_0():
     for strategy, label in (("uniform_kf", "KF, uniform material"), ("perfect_kf", "KF, perfect material"),
                             ("joint_ekf", "joint EKF")):
         (D,) = numbers(rf"{strategy}\s+loops=\d+\s+KS D=([0-9.]+)", out)
-        assert re.search(rf" 0 {re.escape(label)} {re.escape(D)} ", README), (strategy, D)
+        assert re.search(rf"\| 0 \| {re.escape(label)} \| {re.escape(D)} \|", README), (strategy, D)   # table1
 
 
+@pytest.mark.needs_data("subject_a")
 @pytest.mark.slow                      # 75 s: the default suite keeps under 10 minutes
 def test_front_end_tracking_numbers_are_the_readmes():
     """Parts 1-2 (tracking error and confidence) do not depend on the loop count: the quick run
@@ -59,6 +62,7 @@ def test_front_end_tracking_numbers_are_the_readmes():
     assert "tracked borders alone" in out and "mid-wall points: RMSE" in out
 
 
+@pytest.mark.needs_data("subject_a")
 @pytest.mark.slow
 def test_front_end_fusion_numbers_are_the_readmes():
     out = run_example("front_end_subject_a.py")
@@ -68,6 +72,7 @@ def test_front_end_fusion_numbers_are_the_readmes():
     assert "| tracked borders + velocity at {} mid-wall points | {} | {} |".format(*both) in README
 
 
+@pytest.mark.needs_data("subject_a")
 def test_dense_closing_the_loop_runs_quickly():
     out = run_example("dense_closing_the_loop.py", "--quick")
     assert "ranking of candidate effects" in out
@@ -75,6 +80,7 @@ def test_dense_closing_the_loop_runs_quickly():
     assert len(rmse) == 2 and all(0 < v < 5 for v in rmse)
 
 
+@pytest.mark.needs_data("subject_a")
 @pytest.mark.slow
 def test_dense_closing_the_loop_numbers_are_the_readmes():
     out = run_example("dense_closing_the_loop.py")

@@ -1,6 +1,8 @@
 """The package's layers, as the README draws them: which subpackage may import which.
 
     _validate, _io, geometry       (plain checks, JSON files, plane geometry; import nothing of ours)
+    datasets                       (where third-party data sets are found or fetched; as low as the above)
+    resources                      (memory, cores, worker processes, BLAS threads; as low as the above)
     fem        filtering   imaging (independent of each other)
     model                          (SFEMModel: bridges fem and filtering)
     cardiac                        (composes fem, filtering, imaging through the model)
@@ -17,7 +19,8 @@ import pathlib
 
 ROOT = pathlib.Path(__file__).resolve().parents[1] / "sfem_filters"
 
-LAYER = {"_validate": "base", "_io": "base", "geometry": "base", "fem": "fem", "filtering": "filtering", "imaging": "imaging",
+LAYER = {"_validate": "base", "_io": "base", "geometry": "base", "datasets": "base", "resources": "base",
+         "fem": "fem", "filtering": "filtering", "imaging": "imaging",
          "model": "model", "cardiac": "cardiac", "benchmark": "benchmark", "batch": "batch", "export": "export",
          "plotting": "plotting", "cli": "cli", "__init__": "root"}
 ALLOWED = {
@@ -27,7 +30,7 @@ ALLOWED = {
     "imaging": {"base", "imaging"},
     "model": {"base", "fem", "filtering", "model"},
     "cardiac": {"base", "fem", "filtering", "imaging", "model", "cardiac"},
-    "benchmark": {"base", "fem", "filtering", "model", "cardiac", "benchmark"},
+    "benchmark": {"base", "fem", "filtering", "imaging", "model", "cardiac", "benchmark"},
     "batch": {"base", "fem", "filtering", "model", "cardiac", "benchmark", "export", "plotting", "batch"},
     "export": {"base", "fem", "filtering", "model", "cardiac", "benchmark", "export"},
     "plotting": {"base", "fem", "filtering", "imaging", "model", "cardiac", "benchmark", "plotting"},

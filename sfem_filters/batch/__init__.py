@@ -4,11 +4,17 @@ A job is one seed of the synthetic comparison or one sequence file of the measur
 workflow with its configuration; :func:`run_batch` runs a list of them on a scheduler and
 keeps one result file per job in a folder:
 
+>>> import tempfile
 >>> from sfem_filters.batch import compare_jobs, run_batch
 >>> jobs = compare_jobs(range(100), refine=1, noise_mm=0.1)          # one job per noise seed
+>>> folder = tempfile.mkdtemp()
+>>> report = run_batch(jobs[:1], folder, scheduler="serial", progress=False)  # one seed, here
+>>> print(report.summary_line())
+1 run, 0 skipped (result exists), 0 failed; results in ... (... s, scheduler serial)
+>>> run_batch(jobs[:1], folder, scheduler="serial", progress=False).skipped == report.ran   # a rerun skips it
+True
+>>> # all 100 on a local cluster of two workers (100 fits: not run here)
 >>> report = run_batch(jobs, "out/batch", scheduler="local", workers=2)   # doctest: +SKIP
->>> print(report.summary_line())                                        # doctest: +SKIP
-100 run, 0 skipped (result exists), 0 failed; results in out/batch (...)
 
 ``scheduler="serial"`` runs in this process, ``"local"`` on a ``LocalCluster`` (one worker
 process per core, one thread each), an address such as ``"tcp://10.0.0.5:8786"`` on a running

@@ -5,10 +5,12 @@ A :class:`Job` is plain data (it crosses to Dask workers by pickling); :func:`ru
 anywhere and returns a :class:`JobOutcome`. The result is split from its timing
 (:func:`split_timing`): the result depends only on the job, the timing on the machine, so the
 per-job result files of a batch are byte for byte those of a serial run. BLAS is held to one
-thread inside a job (``threadpoolctl``): a different thread count changes the order of
-floating-point sums, and so the last bits of the numbers.
+thread inside a job (:func:`~sfem_filters.resources.blas_threads`): a different thread count
+changes the order of floating-point sums, and so the last bits of the numbers.
 """
 from __future__ import annotations
+
+import functools
 
 import copy
 import hashlib
@@ -19,8 +21,6 @@ import warnings
 from dataclasses import dataclass, field
 from importlib import metadata
 
-from threadpoolctl import threadpool_limits
-
 from .._io import json_safe
 from ..benchmark.comparison import LABELS, run_comparison
 from ..cardiac.closing import closing_the_loop, length_display
@@ -28,6 +28,7 @@ from ..cardiac.measured import default_max_iterations
 from ..cardiac.sequence import example_path, load_sequence
 from ..export import export_comparison, export_dense
 from ..plotting import comparison_figures, dense_figures
+from ..resources import blas_threads
 
 __all__ = ["Job", "JobOutcome", "KINDS", "compare_jobs", "dense_jobs", "run_job", "split_timing", "merge_timing",
            "table_rows", "describe_record"]
@@ -213,7 +214,8 @@ def _outputs(job: Job, result, figures, export) -> list:
 
 def _run_compare(job: Job) -> tuple:
     comp = run_comparison(**job.config, progress=False, checkpoint_dir=job.outputs.get("checkpoint_dir"))
-    return comp.as_json(), _outputs(job, comp, comparison_figures, export_comparison)
+    figures = functools.partial(comparison_figures, ekf_tol=job.config.get("tol", 1e-3))
+    return comp.as_json(), _outputs(job, comp, figures, export_comparison)
 
 
 def _run_dense(job: Job) -> tuple:
@@ -231,7 +233,7 @@ def run_job(job: Job) -> JobOutcome:
     (non-finite numbers become ``None``: JSON has no NaN).
     Exceptions propagate: the batch runner records them as the job's error.
     """
-    with threadpool_limits(limits=1), warnings.catch_warnings(record=True) as caught:
+    with blas_threads(1), warnings.catch_warnings(record=True) as caught:     # explicit: the runs inside keep it
         warnings.simplefilter("always")
         t0 = time.perf_counter()
         payload, written = _RUNNERS[job.kind](job)

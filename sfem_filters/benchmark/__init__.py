@@ -26,7 +26,9 @@ from .comparison import LABELS, PAPER_TABLE1, REPORT_FRAME, Comparison, Strategy
 from .pinned import STRATEGIES, Benchmark, benchmark_model, pinned_benchmark
 from .statistics import KSResult, kolmogorov_asymptotic_p, ks_test, wilson_interval
 from .summary import SUMMARY_QUANTITIES, format_summary, summarise
+from .strain_scoring import StrainScore, score_strain
 
 __all__ = ["Benchmark", "pinned_benchmark", "benchmark_model", "STRATEGIES", "Comparison", "StrategyRun",
            "run_comparison", "run_strategy", "format_table", "LABELS", "PAPER_TABLE1", "REPORT_FRAME", "KSResult",
-           "ks_test", "kolmogorov_asymptotic_p", "wilson_interval", "summarise", "format_summary", "SUMMARY_QUANTITIES"]
+           "ks_test", "kolmogorov_asymptotic_p", "wilson_interval", "summarise", "format_summary", "SUMMARY_QUANTITIES",
+           "StrainScore", "score_strain"]

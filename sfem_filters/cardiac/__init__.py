@@ -30,7 +30,8 @@ and taken out again by backward steps),
 the spline of its residual, and intervals for a difference of held-out errors),
 :mod:`~sfem_filters.cardiac.crossval` (cross-validation over the observed points),
 :mod:`~sfem_filters.cardiac.frontend` (images to a sequence, fusion),
-:mod:`~sfem_filters.cardiac.annulus` (synthetic sequences with a known answer).
+:mod:`~sfem_filters.cardiac.annulus` (synthetic sequences with a known answer),
+:mod:`~sfem_filters.cardiac.strain_route` (DENSE displacements to Green strain with its sd and banded curves).
 """
 from .annulus import annulus_mask, annulus_sequence, deformed_masks
 from .closing import (
@@ -81,6 +82,7 @@ from .sequence import (
                        moved_on_lattice,
                        save_sequence,
 )
+from .strain_route import DenseStrain, StrainRouteSettings, dense_strain
 
 __all__ = ["Sequence", "make_sequence", "load_sequence", "save_sequence", "example_path", "moved_on_lattice", "LVGeometry",
            "lv_geometry", "mesh_from_points", "tissue_mesh", "mesh_from_mask", "contour_landmarks", "Effect", "CATALOGUE",
@@ -91,4 +93,5 @@ __all__ = ["Sequence", "make_sequence", "load_sequence", "save_sequence", "examp
            "spline_reference", "residual_spline", "rmse_difference", "angular_sectors", "kriged_heldout", "material_conflict",
            "contour_interpolant", "cross_validate", "observation_folds",
            "spline_cross_validation", "observe", "fusion_setup",
-           "compare_fusion", "annulus_mask", "annulus_sequence", "deformed_masks"]
+           "compare_fusion", "annulus_mask", "annulus_sequence", "deformed_masks", "dense_strain", "DenseStrain",
+           "StrainRouteSettings"]

@@ -96,22 +96,19 @@ are started afresh (``spawn``), so a script that passes ``workers > 1`` needs th
 """
 from __future__ import annotations
 
-import multiprocessing
-import os
 import re
 import warnings
-from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from threadpoolctl import threadpool_limits
 from tqdm.auto import tqdm
 
 from .._validate import integer, non_negative, probability
 from ..filtering import diagnostics
 from ..filtering.iterated import NOISE_LEVELS
-from ..filtering.smoother import PEAK_FACTOR, WORKING, available_memory
+from ..filtering.smoother import PEAK_FACTOR, WORKING
+from ..resources import available_memory, blas_threads, process_pool, usable_cores
 from .crossval import DEFAULT_FOLDS, cross_validate, observation_folds, spline_cross_validation
 from .effects import CATALOGUE, EXPLICIT_ONLY, build_effects
 from .measured import (NOMINAL, Run, Setup, angle_from_origin, default_max_iterations, equivalent_eigenstrain,
@@ -433,7 +430,7 @@ def _fit(setup, variant: Variant, opts) -> Run:
     # one BLAS thread per fit, whether the fits run one after the other or side by side: the
     # threads' order of summation is then the same, and so is every figure (measured: a second
     # BLAS thread does not make a fit of the shipped slice faster, benchmarks/rounds_parallel.py)
-    with threadpool_limits(limits=1):
+    with blas_threads(1):
         return run(setup, variant.effects, variant.drive, name=variant.label(variant.drive),
                    effect_rates=variant.effect_rates, drive_trend=variant.drive_trend,
                    process_scale=variant.process_scale, spring_scale=variant.spring_scale, **opts)
@@ -444,14 +441,6 @@ def _fit_job(setup, variant: Variant, opts, cv_folds) -> tuple:
     ``(run, cv or None)``. Module level, so that a worker process can run it."""
     trial = _fit(setup, variant, opts)
     return trial, (round_cross_validation(setup, variant, trial, cv_folds) if cv_folds else None)
-
-
-def usable_cores() -> int:
-    """Cores this process may run on (its CPU affinity where the system tells it, else all)."""
-    try:
-        return max(len(os.sched_getaffinity(0)), 1)
-    except AttributeError:                  # not on Linux
-        return max(os.cpu_count() or 1, 1)
 
 
 def fit_workers(workers, n_state: int, n_frames: int, available: float | None = None) -> int:
@@ -493,8 +482,7 @@ class _Fits:
         self.pool = None
         if workers > 1:
             try:
-                # worker processes start afresh ("spawn"): no copy of this process's BLAS threads or locks
-                self.pool = ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"))
+                self.pool = process_pool(workers)           # started afresh: no copy of this process's BLAS threads
             except (OSError, ImportError) as exc:           # no process semaphores here (some sandboxes)
                 self._serial(exc)
 
@@ -566,7 +554,7 @@ def _corrections(cur: Round, material: str | None = None) -> list:
     follow a trend (integrated random walks) instead of holding their last value.
     ``springs:x10``: for spring drives, the springs ten times stiffer (soft springs let the tissue
     lag its border and leave the interior to the elastic response of a few updates; on isolated
-    landmarks stiff springs pull tents, which the evidence need not reject: README, "A second
+    landmarks stiff springs pull tents, which the evidence need not reject: docs, the measured slice, "A second
     split", +82 nats while the held-out error nearly doubled). Always a candidate.
     ``noise:x2``: when the innovations are too large for their covariance (NIS z above +3) and no
     effect explains them, every process noise (kinematics, drive, effects) doubled. Not the other
@@ -839,7 +827,7 @@ def _rounds(seq, setup, start, base, fits, opts, *, effects, drive, landmarks, o
 
     def kept(number, variant, added, replaced, trial, ranking, threshold, tried, cv) -> Round:
         if getattr(trial.result, "method", "") == "iterated_smoother":
-            with threadpool_limits(limits=1):          # on one BLAS thread, as its fit (_fit)
+            with blas_threads(1):                      # on one BLAS thread, as its fit (_fit)
                 trial = with_covariance(setup, trial)
         return Round(number, variant, added, replaced, trial, ranking, threshold, tried, log_evidence(trial),
                      cv if cv is not None or not cv_possible else round_cross_validation(setup, variant, trial, folds))

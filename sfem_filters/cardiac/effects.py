@@ -338,7 +338,7 @@ CATALOGUE = {
 #: Catalogue effects that the rounds (:func:`sfem_filters.cardiac.closing.closing_the_loop`) try
 #: only when asked for by name (``candidates=``, ``--effects``): ``active_harmonic`` spends 20
 #: amplitudes per frame, and the rounds' behaviour with it among the candidates has no test with
-#: a known answer yet (see the README's section on the interior of the measured slice).
+#: a known answer yet (see the docs' explanation page on the measured slice).
 EXPLICIT_ONLY = ("active_harmonic",)
 
 

@@ -105,7 +105,7 @@ MESHES = ("delaunay", "radial")
 
 #: The smoother's iteration limit when none is given (``max_iterations=None``, ``--max-iterations``):
 #: 20, and 80 under a measured pressure, where the stiffness level is a parameter and converges
-#: slowly (the README's 100 kPa synthetic annulus needs 57 iterations), so that 20 could leave the
+#: slowly (the 100 kPa synthetic annulus of the rounds' validation needs 57 iterations), so that 20 could leave the
 #: level's interval short of the truth.
 MAX_ITERATIONS = {"default": 20, "pressure": 80}
 
@@ -177,7 +177,7 @@ def prepare(seq: Sequence, landmarks: int = 8, observe: str = "boundary", holdou
     n_sectors : int
         Angular sectors of the regional material map (times two transmural layers).
     mesh : {"delaunay", "radial"}
-        How the points are triangulated. ``"delaunay"`` (the default, every figure in the README
+        How the points are triangulated. ``"delaunay"`` (the default, every figure in the docs
         so far): a Delaunay triangulation, whose diagonal in each full cell of a pixel lattice is
         a tie that Qhull breaks by the floating-point coordinates, so the same heart shifted,
         turned or mirrored in the image gets other diagonals (and other numbers:

@@ -36,12 +36,12 @@ from __future__ import annotations
 import os
 import zipfile
 from dataclasses import dataclass, field, fields
-from importlib import resources
 
 import numpy as np
 from scipy.ndimage import binary_dilation
 
 from .._validate import as_float_array, as_mask, positive
+from ..datasets import dataset_path
 
 FORMAT_KEYS = ("points", "displacement", "velocity", "sigma", "confidence", "velocity_sigma",
                "velocity_confidence", "point_kind", "frame_interval",
@@ -229,12 +229,29 @@ def save_sequence(seq: Sequence, path) -> None:
     np.savez_compressed(path, **seq.to_dict())
 
 
-def example_path(name: str = "subject_a") -> str:
-    """Path of an example sequence shipped with the package (``"subject_a"``: a DENSE LV slice)."""
-    ref = resources.files("sfem_filters") / "data" / f"{name}.npz"
-    if not ref.is_file():
-        raise ValueError(f"name: no example data set {name!r}")
-    return str(ref)
+EXAMPLE_SEQUENCES = ("subject_a",)
+
+
+def example_path(name: str = "subject_a", *, data_dir=None, download: bool = False) -> str:
+    """Path of an example sequence file (``"subject_a"``: a measured DENSE LV slice, 332 points, 35 frames).
+
+    The example is not shipped with the package (its source has no licence): it is found through
+    :func:`sfem_filters.datasets.dataset_path`, in the data directory (``data_dir``, else the
+    environment variable ``SFEM_FILTERS_DATA``: ``<folder>/dense/subject_a.npz``) or the download
+    cache, or downloaded from its original repository when ``download`` is True (or beforehand
+    with ``sfem_filters.datasets.fetch("subject_a")``).
+
+    Raises
+    ------
+    ValueError
+        ``name`` is not an example sequence.
+    sfem_filters.datasets.DatasetNotFoundError
+        (a ``FileNotFoundError``) the file is not found and ``download`` is False; the message
+        says how to get it.
+    """
+    if name not in EXAMPLE_SEQUENCES:
+        raise ValueError(f"name: expected one of {list(EXAMPLE_SEQUENCES)}, got {name!r}")
+    return dataset_path(name, data_dir=data_dir, download=download)
 
 
 def moved_on_lattice(seq: Sequence, quarter_turns: int = 0, mirror: bool = False, shift=(0, 0)) -> Sequence:

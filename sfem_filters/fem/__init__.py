@@ -18,8 +18,9 @@ node-major, x before y. A walk through one model's pieces (Shi & Liu 2003, secti
 >>> nodal_strains(mesh, dofs.expand(x1[:dofs.n_free])).shape  # (e_xx, e_yy, gamma_xy) per node
 (35, 3)
 
-Modules: :mod:`~sfem_filters.fem.mesh` (triangle meshes), :mod:`~sfem_filters.fem.elasticity`
-(constitutive law, element and global K, M, damping), :mod:`~sfem_filters.fem.loads`
+Modules: :mod:`~sfem_filters.fem.mesh` (triangle meshes),
+:mod:`~sfem_filters.fem.polygon_mesh` (a region meshed at a chosen element size, Gmsh),
+:mod:`~sfem_filters.fem.elasticity` (constitutive law, element and global K, M, damping), :mod:`~sfem_filters.fem.loads`
 (pressure, prescribed stress, penalty springs), :mod:`~sfem_filters.fem.dofs` (numbering,
 fixed and free dofs), :mod:`~sfem_filters.fem.material` (material and its parameterisations
 theta), :mod:`~sfem_filters.fem.statespace` (state-space form, exact discretisation, exact
@@ -35,12 +36,14 @@ from .material import Material, Parameterisation, correlated_prior
 from .mesh import (TriMesh, check_mesh, delaunay_mesh, delaunay_triangles, lattice_mesh, lattice_offset, mesh_quality,
                    rectangle_mesh, triangle_angles)
 from .observation import locate_points, node_observation_matrix, point_observation_matrix
+from .polygon_mesh import circle_polygon, edge_lengths, polygon_mesh, resample_polygon
 from .statespace import (ModalSystem, StiffnessPlan, continuous_matrices, discretize_zoh, reference_sensitivity,
                          stiffness_plan)
 from .strain import element_strains, nodal_average, nodal_strains
 
 __all__ = ["TriMesh", "check_mesh", "rectangle_mesh", "delaunay_mesh", "delaunay_triangles", "lattice_mesh",
-           "lattice_offset", "mesh_quality", "triangle_angles",
+           "lattice_offset", "mesh_quality", "triangle_angles", "polygon_mesh", "circle_polygon", "resample_polygon",
+           "edge_lengths",
            "plane_strain_matrix", "plane_strain_matrix_dnu", "strain_displacement", "element_stiffness",
            "element_mass", "assemble", "stiffness_matrix", "mass_matrix", "element_stiffness_derivatives",
            "rayleigh_damping", "pressure_load", "stress_loads", "penalty_stiffness", "penalty_load",

@@ -14,6 +14,7 @@ import numpy as np
 import scipy.linalg as sla
 
 from .._validate import as_float_array, integer
+from ..resources import limits_blas_threads
 from .checkpoint import load_checkpoint, run_fingerprint, save_checkpoint
 from .engines import ENGINES, make_engine
 from .history import History
@@ -147,6 +148,7 @@ class CyclicEKF:
         guard = self.safeguards if self.safeguards is not None else Safeguards()
         return {"method": "cyclic_ekf", "engine": self.engine, "ljung": bool(self.ljung), **guard.settings()}
 
+    @limits_blas_threads
     def run(self, model, observations, *, progress: bool = False, checkpoint=None,
             description: str = "cyclic loops") -> CyclicResult:
         """Estimate from ``observations`` (n_frames, dim_obs), NaN where missing.

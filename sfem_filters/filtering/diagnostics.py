@@ -327,8 +327,8 @@ def material_drift(model, history) -> dict:
 
     Returns
     -------
-    dict with per-loop arrays ``loops`` (loop numbers), ``max_sd`` (max_i |d_k,i|), ``rms_sd``
-    (root mean square of d_k) and ``max_abs`` (max_i |theta_k,i - theta_{k-1},i|, parameter units).
+    dict with per-loop arrays ``loops`` (loop numbers), ``max_sd`` (``max_i |d_k,i|``), ``rms_sd``
+    (root mean square of d_k) and ``max_abs`` (``max_i |theta_k,i - theta_{k-1},i|``, parameter units).
     """
     _rows(history, None)                       # the same checks of the history as every diagnostic
     nr = int(model.n_restart)

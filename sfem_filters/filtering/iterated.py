@@ -46,7 +46,7 @@ with the trajectory and the material integrated out by the Laplace approximation
 factor's mode (type-II maximum likelihood, empirical Bayes); the posterior reported is the one
 at that factor. On the calibration spec's check, whose truth moves without process noise, this
 is what turns a conservative posterior (the configured Q is too large for the data) into a
-calibrated one (``benchmarks/calibration.py``).
+calibrated one (``python -m validation run calibration``).
 """
 from __future__ import annotations
 
@@ -61,6 +61,7 @@ import scipy.linalg as sla
 import scipy.sparse as sp
 
 from .._validate import as_float_array, integer, non_negative, positive
+from ..resources import limits_blas_threads
 from .checkpoint import load_checkpoint, run_fingerprint, save_checkpoint
 from .cyclic import check_observations
 from .history import History
@@ -570,6 +571,7 @@ class IteratedSmoother:
             out["max_extrapolation"] = float(self.max_extrapolation)
         return out
 
+    @limits_blas_threads
     def run(self, model, observations, *, progress: bool = False, checkpoint=None,
             description: str = "iterated smoother", start=None) -> SmootherResult:
         """Estimate from one cycle's ``observations`` (n_frames, dim_obs), NaN where missing.

@@ -50,8 +50,10 @@ class LinearObservation:
         return SFEMExtendedKalmanFilter(self)
 
     def make_ukf(self, **points):
-        """filterpy's ``UnscentedKalmanFilter`` on this model (:func:`sfem_filters.filtering.unscented.make_ukf`;
-        ``points``: Merwe's ``alpha``, ``beta``, ``kappa``). Drive it as::
+        """filterpy's ``UnscentedKalmanFilter`` on this model.
+
+        See :func:`sfem_filters.filtering.unscented.make_ukf`; ``points``: Merwe's ``alpha``,
+        ``beta``, ``kappa``. Drive it as::
 
             ukf = model.make_ukf()
             for t, y in enumerate(observations):

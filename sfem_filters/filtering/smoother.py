@@ -34,7 +34,6 @@ with the same numbers.
 from __future__ import annotations
 
 import math
-import resource
 import warnings
 from dataclasses import dataclass, field
 
@@ -44,6 +43,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
 from .._validate import integer
+from ..resources import available_memory
 from .base import DenseEngine
 from .linearised import LinearisedModel
 from .structured import joseph_update
@@ -191,64 +191,9 @@ class SmoothedPass:
 
 #: Head-room of a smoothing run over what :func:`check_memory` counts (the stored prior
 #: covariances and :data:`WORKING` n x n matrices): the model's dense operators, the interpreter
-#: and its libraries come on top (the resident peaks of the README's whole runs are 1.8-2.3 times
+#: and its libraries come on top (the resident peaks of the whole runs on the docs' validation pages are 1.8-2.3 times
 #: what their last, covariance pass keeps).
 PEAK_FACTOR = 3.0
-
-
-#: (limit, usage) files of the process's memory control group: cgroup v2, then v1.
-CGROUP_FILES = (("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory.current"),
-                ("/sys/fs/cgroup/memory/memory.limit_in_bytes", "/sys/fs/cgroup/memory/memory.usage_in_bytes"))
-
-
-def _read_number(path: str) -> float | None:
-    try:
-        with open(path) as f:
-            text = f.read().strip()
-        return float(text) if text and text != "max" else None
-    except (OSError, ValueError):
-        return None
-
-
-def available_memory() -> float | None:
-    """Bytes available to new allocations, or None where the system does not say.
-
-    The smaller of the machine's ``MemAvailable`` (Linux /proc/meminfo) and what the process's
-    control group still allows (cgroup v2 ``memory.max - memory.current``, v1
-    ``memory.limit_in_bytes - memory.usage_in_bytes``), as in a container or a batch slot, and what
-    the process's address-space limit (``ulimit -v``) still allows. A Dask worker's own
-    ``memory_limit`` is not seen here."""
-    found = []
-    try:
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    found.append(float(line.split()[1]) * 1024.0)
-                    break
-    except (OSError, ValueError, IndexError):
-        pass
-    for limit, used in CGROUP_FILES:
-        cap, now = _read_number(limit), _read_number(used)
-        if cap is not None and now is not None and cap < 2.0 ** 60:     # v1 writes a huge number for none
-            found.append(max(cap - now, 0.0))
-            break
-    room = _address_space_room()
-    if room is not None:
-        found.append(room)
-    return min(found) if found else None
-
-
-def _address_space_room() -> float | None:
-    """Bytes the process's address-space limit (``ulimit -v``, RLIMIT_AS) still allows, or None."""
-    try:
-        soft = resource.getrlimit(resource.RLIMIT_AS)[0]
-        if soft == resource.RLIM_INFINITY:
-            return None
-        with open("/proc/self/status") as f:
-            size = next(float(line.split()[1]) * 1024.0 for line in f if line.startswith("VmSize:"))
-    except (OSError, ValueError, StopIteration, AttributeError):
-        return None
-    return max(float(soft) - size, 0.0)
 
 
 #: What to do when a smoothing run does not fit the memory.
@@ -308,7 +253,7 @@ def covariance_interval(n: int, frames: int, available: float | None = None, obs
     n, frames, observed :
         As for :func:`stored_bytes`.
     available : float, optional
-        Bytes available (default :func:`available_memory`).
+        Bytes available (default :func:`~sfem_filters.resources.available_memory`).
 
     Returns
     -------
@@ -344,7 +289,7 @@ def check_memory(n: int, frames: int, available: float | None = None, covariance
     frames : int
         Frames of the pass.
     available : float, optional
-        Bytes available (default :func:`available_memory`; nothing is checked where unknown).
+        Bytes available (default :func:`~sfem_filters.resources.available_memory`; nothing is checked where unknown).
     covariance : bool
         Whether the run makes a covariance pass (smoothed variances of the kinematics).
     observed : int

@@ -29,6 +29,11 @@ Modules: :mod:`~sfem_filters.imaging.readers` (npz/npy, DICOM, NIfTI),
 """
 from .confidence import (bending_energy, goodness_uniqueness, local_phase_coherence, match_confidence,
                          segment_bending_energy, velocity_coherence, weighted_std)
+from .conventional import ConventionalStrain, conventional_analysis, conventional_from_displacement
+from .dense import (DenseCase, LagrangianDisplacement, add_complex_noise, make_dense_case, phase_to_displacement,
+                    read_dense_dicom, read_dense_sim, reference_points, truth_at_points)
+from .strain import (StrainField, curve_peak, global_curve, green_strain, mask_centre, segment_curves, segment_labels,
+                     strain_on_grid)
 from .contours import Borders, check_myocardium_mask, curvature, mask_borders, midwall_pixels, pixel_depth, resample_closed
 from .phase_contrast import VelocityData, sample_bilinear, sample_velocity, synthetic_phase_contrast
 from .readers import ImageSeries, make_image_series, read_images
@@ -39,4 +44,8 @@ __all__ = ["bending_energy", "segment_bending_energy", "goodness_uniqueness", "m
            "local_phase_coherence", "velocity_coherence", "weighted_std", "Borders", "check_myocardium_mask",
            "curvature", "mask_borders", "resample_closed", "pixel_depth", "midwall_pixels", "VelocityData", "sample_bilinear", "sample_velocity",
            "synthetic_phase_contrast", "ImageSeries", "make_image_series", "read_images", "dice",
-           "segment_sequence", "BoundaryTracks", "TrackingOptions", "track_borders", "track_masks"]
+           "segment_sequence", "BoundaryTracks", "TrackingOptions", "track_borders", "track_masks",
+           "DenseCase", "LagrangianDisplacement", "make_dense_case", "read_dense_sim", "read_dense_dicom",
+           "add_complex_noise", "phase_to_displacement", "reference_points", "truth_at_points", "StrainField",
+           "strain_on_grid", "green_strain", "mask_centre", "segment_labels", "global_curve", "segment_curves",
+           "curve_peak", "ConventionalStrain", "conventional_analysis", "conventional_from_displacement"]

@@ -208,6 +208,7 @@ def test_other_configuration_reruns_and_keeps_the_old_result(tmp_path):
     assert ResultStore(tmp_path).load(b[0])["job"]["config"]["max_loops"] == 2
 
 
+@pytest.mark.needs_data("subject_a")
 def test_dense_job_record_and_rows(tmp_path):
     jobs = dense_jobs(["example"], effects="none", estimator="cyclic", max_loops=1, parameterisation="none")
     rep = run_batch(jobs, tmp_path, scheduler="serial", progress=False)

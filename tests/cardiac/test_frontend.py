@@ -3,6 +3,7 @@ velocity in the joint EKF, and the observe command."""
 import os
 
 import numpy as np
+import pytest
 
 from sfem_filters.cardiac import annulus, frontend, measured
 from sfem_filters.cardiac.sequence import example_path, load_sequence, make_sequence
@@ -101,6 +102,7 @@ def test_observe_command_writes_a_loadable_sequence_and_figures(tmp_path):
     assert sorted(os.listdir(figs)) == ["tracked_contours.png", "velocity_lpc.png"]
 
 
+@pytest.mark.needs_data("subject_a")
 def test_observe_on_masks_alone_writes_border_points_that_load_with_their_mask(tmp_path):
     """Without velocity images every point is a border point, on the half-pixel boundary of the
     mask: the sequence must still load with its reference mask (the shipped slice's masks)."""

@@ -37,7 +37,8 @@ from sfem_filters.geometry import triangle_double_areas
 
 
 # ------------------------------------------------------------------ data format
-def test_example_sequence_is_shipped_and_valid():
+@pytest.mark.needs_data("subject_a")
+def test_example_sequence_is_found_and_valid():
     seq = load_sequence(example_path("subject_a"))
     assert seq.points.shape == (332, 2) and seq.displacement.shape == (35, 332, 2)
     assert seq.reference_mask.sum() == 332 and seq.units == "px"
@@ -77,6 +78,7 @@ def test_bad_sequences_are_named(kwargs, match):
         make_sequence(**kwargs)
 
 
+@pytest.mark.needs_data("subject_a")
 def test_points_shifted_or_transposed_against_their_mask_are_named():
     seq = load_sequence(example_path())
     kw = seq.to_dict()
@@ -87,6 +89,7 @@ def test_points_shifted_or_transposed_against_their_mask_are_named():
     make_sequence(**{**kw, "points": moved, "units": "m"})               # metres: no pixel frame to compare
 
 
+@pytest.mark.needs_data("subject_a")
 def test_bad_effect_names_and_landmark_counts_fail_before_any_fit(monkeypatch):
     seq = load_sequence(example_path())
     fits = []
@@ -107,6 +110,7 @@ def test_bad_effect_names_and_landmark_counts_fail_before_any_fit(monkeypatch):
     assert proc.returncode == 2 and "--landmarks: expected an integer >= 3" in proc.stderr
 
 
+@pytest.mark.needs_data("subject_a")
 def test_malformed_files_give_clear_errors_and_cli_exit_2(tmp_path):
     truncated = tmp_path / "trunc.npz"
     truncated.write_bytes(open(example_path(), "rb").read()[:5000])
@@ -157,6 +161,7 @@ def _move_matrix(quarter_turns, mirror):
     return R
 
 
+@pytest.mark.needs_data("subject_a")
 @settings(max_examples=12, deadline=None)
 @given(st.integers(0, 3), st.booleans(), st.tuples(st.integers(0, 9), st.integers(0, 9)))
 def test_the_radial_mesh_moves_with_the_heart(quarter_turns, mirror, shift):
@@ -194,6 +199,7 @@ def _matched_elements(a, b, R):
     return np.array([index[tuple(c)] for c in cb.tolist()])
 
 
+@pytest.mark.needs_data("subject_a")
 @settings(max_examples=8, deadline=None)
 @given(st.integers(1, 3), st.floats(0.0, 360.0, allow_nan=False, exclude_max=True))
 def test_an_angle_origin_turned_with_the_heart_gives_the_same_landmarks_sectors_and_segments(quarter_turns, origin):
@@ -231,6 +237,7 @@ def test_an_angle_origin_turned_with_the_heart_gives_the_same_landmarks_sectors_
         measured.prepare(seq, 8, angle_origin_deg=[0.0, 90.0])
 
 
+@pytest.mark.needs_data("subject_a")
 def test_the_angle_origin_counts_from_where_it_says():
     """Angles grow from +x towards +y: an origin one sector (60 degrees) on puts every element one
     sector back, and one landmark gap (45 degrees for 8) on makes landmark k the old landmark k+1."""
@@ -245,6 +252,7 @@ def test_the_angle_origin_counts_from_where_it_says():
     assert np.array_equal(measured.prepare(seq, 8, angle_origin_deg=360.0).regions, a.regions)
 
 
+@pytest.mark.needs_data("subject_a")
 def test_the_default_mesh_does_not_move_with_the_heart_and_bad_mesh_choices_are_named():
     seq = load_sequence(example_path())
     a = measured.prepare(seq, 8)
@@ -261,6 +269,7 @@ def test_the_default_mesh_does_not_move_with_the_heart_and_bad_mesh_choices_are_
         measured.prepare(off, 8, mesh="radial")
 
 
+@pytest.mark.needs_data("subject_a")
 def test_moved_on_lattice_keeps_the_motion_on_its_masks():
     """Every displaced point that lies on its frame's mask before the move lies on it after."""
     seq = load_sequence(example_path())
@@ -393,6 +402,7 @@ def test_annulus_geometry_and_landmarks():
     assert gaps.max() < np.radians(60)                  # evenly spread, 45 degrees apart nominally
 
 
+@pytest.mark.needs_data("subject_a")
 def test_subject_a_mesh_matches_the_issue_facts():
     su = measured.prepare(load_sequence(example_path()), 8)
     assert su.mesh.n_nodes == 332
@@ -559,6 +569,7 @@ def test_undeclared_effect_is_flagged_ranked_first_and_fixed_by_declaring_it(eff
     assert ext.metrics["innovation_rms_px"] < base.metrics["innovation_rms_px"]
 
 
+@pytest.mark.needs_data("subject_a")
 @pytest.mark.slow
 def test_subject_a_extended_model_beats_baseline():
     """The issue's requirement on the measured slice, 8 landmarks per contour."""
@@ -931,6 +942,7 @@ def test_one_missing_point_moves_one_landmark():
     assert changed.tolist() == [5] and len(np.unique(setup.landmarks)) == len(setup.landmarks)
 
 
+@pytest.mark.needs_data("subject_a")
 def test_running_out_of_memory_midway_is_an_error_that_says_what_to_do(monkeypatch, capsys, tmp_path):
     """An allocation that fails inside a run (numpy's bare 'Unable to allocate ...') exits 2 with
     what to reduce; the smoother's own refusal, which already says so, is passed on as it is."""

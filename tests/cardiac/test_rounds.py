@@ -206,6 +206,7 @@ def test_harmonic_active_stress_rejects_bad_settings(annulus):
             harmonic_active_stress(mesh, g, **kw)
 
 
+@pytest.mark.needs_data("subject_a")
 def test_rounds_default_candidates_leave_out_the_explicit_only_effects(capsys):
     assert "active_harmonic" in CATALOGUE and "active_harmonic" not in closing.DEFAULT_CANDIDATES
     assert set(closing.DEFAULT_CANDIDATES) | set(EXPLICIT_ONLY) == set(CATALOGUE)
@@ -216,6 +217,7 @@ def test_rounds_default_candidates_leave_out_the_explicit_only_effects(capsys):
         main(["dense", "example", "--candidates", "active_harmonic,nope"])
     assert err.value.code == 2 and "--candidates" in capsys.readouterr().err
 
+@pytest.mark.needs_data("subject_a")
 def test_the_command_line_passes_the_selection_and_rejects_an_unknown_one(capsys, monkeypatch):
     seen = {}
 
@@ -354,7 +356,7 @@ def test_a_pool_that_cannot_start_or_breaks_leaves_the_fits_to_this_process(monk
         def __init__(self, *args, **kw):
             raise OSError("no semaphores")
 
-    monkeypatch.setattr(closing, "ProcessPoolExecutor", NoPool)
+    monkeypatch.setattr(closing, "process_pool", NoPool)
     with pytest.warns(RuntimeWarning, match="one after the other"):
         fits = closing._Fits(None, {}, 2, None, False)
     assert fits.pool is None and [r for r, _ in fits.run(["a", "b", "c"])] == ["a", "b", "c"]
@@ -374,7 +376,7 @@ def test_a_pool_that_cannot_start_or_breaks_leaves_the_fits_to_this_process(monk
         def shutdown(self, **kw):
             pass
 
-    monkeypatch.setattr(closing, "ProcessPoolExecutor", Broken)
+    monkeypatch.setattr(closing, "process_pool", Broken)
     fits = closing._Fits(None, {}, 2, None, False)
     with pytest.warns(RuntimeWarning, match="BrokenProcessPool"):
         assert [r for r, _ in fits.run(["a", "b", "c"])] == ["a", "b", "c"]

@@ -559,37 +559,6 @@ def test_a_run_too_large_for_the_memory_is_refused_before_any_pass(pinned, monke
     assert not passes
 
 
-def test_available_memory_is_capped_by_the_control_group(tmp_path, monkeypatch):
-    limit, used = tmp_path / "memory.max", tmp_path / "memory.current"
-    used.write_text("1000000000\n")
-    monkeypatch.setattr(smoother_module, "CGROUP_FILES", ((str(limit), str(used)),))
-    limit.write_text("max\n")                                        # no limit: the machine's figure
-    machine = smoother_module.available_memory()
-    limit.write_text("3000000000\n")                                 # 2 GB left in the group
-    capped = smoother_module.available_memory()
-    assert capped == (2e9 if machine is None else min(machine, 2e9))
-    limit.write_text("900000000\n")                                  # over its limit already: nothing left
-    assert smoother_module.available_memory() == 0.0
-
-
-def test_available_memory_is_capped_by_the_address_space_limit(monkeypatch):
-    """``ulimit -v`` (RLIMIT_AS) caps what the process can still allocate: its room is the limit
-    less the address space in use, and no limit adds no cap."""
-    resource = smoother_module.resource
-    monkeypatch.setattr(smoother_module, "CGROUP_FILES", ())
-    monkeypatch.setattr(resource, "getrlimit", lambda which: (resource.RLIM_INFINITY, resource.RLIM_INFINITY))
-    assert smoother_module._address_space_room() is None
-    with open("/proc/self/status") as f:
-        size = next(float(line.split()[1]) * 1024.0 for line in f if line.startswith("VmSize:"))
-    cap = int(size + 3e9)                                             # about 3 GB of address space left
-    monkeypatch.setattr(resource, "getrlimit", lambda which: (cap, cap))
-    room = smoother_module._address_space_room()
-    assert abs(room - 3e9) < 0.1e9
-    assert smoother_module.available_memory() <= room + 1.0     # the machine's figure moves between reads
-    monkeypatch.setattr(resource, "getrlimit", lambda which: (int(size / 2), int(size / 2)))
-    assert smoother_module._address_space_room() == 0.0
-
-
 def test_forward_pass_profile_equals_log_likelihood_terms(pinned):
     """The forward pass's log-likelihood is the prediction-error decomposition: -1/2 (sum NIS +
     sum log det S + m log 2 pi)."""

@@ -1,0 +1,213 @@
+"""Sphinx configuration of the sfem_filters documentation.
+
+Build with ``bash scripts/docs.sh`` (warnings are errors). The API reference pages
+(``reference/api/*.rst``) are written here from the packages' ``__all__`` on every build, so a
+name added to an ``__all__`` gets its page without editing the docs. The tutorials are
+sphinx-gallery scripts in ``tutorials_src/``, executed at build time; ``SFEM_DOCS_QUICK=1`` (the
+default) picks their quick settings, ``SFEM_DOCS_QUICK=0`` the full ones.
+"""
+from __future__ import annotations
+
+import importlib
+import os
+import pkgutil
+from pathlib import Path
+
+from docutils import nodes
+
+import sfem_filters
+
+HERE = Path(__file__).resolve().parent
+
+os.environ.setdefault("SFEM_DOCS_QUICK", "1")
+os.environ.setdefault("MPLBACKEND", "Agg")
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+# -- project ---------------------------------------------------------------------------------------
+project = "sfem_filters"
+author = "the sfem_filters authors"
+copyright = "the sfem_filters authors, BSD-3-Clause"
+version = release = sfem_filters.__version__
+
+extensions = [
+    "myst_parser",
+    "sphinx.ext.autodoc",
+    "sphinx.ext.autosummary",
+    "sphinx.ext.mathjax",
+    "sphinx.ext.viewcode",
+    "numpydoc",
+    "sphinxarg.ext",
+    "sphinx_gallery.gen_gallery",
+]
+
+source_suffix = {".rst": "restructuredtext", ".md": "markdown"}
+root_doc = "index"
+exclude_patterns = ["_build", "Thumbs.db", ".DS_Store", "tutorials/*.ipynb", "tutorials/*.py",
+                    "tutorials/*.zip", "tutorials/*.md5", "tutorials/*.pickle", "tutorials/*.json", "**/README.md",
+                    "tutorials_src", "frozen", "_generated"]   # the last two are included by other pages
+templates_path = ["_templates"]
+# No network: no intersphinx. Roles naming numpy/scipy/filterpy objects do not resolve and render as
+# literal text (nitpicky is off; see also _literal_for_unresolved below).
+nitpicky = False
+default_role = "py:obj"
+suppress_warnings = ["config.cache"]
+
+# -- MyST ------------------------------------------------------------------------------------------
+myst_enable_extensions = ["dollarmath", "amsmath", "colon_fence", "deflist"]
+myst_heading_anchors = 3
+
+# -- autodoc / autosummary / numpydoc --------------------------------------------------------------
+autosummary_generate = True
+autosummary_imported_members = True
+autodoc_default_options = {"members": True, "show-inheritance": True}
+autodoc_typehints = "none"               # the numpy docstrings say the types and units
+autodoc_member_order = "bysource"
+numpydoc_show_class_members = False     # autodoc's :members: lists them; numpydoc's tables would repeat them
+numpydoc_class_members_toctree = False
+numpydoc_xref_param_type = False
+numpydoc_validation_checks = set()
+numpydoc_attributes_as_param_list = False
+
+# -- HTML ------------------------------------------------------------------------------------------
+html_theme = "pydata_sphinx_theme"
+html_title = f"sfem_filters {release}"
+html_static_path = ["_static"]
+html_css_files = ["custom.css"]
+html_show_sourcelink = False
+html_theme_options = {
+    "navbar_align": "left",
+    "show_toc_level": 2,
+    "navigation_with_keys": False,
+    "header_links_before_dropdown": 7,
+    # the tutorials (exact names: two wildcards matching one page are a warning) get the room for code
+    "secondary_sidebar_items": {"**": ["page-toc"], "tutorials/index": [],
+                                **{f"tutorials/{p.stem}": [] for p in (HERE / "tutorials_src").glob("*.py")}},
+    "footer_start": ["copyright"],
+    "footer_end": ["sphinx-version", "theme-version"],
+}
+html_sidebars = {"index": [], "install": []}
+
+# -- sphinx-gallery --------------------------------------------------------------------------------
+sphinx_gallery_conf = {
+    "examples_dirs": "tutorials_src",
+    "gallery_dirs": "tutorials",
+    "filename_pattern": r"\.py$",                  # execute every tutorial
+    "within_subsection_order": "FileNameSortKey",
+    "abort_on_example_error": False,               # run them all, then ...
+    "only_warn_on_example_error": False,           # ... fail the build if any raised
+    "download_all_examples": False,
+    "remove_config_comments": True,
+    "min_reported_time": 0,
+    "show_memory": False,
+    "plot_gallery": "True",
+    "matplotlib_animations": False,
+    "image_scrapers": ("matplotlib",),
+    "reset_modules": ("matplotlib",),
+    "capture_repr": ("_repr_html_", "__repr__"),
+    "backreferences_dir": None,
+    "doc_module": (),
+}
+
+# -- API pages from __all__ ------------------------------------------------------------------------
+API_DIR = HERE / "reference" / "api"
+
+
+def public_namespaces() -> list[str]:
+    """The documented namespaces: every subpackage of sfem_filters, then every top-level module
+    with an ``__all__`` (private ``_name`` modules and the CLI excepted), then sfem_filters itself.
+
+    A name exported by several of them is documented once, at the first in this order that
+    exports the same object (its *home*); the others link there."""
+    subpackages, modules = [], []
+    for info in pkgutil.iter_modules(sfem_filters.__path__):
+        if info.name.startswith("_") or info.name == "cli":
+            continue
+        name = f"sfem_filters.{info.name}"
+        if info.ispkg:
+            subpackages.append(name)
+        elif hasattr(importlib.import_module(name), "__all__"):
+            modules.append(name)
+    return sorted(subpackages) + sorted(modules) + ["sfem_filters"]
+
+
+def api_homes() -> dict[str, dict[str, str]]:
+    """``{namespace: {name: home namespace}}`` for every name of every namespace's ``__all__``."""
+    namespaces = public_namespaces()
+    table = {ns: list(importlib.import_module(ns).__all__) for ns in namespaces}
+    homes = {}
+    for ns in namespaces:
+        module = importlib.import_module(ns)
+        homes[ns] = {}
+        for name in table[ns]:
+            obj = getattr(module, name)
+            home = next(other for other in namespaces if name in table[other]
+                        and _same(getattr(importlib.import_module(other), name, None), obj))
+            homes[ns][name] = home
+    return homes
+
+
+def _same(a, b) -> bool:
+    return a is b if not isinstance(b, (int, float, str, tuple, frozenset)) else a is b or a == b
+
+
+def _api_page(ns: str, homes: dict[str, str]) -> str:
+    own = [n for n, h in homes.items() if h == ns]
+    elsewhere = [(n, h) for n, h in homes.items() if h != ns]
+    title = f"``{ns}``"
+    lines = [title, "=" * len(title), "", f".. automodule:: {ns}", "   :no-members:", "",
+             f".. currentmodule:: {ns}", ""]
+    if own:
+        lines += ["Documented here", "---------------", "", ".. autosummary::", "   :toctree: generated/",
+                  "   :nosignatures:", ""] + [f"   {n}" for n in own] + [""]
+    if elsewhere:
+        lines += ["Re-exported", "-----------", "",
+                  f"These names of ``{ns}.__all__`` are documented where they are defined:", "",
+                  ".. autosummary::", "   :nosignatures:", ""]
+        lines += [f"   ~{_relative(h, ns)}.{n}" for n, h in elsewhere] + [""]
+    return "\n".join(lines)
+
+
+def _relative(home: str, ns: str) -> str:
+    """``home`` as autosummary wants it on the page of ``ns`` (relative below it, else absolute)."""
+    return home[len(ns) + 1:] if home.startswith(ns + ".") else home
+
+
+def write_api_pages(app=None, config=None) -> None:
+    """Write ``reference/api/<namespace>.rst`` and the API index (only files whose text changed)."""
+    API_DIR.mkdir(parents=True, exist_ok=True)
+    homes = api_homes()
+    pages = {f"{ns}.rst": _api_page(ns, names) for ns, names in homes.items()}
+    toc = ["API reference", "=============", "",
+           "Every public name: each entry of the ``__all__`` of ``sfem_filters``, of its subpackages and of",
+           "its public top-level modules. A name exported at several levels is documented once, where it is",
+           "defined, and linked from the others. The layer rules (which package may import which) are in",
+           "the README's layout section.", "",
+           ".. toctree::", "   :maxdepth: 1", ""] + [f"   {ns}" for ns in homes] + [""]
+    pages["index.rst"] = "\n".join(toc)
+    for name, text in pages.items():
+        path = API_DIR / name
+        if not path.exists() or path.read_text() != text:
+            path.write_text(text)
+    for stale in API_DIR.glob("*.rst"):
+        if stale.name not in pages:
+            stale.unlink()
+    stubs = {f"{ns}.{n}.rst" for ns, names in homes.items() for n, h in names.items() if h == ns}
+    for stale in (API_DIR / "generated").glob("*.rst"):     # a name taken out of an __all__
+        if stale.name not in stubs:
+            stale.unlink()
+
+
+# -- unresolved external references render as literal text ----------------------------------------
+def _literal_for_unresolved(app, env, node, contnode):
+    """numpy/scipy/filterpy objects named in roles (no intersphinx here): keep them as plain code,
+    without a warning, instead of a broken link."""
+    if node.get("refdomain") == "py" and not str(node.get("reftarget", "")).startswith("sfem_filters"):
+        return contnode if isinstance(contnode, nodes.literal) else nodes.literal("", contnode.astext())
+    return None
+
+
+def setup(app):
+    app.connect("config-inited", write_api_pages)
+    app.connect("missing-reference", _literal_for_unresolved)
+    return {"parallel_read_safe": True}
+

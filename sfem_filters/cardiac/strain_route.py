@@ -1,0 +1,637 @@
+"""DENSE displacements in, Green-Lagrange strain with its uncertainty out, by the finite-element smoother.
+
+The DENSE route of issue 42 (items 3 and 4), as a library function, :func:`dense_strain`:
+
+1. **Mesh.** The reference myocardium (the non-zero pixels of the reference mask) is meshed at
+   a chosen element size, apart from the pixels (:func:`reference_mesh`): its marching-squares
+   borders (:func:`sfem_filters.imaging.contours.mask_borders`, level 1/2, so every pixel centre
+   lies inside) meshed by Gmsh (:func:`sfem_filters.fem.polygon_mesh.polygon_mesh`, default
+   element edge 2 px), or the node-per-pixel mesh (``mesh="pixels"``,
+   :func:`sfem_filters.cardiac.myocardium.tissue_mesh`).
+2. **Observations.** Every tracked reference pixel is observed through the element shape
+   functions, ``D`` of Eq. 12 as an interpolation
+   (:func:`sfem_filters.fem.observation.point_observation_matrix`), each datum with its own noise sd
+   (:class:`sfem_filters.imaging.dense.LagrangianDisplacement` ``sd``), untracked ones missing.
+   The likelihood of the ~2P pixel data of a frame is, as a function of the nodal displacements
+   ``U``, that of one Gaussian datum per free dof: the weighted least-squares fit ``U_t^ =
+   J_t^-1 D^T W_t y_t`` with covariance ``R_t = J_t^-1``, ``J_t = D^T W_t D``, ``W_t`` the data's
+   inverse variances (exactly: the two log-likelihoods differ by a constant in ``U``). The model
+   observes the nodes with that full per-frame ``R_t`` (:class:`NodalFitModel`, the filters'
+   ``R_at`` protocol), so the filter's cost is set by the mesh (n dofs a frame) and not by the
+   image (2P rows). A direction of ``U`` no datum sees (a node whose elements hold no tracked
+   pixel) gets ``J`` regularised by :data:`INFORMATION_FLOOR` of its mean diagonal: a pseudo-datum
+   of zero with a variance ~1e8 times the others', i.e. no information.
+3. **Estimator.** :class:`sfem_filters.model.SFEMModel` (plane-strain linear elasticity, Eq. 19)
+   estimated by :class:`sfem_filters.filtering.iterated.IteratedSmoother`; with the material
+   fixed the model is linear and its MAP is one Kalman-RTS pass. The configuration is chosen for
+   dense data, each setting by a principle, none fitted to a case:
+
+   * *material*: fixed; Young's modulus by :func:`compliant_modulus` (elastic relaxation across
+     the wall over :data:`RELAXATION_CYCLES` cycles), Poisson's ratio nominal. With the nominal
+     10 kPa and Rayleigh damping every mode relaxes to the reference configuration within a
+     frame and the near-incompressible plane-strain tissue resists thickening, so the model
+     cannot carry the wall's motion from frame to frame and flattens radial strain (measured:
+     ``validation_draft/model_dense_sim.py --E 10000``); the compliant tissue lets the state
+     carry the motion (mass and mass damping: a damped constant-velocity prior);
+   * *effects*: none by default (``effects=`` adds catalogue effects; a compliant tissue has no
+     elastic balance for an active stress);
+   * *noise*: each datum's sd is the tracks' sd scaled up to the tracks' temporal noise floor
+     (:func:`temporal_noise_floor`, which also holds the phase texture the magnitude-based sd
+     misses); process noise 0.1 of that floor per frame (the library's rule for measured data,
+     :func:`sfem_filters.cardiac.measured.build_model`), on the velocity over the frame interval;
+   * *element size*: 2.5 px (:class:`StrainRouteSettings`).
+4. **Strain.** ``F = I + grad u`` with ``grad u`` the element's (constant) gradient of the linear
+   triangle holding each reference pixel: the FE field's own gradient, with nothing smoothed on
+   top (a recovered nodal gradient would average over the neighbouring elements, i.e. smooth
+   across a 3-7 pixel wall once more). ``E = (F^T F - I) / 2`` (Green-Lagrange), projected on the
+   radial and circumferential directions about the reference mask's centre of mass
+   (:func:`sfem_filters.imaging.strain.mask_centre`) unless a centre is given.
+5. **Its uncertainty (delta method).** ``E`` is linearised about the estimate: ``dE = sym(dG) +
+   (G^T dG + dG^T G) / 2`` with ``dG = B dU``, so ``dEcc = (F e_c) . (dG e_c)`` and ``dErr =
+   (F e_r) . (dG e_r)``, linear in ``dU`` with coefficients that change from frame to frame. The
+   smoother reports smoothed variances only of *static* output rows
+   (:func:`sfem_filters.filtering.smoother.smooth` ``outputs``), not of a per-frame operator, so
+   the linearised rows are fed to it as follows: (a) per element, the 4 components of ``dG`` and
+   their 6 pairwise sums (10 static rows), whose variances give the element's full 4 x 4
+   smoothed covariance of ``dG`` at every frame (``cov(a, b) = (var(a + b) - var a - var b) / 2``),
+   from which each pixel's Ecc and Err variance is ``a^T C a``; (b) the global and six segment
+   curves (means of the linearised pixel strains) as one static row per curve, component and
+   frame, of which only frame t's variance is read at frame t. So the curves' 95% bands
+   (``+- 1.96 sd``) use the full posterior covariance of the displacement, not independent pixels.
+   The nonlinearity is handled by this first-order linearisation at the posterior mean (its error
+   is second order in the displacement-gradient sd, about 1e-2 here, against strains of 1e-1).
+
+Units: pixels for points and displacements at the interface (x = column, y = row), SI inside
+(the mesh in metres, from the case's pixel size); strain is a fraction; times in s.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+
+from .._validate import as_float_array, positive
+from ..fem.elasticity import stiffness_matrix, strain_displacement
+from ..fem.loads import penalty_stiffness
+from ..fem.material import Material
+from ..fem.mesh import TriMesh
+from ..fem.observation import point_observation_matrix
+from ..fem.polygon_mesh import polygon_mesh
+from ..filtering.iterated import IteratedSmoother
+from ..filtering.linearised import linearise
+from ..filtering.smoother import smooth
+from ..imaging.contours import mask_borders
+from ..imaging.dense import LagrangianDisplacement
+from ..imaging.strain import N_SEGMENTS, green_strain, mask_centre, project_strain, radial_circumferential, \
+    segment_labels
+from ..model import SFEMModel
+from .effects import build_effects
+from .measured import EFFECT_STEP, NOMINAL
+from .myocardium import lv_geometry, tissue_mesh
+
+__all__ = ["StrainRouteSettings", "DenseStrain", "NodalFitModel", "reference_mesh", "observation_points",
+           "nodal_fit", "compliant_modulus", "temporal_noise_floor", "build_dense_model", "element_gradient_operator",
+           "linearised_rows", "strain_and_sd", "dense_strain", "MESHES", "INFORMATION_FLOOR",
+           "RELAXATION_CYCLES", "Z95"]
+
+#: How the reference myocardium is meshed (``mesh=``).
+MESHES = ("gmsh", "pixels")
+#: Regularisation of the nodal fit's information matrix, relative to its mean diagonal.
+INFORMATION_FLOOR = 1e-8
+#: Cycles the elastic relaxation across the wall takes with :func:`compliant_modulus`.
+RELAXATION_CYCLES = 10.0
+#: Two-sided 95% normal quantile.
+Z95 = 1.959963984540054
+
+
+@dataclass(frozen=True)
+class StrainRouteSettings:
+    """Settings of the DENSE route (each with a stated principle; see the module docstring).
+
+    Attributes
+    ----------
+    mesh : {"gmsh", "pixels"}
+        Mesh chosen apart from the pixels, or one node per pixel.
+    element_px : float
+        Target element edge (pixels) of the ``"gmsh"`` mesh. 2.5 px: two elements or more across
+        a 5-7 pixel wall, about six data per node, and a state small enough for the 3-minute
+        budget (the filter's cost grows as the cube of the nodes).
+    effects : tuple of str
+        Effects (:data:`sfem_filters.cardiac.effects.CATALOGUE`) whose loads act on the wall
+        (default none: with the compliant tissue below, active stresses have no elastic
+        response to balance).
+    E : float or None
+        Young's modulus (Pa); None: :func:`compliant_modulus` of the wall thickness and the
+        cycle (the state carries the motion from frame to frame).
+    nu : float
+        Poisson's ratio (nominal 0.45).
+    alpha : float or None
+        Rayleigh mass damping (1/s); None: nominal (:data:`sfem_filters.cardiac.measured.NOMINAL`).
+    process_fraction : float
+        Process noise per frame as a fraction of the temporal noise floor (0.1, the library's
+        rule for measured data, :func:`sfem_filters.cardiac.measured.build_model`).
+    start_deg : float
+        Start of segment 0 (degrees from the image's +x axis towards +y).
+    centre : tuple or None
+        Centre (x, y) in pixels of the radial directions and segments; None: the centre of
+        mass of the reference mask.
+    """
+
+    mesh: str = "gmsh"
+    element_px: float = 2.5
+    effects: tuple = ()
+    E: float | None = None
+    nu: float = NOMINAL["nu"]
+    alpha: float | None = None
+    process_fraction: float = 0.1
+    start_deg: float = 0.0
+    centre: tuple | None = None
+
+    def __post_init__(self):
+        if self.mesh not in MESHES:
+            raise ValueError(f"mesh: expected one of {MESHES}, got {self.mesh!r}")
+        positive("element_px", self.element_px, "pixels")
+        if self.E is not None:
+            positive("E", self.E, "Pa")
+        if not 0 < self.nu < 0.5:
+            raise ValueError(f"nu: expected a Poisson's ratio in (0, 0.5), got {self.nu!r}")
+        positive("process_fraction", self.process_fraction)
+        if self.alpha is not None:
+            positive("alpha", self.alpha, "1/s")
+        object.__setattr__(self, "effects", tuple(self.effects))
+        if self.centre is not None:
+            object.__setattr__(self, "centre", tuple(float(v) for v in as_float_array("centre", self.centre,
+                                                                                      shape=(2,))))
+
+
+@dataclass(frozen=True, eq=False)
+class DenseStrain:
+    """Strain of every reference pixel and frame with its sd, and the global and segment curves.
+
+    Names follow issue 42's JSON (``to_dict``). Strains are Green-Lagrange fractions; ``*_lo``
+    and ``*_hi`` the 95% band (``+- 1.96 sd`` of the linearised posterior).
+
+    Attributes
+    ----------
+    points : (P, 2) array
+        Reference pixel centres (pixels, x = column, y = row).
+    frame_times_s : (F,) array
+    centre : (2,) array
+        Centre (pixels) of the radial directions and segments.
+    start_deg : float
+    labels : (P,) int array
+        Segment of each point.
+    Ecc, Err, Ecr, Ecc_sd, Err_sd : (F, P) arrays
+    global_curves : dict
+        ``Ecc``, ``Err``, ``Ecc_sd``, ``Err_sd``, ``Ecc_lo``, ``Ecc_hi``, ``Err_lo``, ``Err_hi``, each (F,).
+    segment_curves : dict
+        The same names, each (6, F).
+    displacement : (F, P, 2) array
+        The estimated displacement at the points (pixels).
+    seconds : float
+        Wall-clock time of :func:`dense_strain`.
+    settings : dict
+        The settings used and what was derived from the data (process noise, mesh size).
+    mesh : TriMesh
+        The mesh (m).
+    """
+
+    points: np.ndarray
+    frame_times_s: np.ndarray
+    centre: np.ndarray
+    start_deg: float
+    labels: np.ndarray
+    Ecc: np.ndarray
+    Err: np.ndarray
+    Ecr: np.ndarray
+    Ecc_sd: np.ndarray
+    Err_sd: np.ndarray
+    global_curves: dict
+    segment_curves: dict
+    displacement: np.ndarray
+    seconds: float
+    settings: dict
+    mesh: TriMesh = field(repr=False)
+
+    def band(self, quantity: str, which: str = "segments") -> tuple:
+        """``(lo, hi)`` of a curve's 95% band: quantity ``"Ecc"`` or ``"Err"``, ``"segments"`` or ``"global"``."""
+        d = self.segment_curves if which == "segments" else self.global_curves
+        return d[f"{quantity}_lo"], d[f"{quantity}_hi"]
+
+    def to_dict(self) -> dict:
+        """The issue-42 JSON names (lists, ``None`` for NaN)."""
+        def js(a):
+            a = np.asarray(a, float)
+            return np.where(np.isfinite(a), a.astype(object), None).tolist()
+        seg = {"start_deg": self.start_deg, **{k: js(v) for k, v in self.segment_curves.items()}}
+        return {"route": "dense", "points": js(self.points), "frame_times_s": js(self.frame_times_s),
+                "centre": js(self.centre),
+                "strain": {"Ecc": js(self.Ecc), "Err": js(self.Err), "Ecr": js(self.Ecr), "Ecc_sd": js(self.Ecc_sd),
+                           "Err_sd": js(self.Err_sd)},
+                "global": {k: js(v) for k, v in self.global_curves.items()}, "segments": seg,
+                "seconds": self.seconds, "settings": self.settings}
+
+
+# ----------------------------------------------------------------------------------- the mesh
+def reference_mesh(mask, pixel_size_m: float, mesh: str = "gmsh", element_px: float = 2.0) -> TriMesh:
+    """Mesh of a reference myocardium mask, in metres (pixel (r, c) centred on (c, r) px).
+
+    ``"gmsh"``: the mask's borders (marching squares at level 1/2,
+    :func:`sfem_filters.imaging.contours.mask_borders`, taken with about 4 points a pixel so that
+    nothing of the border is lost before :func:`sfem_filters.fem.polygon_mesh.polygon_mesh`
+    resamples it at the element size) meshed at ``element_px`` pixels. ``"pixels"``: one node per
+    pixel centre (:func:`sfem_filters.cardiac.myocardium.tissue_mesh`).
+    """
+    s = positive("pixel_size_m", pixel_size_m, "m")
+    if mesh not in MESHES:
+        raise ValueError(f"mesh: expected one of {MESHES}, got {mesh!r}")
+    m = np.asarray(mask, bool)
+    if mesh == "pixels":
+        rows, cols = np.nonzero(m)
+        return tissue_mesh(np.column_stack([cols, rows]).astype(float) * s)[0]
+    h = positive("element_px", element_px, "pixels")
+    n = 4 * int(m.sum()) + 16
+    b = mask_borders(m, n_endo=max(16, n // 3), n_epi=max(16, n // 2))
+    return polygon_mesh(b.epi * s, [b.endo * s], size=h * s)
+
+
+def observation_points(mesh: TriMesh, points_m) -> tuple:
+    """Points (m) moved into the mesh where they lie outside it (onto the nearest boundary edge).
+
+    Returns the points to observe at and how far each was moved (m). Pixel centres of the
+    reference mask lie inside its level-1/2 border, but the mesh's boundary, a polygon through
+    resampled border points, cuts the border's corners by up to a small fraction of a pixel.
+    """
+    pts = as_float_array("points_m", points_m, shape=(None, 2))
+    tri = mesh.nodes[mesh.elements]
+    v0 = tri[:, 0]
+    Tinv = np.linalg.inv(np.stack([tri[:, 1] - v0, tri[:, 2] - v0], axis=2))
+    lam12 = np.einsum("eij,pej->pei", Tinv, pts[:, None, :] - v0[None])
+    worst = np.minimum(1.0 - lam12.sum(axis=2), lam12.min(axis=2)).max(axis=1)
+    outside = np.flatnonzero(worst < -1e-9)
+    out = pts.copy()
+    moved = np.zeros(len(pts))
+    if outside.size:
+        edges = mesh.boundary_edges()
+        a, b = mesh.nodes[edges[:, 0]], mesh.nodes[edges[:, 1]]
+        ab = b - a
+        for k in outside:
+            t = np.clip(np.einsum("ej,ej->e", pts[k] - a, ab) / np.einsum("ej,ej->e", ab, ab), 1e-6, 1 - 1e-6)
+            q = a + t[:, None] * ab
+            j = int(np.argmin(np.linalg.norm(q - pts[k], axis=1)))
+            # a hair inside: towards the opposite node of the edge's triangle (the tissue is on the left)
+            inward = np.array([-ab[j, 1], ab[j, 0]]) / np.linalg.norm(ab[j])
+            out[k] = q[j] + 1e-9 * np.linalg.norm(ab[j]) * inward
+            moved[k] = float(np.linalg.norm(out[k] - pts[k]))
+    return out, moved
+
+
+# -------------------------------------------------------------------------- the data, compressed
+def nodal_fit(D, displacement_m, sd_m) -> tuple:
+    """Per frame, the weighted least-squares nodal displacements and their covariance.
+
+    Parameters
+    ----------
+    D : (2P, n_dofs) sparse matrix
+        Point observation operator (rows point by point, x before y).
+    displacement_m, sd_m : (F, P, 2) arrays
+        Data (m), NaN where untracked, and their sd (m).
+
+    Returns
+    -------
+    y : (F, n_dofs) array
+        ``J_t^-1 D^T W_t y_t`` (m).
+    R : (F, n_dofs, n_dofs) array
+        ``J_t^-1`` (m^2), ``J_t = D^T W_t D + floor I``, ``floor`` :data:`INFORMATION_FLOOR` of
+        the mean diagonal of ``D^T W_t D``.
+    """
+    D = sp.csr_matrix(D)
+    u = np.asarray(displacement_m, float)
+    s = np.asarray(sd_m, float)
+    F = u.shape[0]
+    n = D.shape[1]
+    y = np.empty((F, n))
+    R = np.empty((F, n, n))
+    for t in range(F):
+        d = u[t].reshape(-1)
+        w = np.where(np.isfinite(d) & np.isfinite(s[t].reshape(-1)) & (s[t].reshape(-1) > 0),
+                     1.0 / np.where(s[t].reshape(-1) > 0, s[t].reshape(-1), 1.0) ** 2, 0.0)
+        if not np.any(w > 0):
+            raise ValueError(f"displacement: expected some tracked point in every frame, got none in frame {t}")
+        Dw = D.multiply(w[:, None]).tocsr()
+        J = (D.T @ Dw).toarray()
+        J[np.diag_indices(n)] += INFORMATION_FLOOR * float(np.mean(np.diag(J)))
+        b = Dw.T @ np.where(w > 0, d, 0.0)
+        Li = np.linalg.solve(np.linalg.cholesky(J), np.eye(n))        # J^-1 = Li^T Li
+        R[t] = Li.T @ Li
+        y[t] = R[t] @ b
+    return y, R
+
+
+class NodalFitModel(SFEMModel):
+    """:class:`SFEMModel` observing every node, with a full measurement covariance per frame.
+
+    ``R_frames`` (F, m, m), m the observed rows: :meth:`R_at` returns frame t's (the filters'
+    per-frame noise protocol); ``R`` is their mean. Everything else is :class:`SFEMModel`'s.
+    """
+
+    def __init__(self, *args, R_frames, **kwargs):
+        R_frames = np.asarray(R_frames, float)
+        super().__init__(*args, **kwargs)
+        if R_frames.shape != (self.n_frames, self.dim_obs, self.dim_obs):
+            raise ValueError(f"R_frames: expected shape ({self.n_frames}, {self.dim_obs}, {self.dim_obs}), "
+                             f"got {R_frames.shape}")
+        self._R_full = R_frames
+        self.R = R_frames.mean(axis=0)
+
+    def R_at(self, t: int) -> np.ndarray:
+        """Measurement noise covariance of frame ``t`` (m^2), full."""
+        return self._R_full[t]
+
+    def with_measurement_noise(self, scale: float) -> "NodalFitModel":
+        out = super().with_measurement_noise(scale)
+        out._R_full = self._R_full * positive("scale", scale)
+        return out
+
+
+def compliant_modulus(wall_m: float, cycle_s: float, density: float = NOMINAL["density"],
+                      alpha: float = NOMINAL["alpha"], cycles: float = RELAXATION_CYCLES) -> float:
+    """Young's modulus (Pa) whose elastic relaxation across the wall takes ``cycles`` cardiac cycles.
+
+    ``E = alpha rho w^2 / (cycles t)``: a wall mode of wavelength ~ the wall thickness ``w`` has
+    ``omega^2 ~ E / (rho w^2)`` and, overdamped by the Rayleigh mass damping ``alpha``, relaxes at
+    ``omega^2 / alpha``; this modulus makes that ``1 / (cycles t)``.
+
+    Why: displacement data cannot identify the force scale (:data:`sfem_filters.cardiac.measured.NOMINAL`),
+    and an elastic tissue pulls every state back towards the reference configuration (with the
+    nominal modulus and Rayleigh damping, every mode relaxes at ``1 / beta`` = 333/s, within a
+    frame), while a near-incompressible plane-strain material also resists the wall's
+    thickening: the model then forgets where the wall was, cannot average the data over frames,
+    and flattens radial strain. With this modulus the elastic forces are negligible over the
+    cycle: from frame to frame the state carries the motion (a damped constant-velocity prior
+    through the mass and the mass damping), and the data, not the reference shape, hold it.
+    """
+    w = positive("wall_m", wall_m, "m")
+    t = positive("cycle_s", cycle_s, "s")
+    return float(positive("alpha", alpha, "1/s") * positive("density", density, "kg/m^3") * w ** 2
+                 / (positive("cycles", cycles) * t))
+
+
+def temporal_noise_floor(displacement) -> float:
+    """Noise sd per component (data units) from the second differences in time of the tracks.
+
+    ``u_t - (u_t-1 + u_t+1) / 2`` of white noise of sd ``s`` has variance ``1.5 s^2``; a smooth
+    motion adds little. So ``sqrt(mean(d2^2) / 1.5)`` over every point, component and frame
+    bounds the noise from above; it holds what the phase-based sd misses (the simulator's or the
+    scanner's phase texture, interpolation). The same rule as the library's measured-data
+    workflow (:func:`sfem_filters.cardiac.measured.noise_floor`, which reports it per point).
+    """
+    u = np.asarray(displacement, float)
+    d2 = u[1:-1] - 0.5 * (u[:-2] + u[2:])
+    if not np.any(np.isfinite(d2)):
+        raise ValueError("displacement: expected a point tracked in 3 consecutive frames for the noise floor, got none")
+    return float(np.sqrt(np.nanmean(d2 ** 2) / 1.5))
+
+
+def build_dense_model(mesh: TriMesh, tracks: LagrangianDisplacement, pixel_size_m: float,
+                      settings: StrainRouteSettings) -> tuple:
+    """The filter model of dense displacement data and its observations (module docstring, steps 2-3).
+
+    Noise, by the data's own level: each datum's sd is the tracks' ``sd`` scaled up (never
+    down) so that its RMS equals the temporal noise floor (:func:`temporal_noise_floor`); the
+    process noise is ``settings.process_fraction`` of that floor per frame on the displacement,
+    and the same over the frame interval on the velocity (the rule of
+    :func:`sfem_filters.cardiac.measured.build_model`).
+
+    Returns ``(model, y, info, points)``: a :class:`NodalFitModel`, the observations (F, n_dofs)
+    in m, a dict of what was derived, and the observed points (m, moved into the mesh).
+    """
+    s = positive("pixel_size_m", pixel_size_m, "m")
+    X = tracks.points * s
+    Xin, moved = observation_points(mesh, X)
+    D = point_observation_matrix(mesh, Xin)
+    F = tracks.displacement.shape[0]
+    if F < 3:
+        raise ValueError(f"tracks: expected at least 3 frames, got {F}")
+    floor_px = temporal_noise_floor(tracks.displacement)
+    sd = np.asarray(tracks.sd, float)
+    sd_rms = float(np.sqrt(np.nanmean(sd ** 2)))
+    sd_scale = max(1.0, floor_px / sd_rms)
+    y, R = nodal_fit(D, tracks.displacement * s, sd * sd_scale * s)
+    T = float(np.median(np.diff(tracks.frame_times_s)))
+    alpha = NOMINAL["alpha"] if settings.alpha is None else settings.alpha
+    E = settings.E if settings.E is not None else compliant_modulus(_wall_thickness(mesh), F * T, alpha=alpha)
+    geometry = lv_geometry(mesh)
+    effs = build_effects(list(settings.effects), mesh, geometry, scale=NOMINAL["E"],
+                         process_std=EFFECT_STEP, initial_std=EFFECT_STEP) if settings.effects else []
+    material = Material.uniform(mesh.n_elements, E, settings.nu)
+    # soft ground springs (the library's drive-free convention, NOMINAL["foundation"] of K's median
+    # diagonal) only remove the rigid-body null space of K; the data hold the position
+    ground = NOMINAL["foundation"] * float(np.median(stiffness_matrix(mesh, material.E, material.nu).diagonal()))
+    penalty = penalty_stiffness(mesh.n_dofs, np.arange(mesh.n_dofs), ground)
+    H = sp.identity(mesh.n_dofs, format="csr")
+    q = settings.process_fraction * floor_px * s
+    # the initial state: at rest in the reference configuration (encoding time, t = 0), uncertain
+    # by the first frame's displacement (frame 0 is 22.5 ms after the encoding, already moved)
+    u0_sd = max(float(np.sqrt(np.mean(y[0] ** 2))), floor_px * s)
+    model = NodalFitModel(mesh, material, np.zeros((F, mesh.n_dofs)), H, T, (), density=NOMINAL["density"],
+                          alpha=alpha, beta=NOMINAL["beta"], measurement_std=1.0,
+                          process_std=(q, q / T), initial_std=(u0_sd, u0_sd / T), effects=effs, penalty=penalty,
+                          R_frames=R)
+    info = {"n_points_moved_into_mesh": int(np.count_nonzero(moved)), "largest_move_px": float(moved.max() / s),
+            "noise_floor_px": floor_px, "tracks_sd_rms_px": sd_rms, "sd_scale": sd_scale,
+            "process_std_px": q / s, "frame_interval_s": T, "E_Pa": E, "alpha_per_s": alpha, "wall_thickness_px": _wall_thickness(mesh) / s,
+            "initial_std_px": u0_sd / s}
+    return model, y, info, Xin
+
+
+def _wall_thickness(mesh: TriMesh) -> float:
+    """Mean wall thickness (m): the area over the mean of the two borders' lengths."""
+    geometry = lv_geometry(mesh)
+    lengths = []
+    for loop in (geometry.endo, geometry.epi):
+        p = mesh.nodes[loop]
+        lengths.append(float(np.sum(np.linalg.norm(p - np.roll(p, 1, axis=0), axis=1))))
+    return float(mesh.areas.sum() / np.mean(lengths))
+
+
+# ------------------------------------------------------------------------------ strain and its sd
+def element_gradient_operator(mesh: TriMesh) -> np.ndarray:
+    """(n_elements, 4, 6): ``B[e] @ U_e`` = (G00, G01, G10, G11), ``G_ij = d u_i / d X_j`` of element e
+    (dofs x0 y0 x1 y1 x2 y2; dimensionless for U and X in the same unit)."""
+    Bv = strain_displacement(mesh)              # rows e_xx = b.ux, e_yy = c.uy, gamma = c.ux + b.uy
+    b, c = Bv[:, 0, 0::2], Bv[:, 1, 1::2]
+    G = np.zeros((mesh.n_elements, 4, 6))
+    G[:, 0, 0::2] = b                           # du_x/dX
+    G[:, 1, 0::2] = c                           # du_x/dY
+    G[:, 2, 1::2] = b                           # du_y/dX
+    G[:, 3, 1::2] = c                           # du_y/dY
+    return G
+
+
+def _element_of(mesh: TriMesh, points_m) -> np.ndarray:
+    tri = mesh.nodes[mesh.elements]
+    v0 = tri[:, 0]
+    Tinv = np.linalg.inv(np.stack([tri[:, 1] - v0, tri[:, 2] - v0], axis=2))
+    lam12 = np.einsum("eij,pej->pei", Tinv, np.asarray(points_m, float)[:, None, :] - v0[None])
+    worst = np.minimum(1.0 - lam12.sum(axis=2), lam12.min(axis=2))
+    return np.argmax(worst, axis=1)
+
+
+def linearised_rows(grad, points, centre) -> tuple:
+    """Coefficients ``a`` (..., P, 4) with ``dEcc = a_cc . dG`` and ``dErr = a_rr . dG`` (dG as G00, G01, G10, G11).
+
+    ``dE = (dG^T F + F^T dG) / 2`` (``F = I + G``), so ``e . dE e = (F e) . (dG e)``.
+    """
+    er, ec = radial_circumferential(points, centre)
+    Fd = np.eye(2) + np.asarray(grad, float)
+    out = []
+    for e in (ec, er):
+        Fe = np.einsum("...pij,pj->...pi", Fd, e)
+        out.append((Fe[..., :, None] * e[:, None, :]).reshape(Fe.shape[:-1] + (4,)))
+    return out[0], out[1]
+
+
+def strain_and_sd(grad, cov, points, centre) -> tuple:
+    """Ecc, Err, Ecr (F, P) from gradients (F, P, 2, 2), and the Ecc, Err sd from their (F, P, 4, 4) covariance."""
+    E = green_strain(grad)
+    ecc, err, ecr = project_strain(E, points, centre)
+    a_cc, a_rr = linearised_rows(grad, points, centre)
+    sd_cc = np.sqrt(np.maximum(np.einsum("...i,...ij,...j->...", a_cc, cov, a_cc), 0.0))
+    sd_rr = np.sqrt(np.maximum(np.einsum("...i,...ij,...j->...", a_rr, cov, a_rr), 0.0))
+    return ecc, err, ecr, sd_cc, sd_rr
+
+
+_PAIRS = [(i, j) for i in range(4) for j in range(i + 1, 4)]
+
+
+def _gradient_rows(mesh: TriMesh, Ge: np.ndarray) -> sp.csr_matrix:
+    """10 rows per element on the global dofs: its 4 gradient components, then their 6 pairwise sums."""
+    dofs = mesh.element_dofs
+    rows, cols, vals = [], [], []
+    for e in range(mesh.n_elements):
+        comps = [Ge[e, i] for i in range(4)] + [Ge[e, i] + Ge[e, j] for i, j in _PAIRS]
+        for k, r in enumerate(comps):
+            rows.extend([10 * e + k] * 6)
+            cols.extend(dofs[e].tolist())
+            vals.extend(r.tolist())
+    return sp.csr_matrix((vals, (rows, cols)), shape=(10 * mesh.n_elements, mesh.n_dofs))
+
+
+def _covariance_from_rows(v: np.ndarray) -> np.ndarray:
+    """(F, n_el, 4, 4) covariances from (F, 10 n_el) variances of components and pairwise sums."""
+    F = v.shape[0]
+    v = v.reshape(F, -1, 10)
+    C = np.zeros(v.shape[:2] + (4, 4))
+    for i in range(4):
+        C[..., i, i] = v[..., i]
+    for k, (i, j) in enumerate(_PAIRS):
+        c = 0.5 * (v[..., 4 + k] - v[..., i] - v[..., j])
+        C[..., i, j] = C[..., j, i] = c
+    return C
+
+
+def _curve_rows(Ge, elem, a, groups, ndofs, dofs) -> np.ndarray:
+    """(len(groups), n_dofs) rows: the mean over each group's points of ``a_p . (B_e(p) U)``."""
+    out = np.zeros((len(groups), ndofs))
+    per_point = np.einsum("pk,pkd->pd", a, Ge[elem])          # (P, 6) coefficients on the element dofs
+    for g, sel in enumerate(groups):
+        if sel.size:
+            np.add.at(out[g], dofs[elem[sel]].ravel(), (per_point[sel] / sel.size).ravel())
+    return out
+
+
+def dense_strain(tracks: LagrangianDisplacement, reference_mask, pixel_size_m: float,
+                 settings: StrainRouteSettings | None = None, progress=None) -> DenseStrain:
+    """The DENSE route: tracks in, Green-Lagrange strain with sd and curves with 95% bands out.
+
+    Parameters
+    ----------
+    tracks : LagrangianDisplacement
+        Displacements (pixels) of the reference pixels with their sd
+        (:func:`sfem_filters.imaging.dense.phase_to_displacement`).
+    reference_mask : (H, W) bool array
+        The reference myocardium; its pixels are ``tracks.points``.
+    pixel_size_m : float
+        Pixel size (m).
+    settings : StrainRouteSettings, optional
+    progress : callable, optional
+        ``progress(message)`` called at each step (from the first second).
+
+    Returns
+    -------
+    DenseStrain
+    """
+    t0 = time.perf_counter()
+    cfg = StrainRouteSettings() if settings is None else settings
+    say = progress if progress is not None else (lambda msg: None)
+    if not isinstance(tracks, LagrangianDisplacement):
+        raise TypeError(f"tracks: expected a LagrangianDisplacement, got {type(tracks).__name__}")
+    s = positive("pixel_size_m", pixel_size_m, "m")
+    mask = np.asarray(reference_mask, bool)
+    rows, cols = np.nonzero(mask)
+    X = tracks.points
+    if len(rows) != len(X) or not np.array_equal(np.column_stack([cols, rows]).astype(float), X):
+        raise ValueError("reference_mask: expected the mask whose pixels (row-major) are tracks.points")
+    centre = mask_centre(mask) if cfg.centre is None else np.asarray(cfg.centre, float)
+    say(f"meshing the reference myocardium ({cfg.mesh}, {cfg.element_px:g} px)")
+    mesh = reference_mesh(mask, s, cfg.mesh, cfg.element_px)
+    say(f"mesh: {mesh.n_nodes} nodes, {mesh.n_elements} triangles; building the model")
+    model, y, info, Xin = build_dense_model(mesh, tracks, s, cfg)
+    F, P = tracks.displacement.shape[:2]
+    say(f"smoothing {F} frames ({model.dim_state} states)")
+    result = IteratedSmoother(covariance=False).run(model, y)
+    nr = model.n_restart
+    n = model.dim_x // 2
+    free = model.dofmap.free
+    U = np.zeros((F, mesh.n_dofs))
+    U[:, free] = result.states[:, :n]
+    # gradients at the points
+    Ge = element_gradient_operator(mesh)
+    elem = _element_of(mesh, Xin)
+    dofs = mesh.element_dofs
+    grad = np.einsum("pkd,fpd->fpk", Ge[elem], U[:, dofs[elem]]).reshape(F, P, 2, 2)
+    labels = segment_labels(X, centre, cfg.start_deg)
+    groups = [np.arange(P)] + [np.flatnonzero(labels == k) for k in range(N_SEGMENTS)]
+    a_cc, a_rr = linearised_rows(grad, X, centre)
+    curve_rows = np.concatenate([np.concatenate([_curve_rows(Ge, elem, a[t], groups, mesh.n_dofs, dofs)
+                                                 for a in (a_cc, a_rr)]) for t in range(F)])   # (F * 14, n_dofs)
+    say("covariance pass (linearised strain)")
+    lin = linearise(model, result.states)
+
+    def on_state(op):
+        op = sp.csr_matrix(op)[:, free]
+        return lin.output_in_xi(sp.hstack([op, sp.csr_matrix((op.shape[0], nr - n))], format="csr"))
+
+    outputs = {"gradient": on_state(_gradient_rows(mesh, Ge)), "curves": on_state(curve_rows)}
+    sm = smooth(lin, y, outputs=outputs, covariance=True)
+    C = _covariance_from_rows(sm.variances["gradient"])                        # (F, n_el, 4, 4)
+    ecc, err, ecr, sd_cc, sd_rr = strain_and_sd(grad, C[:, elem], X, centre)
+    k = 2 * (1 + N_SEGMENTS)
+    vc = sm.variances["curves"].reshape(F, F, k)[np.arange(F), np.arange(F)]    # frame t's rows at frame t
+    sd_curves = np.sqrt(np.maximum(vc, 0.0))                                    # (F, 14)
+    means = {"Ecc": ecc, "Err": err}
+    glob, segs = {}, {}
+    for q_i, q in enumerate(("Ecc", "Err")):
+        m_all = np.stack([means[q][:, g].mean(axis=1) if g.size else np.full(F, np.nan) for g in groups], axis=1)
+        sd_all = sd_curves[:, q_i * (1 + N_SEGMENTS):(q_i + 1) * (1 + N_SEGMENTS)]
+        for d, sl in ((glob, 0), (segs, slice(1, None))):
+            mu, sd = m_all[:, sl].T, sd_all[:, sl].T
+            d[q], d[f"{q}_sd"], d[f"{q}_lo"], d[f"{q}_hi"] = mu, sd, mu - Z95 * sd, mu + Z95 * sd
+    Dp = point_observation_matrix(mesh, Xin)
+    disp_px = (Dp @ U.T).T.reshape(F, P, 2) / s
+    seconds = time.perf_counter() - t0
+    edges = np.linalg.norm(np.diff(mesh.nodes[mesh.elements][:, [0, 1, 2, 0]], axis=1), axis=2).mean() / s
+    settings_out = {**asdict(cfg), **info, "n_nodes": mesh.n_nodes, "n_elements": mesh.n_elements,
+                    "element_px_mean_edge": float(edges), "dim_state": int(model.dim_state),
+                    "material": "fixed: E of compliant_modulus unless given, nu nominal",
+                    "estimator": "IteratedSmoother (material fixed: one Kalman-RTS pass), then a covariance pass",
+                    "strain": "Green-Lagrange of the linear triangles' element gradient",
+                    "sd": "delta method at the posterior mean, full smoothed covariance of U"}
+    say(f"done in {seconds:.1f} s")
+    return DenseStrain(points=X.copy(), frame_times_s=np.asarray(tracks.frame_times_s, float).copy(),
+                       centre=np.asarray(centre, float), start_deg=float(cfg.start_deg), labels=labels, Ecc=ecc,
+                       Err=err, Ecr=ecr, Ecc_sd=sd_cc, Err_sd=sd_rr, global_curves=glob, segment_curves=segs,
+                       displacement=disp_px, seconds=seconds, settings=settings_out, mesh=mesh)

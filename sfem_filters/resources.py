@@ -1,0 +1,235 @@
+"""What the machine lends a run: memory, cores, worker processes and BLAS threads.
+
+Below every other layer (it imports nothing of the package's):
+
+* the memory probe, :func:`available_memory`, which the smoother asks before it keeps its
+  covariances (:func:`sfem_filters.filtering.smoother.check_memory`), the model before it caches
+  modal stiffness derivatives and the rounds before they start fits side by side;
+* the cores this process may use, :func:`usable_cores`, and the pool of worker processes the
+  rounds' fits run in, :func:`process_pool`;
+* the BLAS threads of the filter's dense products, :func:`blas_threads`, under which the
+  estimators' entry points run (:meth:`sfem_filters.filtering.iterated.IteratedSmoother.run`,
+  :func:`sfem_filters.filtering.cyclic.cyclic_estimate`, the command line).
+
+BLAS threads, measured by ``python benchmarks/blas_threads.py`` on a 2-core machine: the filter's
+products are a few n x n matrix products, rank-m updates and Cholesky factors a frame, with n
+from about 200 (the pinned benchmark) to about 5300 (the measured slice on a pixel lattice twice
+as fine). At n ~ 200 a second BLAS thread made the quick start's snippet many times slower, on a
+nearly idle machine as beside other jobs (thread hand-over costs more than a product of well
+under a millisecond); at n ~ 1350 (the measured slice) two threads were slower beside other jobs,
+a whole fit several times so; at n ~ 5300 beside other jobs the products took as long on two
+threads as on one and the Cholesky factor longer. Runs are usually made beside other work
+(the rounds' fits side by side in :func:`process_pool`, a batch, other users), so one thread is
+the default (:data:`DEFAULT_BLAS_THREADS`); where the cores are known to be free for one large
+run, the environment variable :data:`BLAS_THREADS_ENV` or an explicit ``blas_threads(n)`` around
+the call gives it more.
+"""
+from __future__ import annotations
+
+import functools
+import multiprocessing
+import os
+import pickle
+import resource
+import warnings
+from concurrent.futures import ProcessPoolExecutor
+
+import numpy as np
+from threadpoolctl import threadpool_limits
+
+__all__ = ["available_memory", "CGROUP_FILES", "usable_cores", "process_pool", "blas_threads", "chosen_blas_threads",
+           "limits_blas_threads", "DEFAULT_BLAS_THREADS", "BLAS_THREADS_ENV"]
+
+
+# --- memory ------------------------------------------------------------------------------------------------------
+
+#: (limit, usage) files of the process's memory control group: cgroup v2, then v1.
+CGROUP_FILES = (("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory.current"),
+                ("/sys/fs/cgroup/memory/memory.limit_in_bytes", "/sys/fs/cgroup/memory/memory.usage_in_bytes"))
+
+
+def _read_number(path: str) -> float | None:
+    try:
+        with open(path) as f:
+            text = f.read().strip()
+        return float(text) if text and text != "max" else None
+    except (OSError, ValueError):
+        return None
+
+
+def available_memory() -> float | None:
+    """Bytes available to new allocations, or None where the system does not say.
+
+    The smaller of the machine's ``MemAvailable`` (Linux /proc/meminfo) and what the process's
+    control group still allows (cgroup v2 ``memory.max - memory.current``, v1
+    ``memory.limit_in_bytes - memory.usage_in_bytes``), as in a container or a batch slot, and what
+    the process's address-space limit (``ulimit -v``) still allows. A Dask worker's own
+    ``memory_limit`` is not seen here."""
+    found = []
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    found.append(float(line.split()[1]) * 1024.0)
+                    break
+    except (OSError, ValueError, IndexError):
+        pass
+    for limit, used in CGROUP_FILES:
+        cap, now = _read_number(limit), _read_number(used)
+        if cap is not None and now is not None and cap < 2.0 ** 60:     # v1 writes a huge number for none
+            found.append(max(cap - now, 0.0))
+            break
+    room = _address_space_room()
+    if room is not None:
+        found.append(room)
+    return min(found) if found else None
+
+
+def _address_space_room() -> float | None:
+    """Bytes the process's address-space limit (``ulimit -v``, RLIMIT_AS) still allows, or None."""
+    try:
+        soft = resource.getrlimit(resource.RLIMIT_AS)[0]
+        if soft == resource.RLIM_INFINITY:
+            return None
+        with open("/proc/self/status") as f:
+            size = next(float(line.split()[1]) * 1024.0 for line in f if line.startswith("VmSize:"))
+    except (OSError, ValueError, StopIteration, AttributeError):
+        return None
+    return max(float(soft) - size, 0.0)
+
+
+# --- cores and worker processes ----------------------------------------------------------------------------------
+
+def usable_cores() -> int:
+    """Cores this process may run on (its CPU affinity where the system tells it, else all)."""
+    try:
+        return max(len(os.sched_getaffinity(0)), 1)
+    except AttributeError:                  # not on Linux
+        return max(os.cpu_count() or 1, 1)
+
+
+def _format_warnings_with(formatwarning) -> None:
+    """A worker's initialiser: show warnings as the process that started it does."""
+    warnings.formatwarning = formatwarning
+
+
+def process_pool(workers: int) -> ProcessPoolExecutor:
+    """A pool of ``workers`` worker processes started afresh (``"spawn"``): no copy of this
+    process's BLAS threads or locks. The workers format warnings as this process does at the call
+    (``warnings.formatwarning``, for example the command line's one line, where it can be sent to
+    them). Raises ``OSError`` or ``ImportError`` where the system has no process semaphores (some
+    sandboxes); the caller then runs the work itself."""
+    try:
+        pickle.dumps(warnings.formatwarning)
+        initial = {"initializer": _format_warnings_with, "initargs": (warnings.formatwarning,)}
+    except (pickle.PicklingError, AttributeError, TypeError):      # a local function: the workers keep Python's
+        initial = {}
+    return ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"), **initial)
+
+
+# --- BLAS threads ------------------------------------------------------------------------------------------------
+
+#: BLAS threads of the estimators' entry points unless told otherwise: one (measured, the module
+#: docstring and ``benchmarks/blas_threads.py``).
+DEFAULT_BLAS_THREADS = 1
+
+#: The environment variable that overrides :data:`DEFAULT_BLAS_THREADS`: a positive integer.
+BLAS_THREADS_ENV = "SFEM_FILTERS_BLAS_THREADS"
+
+_explicit: list = []                        # the explicit blas_threads(n) in force, innermost last
+
+
+def _threads(name: str, value, text: bool = False) -> int:
+    """``value`` (an int, or with ``text`` the text of one, as an environment variable holds it)
+    as a positive number of threads, or a ValueError/TypeError naming ``name``."""
+    expected = f"{name}: expected a positive integer number of BLAS threads, got {value!r}"
+    if text:
+        text = value.strip()
+        if not text.isdigit() or int(text) < 1:
+            raise ValueError(expected)
+        return int(text)
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
+        raise TypeError(expected)
+    if value < 1:
+        raise ValueError(expected)
+    return int(value)
+
+
+def chosen_blas_threads(n=None) -> int:
+    """The BLAS threads :func:`blas_threads` ``(n)`` sets: ``n`` where given; else those of the
+    innermost explicit :func:`blas_threads` still in force; else the environment variable
+    :data:`BLAS_THREADS_ENV`; else :data:`DEFAULT_BLAS_THREADS`.
+
+    Raises
+    ------
+    ValueError, TypeError
+        ``n`` or the environment variable is not a positive integer (the message names which).
+    """
+    if n is not None:
+        return _threads("blas_threads(n)", n)
+    if _explicit:
+        return _explicit[-1].threads
+    env = os.environ.get(BLAS_THREADS_ENV)
+    if env is not None and env.strip():
+        return _threads(f"environment variable {BLAS_THREADS_ENV}", env, text=True)
+    return DEFAULT_BLAS_THREADS
+
+
+class blas_threads:
+    """Limit the BLAS libraries' threads (threadpoolctl) to :func:`chosen_blas_threads` ``(n)``.
+
+    A context manager, or a setter: the limit applies from the call, and is lifted on leaving the
+    ``with`` block or by :meth:`restore` (the threads in force before come back). An explicit
+    ``n`` also holds for the entry points called inside (they take the innermost explicit choice
+    instead of the default), so ``with blas_threads(2): IteratedSmoother().run(...)`` runs on two.
+
+    Parameters
+    ----------
+    n : int, optional
+        BLAS threads, >= 1; None: the enclosing explicit choice, else the environment variable
+        :data:`BLAS_THREADS_ENV`, else :data:`DEFAULT_BLAS_THREADS`.
+
+    Examples
+    --------
+    >>> from threadpoolctl import threadpool_info
+    >>> with blas_threads(1):
+    ...     all(p["num_threads"] == 1 for p in threadpool_info() if p["user_api"] == "blas")
+    True
+    """
+
+    def __init__(self, n=None):
+        self.threads = chosen_blas_threads(n)
+        self._explicit = n is not None
+        self._limits = threadpool_limits(limits=self.threads, user_api="blas")
+        if self._explicit:
+            _explicit.append(self)
+        self._active = True
+
+    def restore(self) -> None:
+        """Give the BLAS libraries back the threads they had before (once; later calls do nothing)."""
+        if not self._active:
+            return
+        self._active = False
+        if self in _explicit:
+            _explicit.remove(self)
+        self._limits.restore_original_limits()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.restore()
+
+    def __repr__(self) -> str:
+        return f"blas_threads({self.threads})"
+
+
+def limits_blas_threads(run):
+    """Decorate an estimator's entry point to run under :func:`blas_threads` ``()`` (the default,
+    the environment variable or the enclosing explicit choice). Another number of threads may
+    change the last bits of the results (the order of floating-point sums), not more."""
+    @functools.wraps(run)
+    def limited(*args, **kwargs):
+        with blas_threads():
+            return run(*args, **kwargs)
+    return limited

@@ -1,0 +1,199 @@
+"""The DENSE route: Green strain of the FE field, its linearised sd, curves with full-covariance bands."""
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("gmsh", reason="gmsh (the optional mesher, GPL-2.0-or-later) is not installed")
+
+from sfem_filters.cardiac.strain_route import (  # noqa: E402
+    StrainRouteSettings,
+    _curve_rows,
+    _element_of,
+    dense_strain,
+    element_gradient_operator,
+    linearised_rows,
+    reference_mesh,
+    strain_and_sd,
+)
+from sfem_filters.imaging.dense import LagrangianDisplacement, reference_points  # noqa: E402
+from sfem_filters.imaging.strain import green_strain, mask_centre, project_strain, segment_labels  # noqa: E402
+
+PX = 1.75e-3
+
+
+def _ring(n=24, r0=4.0, r1=8.5):
+    yy, xx = np.mgrid[0:n, 0:n]
+    r = np.hypot(xx - (n - 1) / 2, yy - (n - 1) / 2)
+    return (r >= r0) & (r <= r1)
+
+
+def _setup(element_px=2.0):
+    mask = _ring()
+    mesh = reference_mesh(mask, PX, "gmsh", element_px)
+    X = reference_points(mask)
+    elem = _element_of(mesh, X * PX)
+    return mask, mesh, X, elem, element_gradient_operator(mesh)
+
+
+def _gradients(Ge, elem, mesh, U):
+    """(..., P, 2, 2) element gradients at the points for nodal displacements U (..., n_dofs)."""
+    Ue = U[..., mesh.element_dofs[elem]]                       # (..., P, 6)
+    return np.einsum("pkd,...pd->...pk", Ge[elem], Ue).reshape(U.shape[:-1] + (len(elem), 2, 2))
+
+
+def test_the_element_gradient_of_an_affine_field_is_exact_and_a_rigid_rotation_has_no_green_strain():
+    mask, mesh, X, elem, Ge = _setup()
+    A = np.array([[0.1, -0.3], [0.25, 0.05]])
+    U = (mesh.nodes @ A.T).ravel()
+    g = _gradients(Ge, elem, mesh, U)
+    assert np.allclose(g, A, atol=1e-12)
+    a = np.radians(35.0)
+    Rm = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+    U = (mesh.nodes @ (Rm - np.eye(2)).T + [1e-3, -2e-3]).ravel()
+    g = _gradients(Ge, elem, mesh, U)
+    assert np.max(np.abs(green_strain(g))) < 1e-12
+    assert np.max(np.abs(0.5 * (g + np.swapaxes(g, -1, -2)))) > 0.1      # the small strain is not rotation-free
+
+
+def _random_state(mesh, rng, sd=2e-6):
+    """A deformed mean (10% radial dilation, a twist) and a random SPD covariance of the dofs (m^2)."""
+    c = mesh.nodes.mean(axis=0)
+    d = mesh.nodes - c
+    U = (0.1 * d + 0.05 * np.column_stack([-d[:, 1], d[:, 0]])).ravel()
+    n = mesh.n_dofs
+    L = rng.standard_normal((n, n)) / np.sqrt(n)
+    C = sd ** 2 * (L @ L.T + 0.2 * np.eye(n))
+    dilation = 0.005 * d.ravel()                                   # a smooth mode (0.5% dilation sd), as a
+    C += np.outer(dilation, dilation)                              # posterior has: correlated strain
+    return U, C
+
+
+def test_the_linearised_strain_sd_matches_a_monte_carlo_of_displacement_draws():
+    mask, mesh, X, elem, Ge = _setup()
+    rng = np.random.default_rng(0)
+    U, C = _random_state(mesh, rng)
+    centre = mask_centre(mask)
+    g0 = _gradients(Ge, elem, mesh, U)
+    # the 4 x 4 covariance of each point's gradient, B C B^T
+    B = np.zeros((len(elem), 4, mesh.n_dofs))
+    for p, e in enumerate(elem):
+        B[p][:, mesh.element_dofs[e]] = Ge[e]
+    cov = np.einsum("pid,de,pje->pij", B, C, B)
+    _, _, _, sd_cc, sd_rr = strain_and_sd(g0, cov, X, centre)
+    draws = rng.multivariate_normal(U, C, size=4000)
+    ecc, err, _ = project_strain(green_strain(_gradients(Ge, elem, mesh, draws)), X, centre)
+    mc_cc, mc_rr = ecc.std(axis=0), err.std(axis=0)
+    # 4000 draws: the sd of an sd estimate is ~1.1%; the linearisation error is second order
+    assert np.allclose(sd_cc, mc_cc, rtol=0.06)
+    assert np.allclose(sd_rr, mc_rr, rtol=0.06)
+    # the delta method's F matters: the small-strain sd (F = I) is off by more than the tolerance
+    _, _, _, sd_small, _ = strain_and_sd(np.zeros_like(g0), cov, X, centre)
+    assert np.max(np.abs(sd_small / mc_cc - 1)) > 0.06
+
+
+def test_the_segment_band_is_the_sd_of_the_mean_from_the_full_covariance():
+    mask, mesh, X, elem, Ge = _setup()
+    rng = np.random.default_rng(1)
+    U, C = _random_state(mesh, rng)
+    centre = mask_centre(mask)
+    g0 = _gradients(Ge, elem, mesh, U)
+    a_cc, _ = linearised_rows(g0, X, centre)
+    labels = segment_labels(X, centre, 30.0)
+    groups = [np.arange(len(X))] + [np.flatnonzero(labels == k) for k in range(6)]
+    rows = _curve_rows(Ge, elem, a_cc, groups, mesh.n_dofs, mesh.element_dofs)
+    var_rows = np.einsum("gi,ij,gj->g", rows, C, rows)
+    # by hand: the (P, n_dofs) Jacobian of every point's Ecc, then w^T (A C A^T) w for each group
+    A = np.zeros((len(X), mesh.n_dofs))
+    for p, e in enumerate(elem):
+        for k in range(4):
+            A[p, mesh.element_dofs[e]] += a_cc[p, k] * Ge[e, k]
+    cov_points = A @ C @ A.T
+    for g, sel in enumerate(groups):
+        w = np.zeros(len(X))
+        w[sel] = 1.0 / sel.size
+        assert var_rows[g] == pytest.approx(w @ cov_points @ w, rel=1e-10)
+        independent = np.sum(np.diag(cov_points)[sel]) / sel.size ** 2
+        assert abs(var_rows[g] - independent) > 0.05 * var_rows[g]      # the correlations count
+
+
+def _synthetic_tracks(mask, frames=6, noise_px=0.05, seed=0):
+    """A ring that dilates radially (thickening) and turns, with noisy Lagrangian displacements (px)."""
+    X = reference_points(mask)
+    c = mask_centre(mask)
+    d = X - c
+    t = np.linspace(0.2, 1.0, frames)
+    rng = np.random.default_rng(seed)
+    r = np.linalg.norm(d, axis=1)
+    # an inward radial field u_r = -k(t) / r (area preserving: the wall thickens) and a small turn
+    u_r = -(0.15 * t[:, None]) * (20.0 / r)[None]
+    turn = np.column_stack([-d[:, 1], d[:, 0]])
+    disp = u_r[..., None] * (d / r[:, None])[None] + 0.02 * t[:, None, None] * turn[None]
+    noisy = disp + noise_px * rng.standard_normal(disp.shape)
+    sd = np.full(disp.shape, noise_px)
+    return LagrangianDisplacement(points=X, displacement=noisy, sd=sd, confidence=np.ones(disp.shape[:2]),
+                                  frame_times_s=0.0225 + 0.015 * np.arange(frames), n_untracked=0,
+                                  noise_sd=np.array([1.0, 1.0])), disp
+
+
+def test_dense_strain_on_a_small_ring_gives_the_issue_names_and_honest_shapes():
+    mask = _ring()
+    tracks, truth = _synthetic_tracks(mask)
+    messages = []
+    r = dense_strain(tracks, mask, PX, StrainRouteSettings(element_px=2.0, start_deg=15.0), progress=messages.append)
+    F, P = tracks.displacement.shape[:2]
+    assert messages and "meshing" in messages[0]
+    for name in ("Ecc", "Err", "Ecr", "Ecc_sd", "Err_sd"):
+        assert getattr(r, name).shape == (F, P) and np.all(np.isfinite(getattr(r, name)))
+    assert np.all(r.Ecc_sd > 0) and np.all(r.Err_sd > 0)
+    for q in ("Ecc", "Err"):
+        assert r.global_curves[q].shape == (F,) and r.segment_curves[q].shape == (6, F)
+        lo, hi = r.band(q)
+        assert np.all(lo < r.segment_curves[q]) and np.all(r.segment_curves[q] < hi)
+        # a mean of correlated pixels is less sure than the pixels' own sd over sqrt(n) would say ... but
+        # never less sure than the least sure pixel
+        assert np.all(r.global_curves[f"{q}_sd"] <= getattr(r, f"{q}_sd").max(axis=1) + 1e-12)
+    d = r.to_dict()
+    assert set(d) >= {"points", "frame_times_s", "strain", "global", "segments", "seconds", "route", "settings"}
+    assert set(d["strain"]) == {"Ecc", "Err", "Ecr", "Ecc_sd", "Err_sd"}
+    assert set(d["global"]) >= {"Ecc", "Err", "Ecc_lo", "Ecc_hi", "Err_lo", "Err_hi"}
+    assert d["segments"]["start_deg"] == 15.0 and np.shape(d["segments"]["Err_hi"]) == (6, F)
+    # the truth's strain (exact Green strain of u, by central differences of the field) is recovered in the mean
+    c = mask_centre(mask)
+    k = 0.15 * np.linspace(0.2, 1.0, F) * 20.0
+    h = 1e-5
+
+    def u_at(x, kk, tt):
+        d = x - c
+        rr = np.linalg.norm(d, axis=-1, keepdims=True)
+        return -kk * d / rr ** 2 + 0.02 * tt * np.stack([-d[..., 1], d[..., 0]], axis=-1)
+
+    for f, (kk, tt) in enumerate(zip(k, np.linspace(0.2, 1.0, F))):
+        G = np.stack([(u_at(tracks.points + [h, 0], kk, tt) - u_at(tracks.points - [h, 0], kk, tt)) / (2 * h),
+                      (u_at(tracks.points + [0, h], kk, tt) - u_at(tracks.points - [0, h], kk, tt)) / (2 * h)], axis=-1)
+        ecc, err, _ = project_strain(green_strain(G), tracks.points, c)
+        assert abs(r.global_curves["Err"][f] - err.mean()) < 0.01 + 0.2 * abs(err.mean())
+        assert abs(r.global_curves["Ecc"][f] - ecc.mean()) < 0.01 + 0.2 * abs(ecc.mean())
+    assert err.mean() > 0.05 and ecc.mean() < -0.05                      # the wall thickens, the ring shortens
+
+
+DATA = Path(os.environ.get("SFEM_FILTERS_DATA", Path(__file__).resolve().parents[3] / "shared" / "data"))
+CASE = DATA / "dense_sim" / "phantom_subject_1"
+
+
+@pytest.mark.skipif(not (CASE / "config.yaml").is_file(),
+                    reason=f"the DENSE-Sim case is not here ({CASE}); set SFEM_FILTERS_DATA to the shared data")
+def test_on_the_given_phantom_the_first_frames_follow_the_truth():
+    from sfem_filters.imaging.dense import add_complex_noise, make_dense_case, phase_to_displacement, read_dense_sim
+    from sfem_filters.imaging.dense import truth_at_points
+    full = read_dense_sim(CASE)
+    k = 8                                                         # the first 8 frames: a quick check
+    case = make_dense_case(full.phases[:, :k], full.magnitude[:k], full.masks[:k + 1], full.pixel_size_mm, 0.1,
+                           full.frame_times_s[:k], truth_ecc=full.truth_ecc[:k], truth_err=full.truth_err[:k])
+    noisy = add_complex_noise(case, 30.0, 0)
+    r = dense_strain(phase_to_displacement(noisy), noisy.reference_mask, noisy.pixel_size_m)
+    te, tr = truth_at_points(noisy)
+    # the global curves within 2 points of the truth's over these early frames
+    assert np.max(np.abs(r.global_curves["Ecc"] - np.nanmean(te, axis=1))) < 0.02
+    assert np.max(np.abs(r.global_curves["Err"] - np.nanmean(tr, axis=1))) < 0.02

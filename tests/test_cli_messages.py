@@ -1,0 +1,41 @@
+"""The command line's argument errors say what was expected, never an internal name."""
+import pytest
+
+from sfem_filters.cli import build_parser, main
+
+
+@pytest.mark.parametrize("argv, expected", [
+    (["compare", "--seed", "0-x"], "seeds like 0 or 0,1,2 or 0-4"),
+    (["compare", "--seed", "x"], "seeds like 0 or 0,1,2 or 0-4"),
+    (["compare", "--refine", "two"], "an integer >= 1"),
+    (["compare", "--noise-mm", "abc"], "a positive number"),
+    (["compare", "--noise-mm", "inf"], "a positive number"),
+    (["dense", "example", "--landmarks", "many"], "an integer >= 3"),
+    (["dense", "example", "--folds", "1.5"], "an integer >= 2"),
+    (["--blas-threads", "0", "compare"], "an integer >= 1"),
+])
+def test_argument_errors_name_the_expectation_not_our_functions(argv, expected, capsys):
+    with pytest.raises(SystemExit) as exc:
+        build_parser().parse_args(argv)
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert expected in err, err
+    assert "invalid" not in err and "_seeds" not in err and "_positive" not in err and "_integer" not in err
+
+
+def test_dense_help_lists_the_sequence_keys_and_names_the_docs_page(capsys):
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["dense", "--help"])
+    out = " ".join(capsys.readouterr().out.split())
+    assert "README" not in out
+    for key in ("points", "displacement", "sigma", "confidence", "Formats and readers", "--download"):
+        assert key in out, key
+
+
+def test_dense_example_without_data_says_how_to_get_it(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("SFEM_FILTERS_DATA", str(tmp_path / "empty"))
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    monkeypatch.setattr("sfem_filters.datasets.cache_dir", lambda: tmp_path / "cache", raising=False)
+    assert main(["dense", "example", "--effects", "none", "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "subject_a" in err and "SFEM_FILTERS_DATA" in err

@@ -1,0 +1,76 @@
+"""Every results table in the README and the docs is a generated file, shown as it was generated.
+
+(a) The README's blocks between ``<!-- generated: PATH -->`` and ``<!-- end generated -->`` are
+the files they name, line for line (``python -m validation sync-readme`` rewrites them).
+(b) No page (README.md, docs/**/*.md but docs/_generated/, docs/frozen/ and build outputs) holds a
+Markdown table with a decimal number in a body cell outside such a block: results come in by an
+``{include}`` of a generated file, never pasted.
+(c) Every ``{include}`` of a generated file names one that exists, so the pages build.
+"""
+from __future__ import annotations
+
+import re
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from validation import readme  # noqa: E402
+
+PAGES = readme.checked_pages()
+INCLUDE = re.compile(r"^```\{include\}\s+(?P<path>\S+)\s*$", re.M)
+
+
+def _ids(paths):
+    return [str(p.relative_to(ROOT)) for p in paths]
+
+
+@pytest.mark.parametrize("page", PAGES, ids=_ids(PAGES))
+def test_generated_blocks_match_their_files(page):
+    assert readme.stale_blocks(page) == []
+
+
+@pytest.mark.parametrize("page", PAGES, ids=_ids(PAGES))
+def test_no_results_table_pasted_by_hand(page):
+    found = readme.results_tables(page)
+    assert found == [], "results tables not generated (include a docs/_generated/ file instead):\n" + "\n".join(
+        f"{page.relative_to(ROOT)}:{line}: {row[:100]}" for line, row in found)
+
+
+@pytest.mark.parametrize("page", PAGES, ids=_ids(PAGES))
+def test_included_generated_files_exist(page):
+    for m in INCLUDE.finditer(page.read_text()):
+        target = (page.parent / m.group("path")).resolve()
+        if "_generated" in target.parts:
+            assert target.exists(), f"{page.relative_to(ROOT)} includes {m.group('path')}, which does not exist"
+
+
+def test_sync_rewrites_a_stale_block_and_leaves_the_rest(tmp_path):
+    src = tmp_path / "t.md"
+    src.write_text("| a | b |\n|---|---|\n| x | 1.5 |\n")
+    text = f"intro\n<!-- generated: {src} -->\nold line\n<!-- end generated -->\noutro\n"
+    page = tmp_path / "page.md"
+    page.write_text(text)
+    assert readme.blocks(text) == [(str(src), 1, 3)]
+    assert readme.stale_blocks(page)
+    assert readme.rewrite(text) == (f"intro\n<!-- generated: {src} -->\n| a | b |\n|---|---|\n| x | 1.5 |\n"
+                                    "<!-- end generated -->\noutro\n")
+    page.write_text(readme.rewrite(text))
+    assert readme.stale_blocks(page) == [] and readme.results_tables(page) == []
+
+
+def test_results_table_detection(tmp_path):
+    page = tmp_path / "p.md"
+    page.write_text("| name | shape |\n|---|---|\n| U | (16, 26) |\n\n"     # names and shapes: allowed
+                    "```\n| in | code |\n|---|---|\n| 0.5 | 1.5 |\n```\n\n"     # a fenced block is not a table
+                    "| case | RMSE |\n|---|---|\n| a | 0.544 |\n"                # a pasted result
+                    "\n| file | what |\n|---|---|\n| `x = 0.5` | section 2.7, Python 3.10 |\n")
+    assert [line for line, _ in readme.results_tables(page)] == [13]
+
+
+def test_an_unterminated_block_is_an_error():
+    with pytest.raises(ValueError, match="end generated"):
+        readme.blocks("<!-- generated: docs/_generated/table1.md -->\n| a |\n")
