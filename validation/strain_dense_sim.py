@@ -35,6 +35,7 @@ from sfem_filters.imaging import (add_complex_noise, conventional_analysis, phas
 from ._core import fmt, md_table
 
 NAME = "strain_dense_sim"
+NEEDS_DATA = True
 TITLE = "Strain against DENSE-Sim's ground truth"
 FULL_COST = "about 20-30 minutes on 2 cores (12 runs of our route)"
 TIERS = {"quick": {"cases": ["phantom_subject_1"], "snr": [30.0], "seeds": [0], "frames": 8, "route": True},
