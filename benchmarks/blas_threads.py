@@ -45,6 +45,7 @@ from sfem_filters.cardiac import build_model, example_path, load_sequence, prepa
 from sfem_filters.filtering.linearised import LinearisedModel
 from sfem_filters.filtering.smoother import LinearisedEngine
 from sfem_filters.resources import BLAS_THREADS_ENV, DEFAULT_BLAS_THREADS, blas_threads
+from sfem_filters.resources import best_of
 
 
 def load() -> str:
@@ -63,14 +64,6 @@ def cpu_model() -> str:
     except (OSError, StopIteration):
         return platform.processor() or "?"
 
-
-def best_of(fn, repeat: int) -> float:
-    best = np.inf
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        fn()
-        best = min(best, time.perf_counter() - t0)
-    return best
 
 
 def snippet(quick: bool) -> tuple:

@@ -35,16 +35,8 @@ from sfem_filters.cardiac import annulus_sequence, build_model, example_path, lo
 from sfem_filters.filtering import kalman_forward, linearise, smooth_backward
 from sfem_filters.filtering.iterated import open_loop
 from sfem_filters.filtering.smoother import stored_bytes
+from sfem_filters.resources import best_of
 
-
-def best_of(fn, repeat: int) -> float:
-    """Least wall time (s) of ``repeat`` calls of ``fn()``."""
-    best = np.inf
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        fn()
-        best = min(best, time.perf_counter() - t0)
-    return best
 
 
 def case(setup, parameterisation, repeat, every):

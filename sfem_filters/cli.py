@@ -138,7 +138,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="relative material change that ends the loops (default 1e-3)")
     c.add_argument("--checkpoint-dir", metavar="DIR",
                    help="save the joint EKF after every loop and resume from there if interrupted")
-    c.add_argument("--no-progress", action="store_true", help="no progress bar")
+    _progress_options(c, "the per-loop and per-iteration bars of the joint estimators")
     _batch_options(c, "seed")
     c.add_argument("--summary", action="store_true",
                    help="Table 1 over the seeds: per strategy the rejection rate at 5%% with its 95%% Wilson interval, "
@@ -223,7 +223,9 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--json", metavar="PATH", help="write the report as JSON")
     d.add_argument("--figures", metavar="DIR", help="write the figures (PNG) into DIR")
     d.add_argument("--export", metavar="DIR", help="write ParaView time series (.pvd + .vtu) into DIR")
-    d.add_argument("--no-progress", action="store_true", help="no progress bar")
+    _progress_options(d, "a line as the baseline and each round end: what was tried and kept, the held-out error "
+                         "against the spline's, the elapsed time, an upper bound of the time left; and each fit's "
+                         "bar: iterations, cost, time")
     _batch_options(d, "file", "; with one file, the fits of each round made side by side, one process each on one "
                               "BLAS thread, the same figures whatever the number (default: one per core, as far as "
                               "the memory holds them)")
@@ -240,7 +242,42 @@ def build_parser() -> argparse.ArgumentParser:
     o.add_argument("--venc", type=_positive_float, help="velocity encoding in m/s (overrides the file)")
     o.add_argument("--window", type=_positive_int, default=2, help="search window, contour points (default 2)")
     o.add_argument("--figures", metavar="DIR", help="write the figures (PNG) into DIR")
+    o.add_argument("-q", "--quiet", action="store_true",
+                   help="for scripts: no progress output (observe shows no bars; accepted as by every verb); "
+                        "the results, errors and warnings are still printed")
     return p
+
+
+def _progress_options(p, what: str) -> None:
+    """``--quiet`` and ``--no-progress`` of a verb that shows progress on stderr (``what``)."""
+    p.add_argument("-q", "--quiet", action="store_true",
+                   help=f"for scripts: no progress on stderr ({what}); the results, errors and warnings are still "
+                        "printed. Implies --no-progress")
+    p.add_argument("--no-progress", action="store_true", help="no progress on stderr: the same as --quiet")
+
+
+def _progress(args) -> bool:
+    """Whether the verb shows its progress on stderr: not with ``--quiet`` nor ``--no-progress``."""
+    return not (getattr(args, "quiet", False) or getattr(args, "no_progress", False))
+
+
+def _message(command: str, kind: str, text: str) -> None:
+    """One line of the command line's own on stderr: ``sfem-filters COMMAND: KIND: TEXT``."""
+    print(f"sfem-filters {command}: {kind}: {text}", file=sys.stderr)
+
+
+def _interrupted(args, exc) -> str:
+    """What an interrupted verb (Ctrl-C) had finished and where it is kept."""
+    if getattr(exc, "message", None):                   # the rounds say it themselves (RoundsInterrupted)
+        return exc.message
+    kept = getattr(args, "kept_in", None)
+    if kept is not None:
+        return f"interrupted; the finished jobs are kept in {kept} (the same command resumes from them)"
+    if getattr(args, "checkpoint_dir", None):
+        return (f"interrupted; the joint estimators' checkpoints are kept in {args.checkpoint_dir} (the same command "
+                "resumes from them)")
+    return "interrupted; nothing is kept" + (" (--checkpoint-dir DIR keeps the joint estimators' progress)"
+                                             if args.command == "compare" else "")
 
 
 def _batch_mode(args, n_jobs: int) -> bool:
@@ -258,8 +295,9 @@ def _run_batch(args, jobs, command: str):
     if directory is None:
         configs = json.dumps([{k: v for k, v in j.config.items() if k != "seed"} for j in jobs[:1]], sort_keys=True)
         directory = os.path.join("out", "batch", f"{command}-{hashlib.sha256(configs.encode()).hexdigest()[:10]}")
+    args.kept_in = directory                            # for an interruption's message
     report = run_batch(jobs, directory, scheduler=args.scheduler or ("local" if len(jobs) > 1 else "serial"),
-                       workers=args.workers, progress=not args.no_progress)
+                       workers=args.workers, progress=_progress(args))
     print(report.summary_line(), file=sys.stderr)
     for name, message in report.failed.items():
         print(f"sfem-filters {command}: job {name} failed: {message} (traceback in "
@@ -287,7 +325,7 @@ def cmd_compare(args) -> int:
             return 1
     else:
         comp = run_comparison(args.seed[0], args.refine, args.noise_mm, engine=args.engine, max_loops=args.max_loops,
-                              tol=args.tol, progress=not args.no_progress, checkpoint_dir=args.checkpoint_dir)
+                              tol=args.tol, progress=_progress(args), checkpoint_dir=args.checkpoint_dir)
         if args.figures:
             from .plotting.comparison import comparison_figures
             for path in comparison_figures(comp, args.figures, ekf_tol=args.tol):
@@ -348,7 +386,7 @@ def cmd_dense(args) -> int:
     path = args.path[0]
     seq = load_sequence(example_path(download=args.download) if path == "example" else path)
     # --workers changes how fast, not what: it is not part of the configuration (nor a batch fingerprint)
-    out = closing_the_loop(seq, progress=not args.no_progress, workers=args.workers, **config)
+    out = closing_the_loop(seq, progress=_progress(args), workers=args.workers, **config)
     print(format_report(out))
     note = not_converged_note(out.as_json())
     if note:
@@ -440,15 +478,19 @@ def main(argv=None) -> int:
         # BLAS: --blas-threads, else SFEM_FILTERS_BLAS_THREADS, else the measured default
         with blas_threads(args.blas_threads), _warnings_as_lines():
             return {"compare": cmd_compare, "dense": cmd_dense, "observe": cmd_observe}[args.command](args)
+    except KeyboardInterrupt as exc:
+        # Ctrl-C: the rounds have stopped their workers; one line says what finished and where it is kept
+        _message(args.command, "interrupted", _interrupted(args, exc).removeprefix("interrupted").lstrip(" ;,"))
+        return 130
     except MemoryError as exc:
         # the smoother's own refusal says what to reduce; an allocation that fails midway does not
         text = str(exc) if isinstance(exc, InsufficientMemory) else (
             "out of memory" + (f" ({exc})" if str(exc) else "") + f"; the run needs more memory than is free here: "
             f"{MEMORY_ADVICE}")
-        print(f"sfem-filters {args.command}: error: {text}", file=sys.stderr)
+        _message(args.command, "error", text)
         return 2
     except (ValueError, TypeError, OSError, ImportError) as exc:
-        print(f"sfem-filters {args.command}: error: {exc}", file=sys.stderr)
+        _message(args.command, "error", str(exc))
         return 2
 
 

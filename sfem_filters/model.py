@@ -178,11 +178,6 @@ class SFEMModel(LinearObservation):
         Extra output operators ``{name: (k, n_dofs) matrix}`` on the global displacements (m), for
         example polar strains, whose smoothed uncertainty a smoother reports
         (:meth:`output_operators`).
-    system_class : type
-        The exact discretisation, constructed as ``system_class(M, K, alpha, beta, T)`` over the
-        free dofs (default :class:`sfem_filters.fem.statespace.ModalSystem`); any class with its
-        interface (``step``, ``transition_matrix``, ``input_response``, ``sensitivity``), for
-        example another revision's for a benchmark.
 
     Notes
     -----
@@ -196,8 +191,7 @@ class SFEMModel(LinearObservation):
                  parameterisation: Parameterisation | None = None, prior_std=(0.3, 1.0),
                  material_process_std=(0.0, 0.0), penalty=None, thickness: float = 1.0,
                  lumped_mass: bool = False, jacobian: str = "modal", effects=(),
-                 initial_displacement=None, process_load_std=None, prior_cov=None, velocity_operator=None,
-                 system_class=ModalSystem, outputs=None):
+                 initial_displacement=None, process_load_std=None, prior_cov=None, velocity_operator=None, outputs=None):
         check_mesh("mesh", mesh)
         if not isinstance(material, Material):
             raise TypeError(f"material: expected a Material, got {type(material).__name__}")
@@ -213,9 +207,9 @@ class SFEMModel(LinearObservation):
         self.alpha = non_negative("alpha", alpha, "1/s")
         self.beta = non_negative("beta", beta, "s")
         self.jacobian = jacobian
-        if not isinstance(system_class, type):
-            raise TypeError(f"system_class: expected a class like ModalSystem, got {type(system_class).__name__}")
-        self.system_class = system_class
+        # the exact discretisation over the free dofs (a test may put another class with the same
+        # interface here: step, transition_matrix, input_response, sensitivity)
+        self._system_class = ModalSystem
         self._outputs = {}
         for name, op in (outputs or {}).items():
             op = sp.csr_matrix(op)
@@ -476,8 +470,8 @@ class SFEMModel(LinearObservation):
                 parts.append(self.parameterisation.offset_E)
         for a in parts:
             h.update(np.ascontiguousarray(a).tobytes())
-        h.update(f"{self.jacobian},{[e.name for e in self.effects]},{self.system_class.__module__}."
-                 f"{self.system_class.__qualname__}".encode())
+        h.update(f"{self.jacobian},{[e.name for e in self.effects]},{self._system_class.__module__}."
+                 f"{self._system_class.__qualname__}".encode())
         return h.hexdigest()
 
     def _entry(self, mat: Material):
@@ -490,7 +484,7 @@ class SFEMModel(LinearObservation):
         K = self.dofmap.restrict_matrix(stiffness_matrix(self.mesh, mat.E, mat.nu, self.thickness)).toarray()
         if self.penalty is not None:
             K = K + self.penalty
-        system = self.system_class(self.M, K, self.alpha, self.beta, self.frame_interval)
+        system = self._system_class(self.M, K, self.alpha, self.beta, self.frame_interval)
         entry = (system, K, mat)
         self._cache[key] = entry
         if len(self._cache) > 4:
@@ -602,7 +596,7 @@ class SFEMModel(LinearObservation):
         no ``M_t``, the exact linear model of that material). The theta-dependent parts are
         cached for the last two materials. Falls back to
         :func:`sfem_filters.filtering.linearised.linearise_dense` for ``jacobian="expm_frechet"``
-        or a ``system_class`` that is not a :class:`ModalSystem`.
+        or a discretisation that is not a :class:`ModalSystem`.
         """
         z = as_float_array("states", states, shape=(self.n_frames, self.dim_state))
         nr, nx, p = self.n_restart, self.dim_x, self.dim_theta

@@ -6,7 +6,8 @@ Below every other layer (it imports nothing of the package's):
   covariances (:func:`sfem_filters.filtering.smoother.check_memory`), the model before it caches
   modal stiffness derivatives and the rounds before they start fits side by side;
 * the cores this process may use, :func:`usable_cores`, and the pool of worker processes the
-  rounds' fits run in, :func:`process_pool`;
+  rounds' fits run in, :func:`process_pool`, whose workers leave Ctrl-C to their parent
+  (:func:`starting_workers`);
 * the BLAS threads of the filter's dense products, :func:`blas_threads`, under which the
   estimators' entry points run (:meth:`sfem_filters.filtering.iterated.IteratedSmoother.run`,
   :func:`sfem_filters.filtering.cyclic.cyclic_estimate`, the command line).
@@ -26,19 +27,24 @@ the call gives it more.
 """
 from __future__ import annotations
 
+import contextlib
 import functools
 import multiprocessing
 import os
 import pickle
 import resource
+import signal
+import threading
+import time
 import warnings
 from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-__all__ = ["available_memory", "CGROUP_FILES", "usable_cores", "process_pool", "blas_threads", "chosen_blas_threads",
-           "limits_blas_threads", "DEFAULT_BLAS_THREADS", "BLAS_THREADS_ENV"]
+__all__ = ["available_memory", "CGROUP_FILES", "usable_cores", "process_pool", "starting_workers", "blas_threads",
+           "chosen_blas_threads",
+           "limits_blas_threads", "DEFAULT_BLAS_THREADS", "BLAS_THREADS_ENV", "best_of"]
 
 
 # --- memory ------------------------------------------------------------------------------------------------------
@@ -108,23 +114,46 @@ def usable_cores() -> int:
         return max(os.cpu_count() or 1, 1)
 
 
-def _format_warnings_with(formatwarning) -> None:
-    """A worker's initialiser: show warnings as the process that started it does."""
-    warnings.formatwarning = formatwarning
+def _format_warnings_with(formatwarning=None) -> None:
+    """A worker's initialiser: leave Ctrl-C (SIGINT) to the process that started it, which stops
+    the pool (a terminal sends it to every process of the group, and a worker would otherwise
+    print its own traceback); show warnings as that process does (``formatwarning``, if given)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if formatwarning is not None:
+        warnings.formatwarning = formatwarning
 
 
 def process_pool(workers: int) -> ProcessPoolExecutor:
     """A pool of ``workers`` worker processes started afresh (``"spawn"``): no copy of this
     process's BLAS threads or locks. The workers format warnings as this process does at the call
     (``warnings.formatwarning``, for example the command line's one line, where it can be sent to
-    them). Raises ``OSError`` or ``ImportError`` where the system has no process semaphores (some
-    sandboxes); the caller then runs the work itself."""
+    them) and ignore Ctrl-C (SIGINT): the caller stops them (for example
+    :meth:`sfem_filters.cardiac.closing._Fits.abort`: cancel, terminate, shut down; and
+    :func:`starting_workers`). Raises ``OSError`` or ``ImportError`` where the system has no
+    process semaphores (some sandboxes); the caller then runs the work itself."""
     try:
         pickle.dumps(warnings.formatwarning)
         initial = {"initializer": _format_warnings_with, "initargs": (warnings.formatwarning,)}
     except (pickle.PicklingError, AttributeError, TypeError):      # a local function: the workers keep Python's
-        initial = {}
+        initial = {"initializer": _format_warnings_with}
     return ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"), **initial)
+
+
+@contextlib.contextmanager
+def starting_workers():
+    """Ctrl-C (SIGINT) ignored in this process while it starts worker processes (around the first
+    ``submit`` to a :func:`process_pool`, which starts them), so that they begin with it ignored
+    (a disposition that survives ``exec``) and a Ctrl-C sent to the whole terminal's process group
+    does not stop a worker halfway through its start-up with a traceback; this process's own
+    handler is back on leaving. Does nothing outside the main thread (where signals cannot be set)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    saved = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, saved)
 
 
 # --- BLAS threads ------------------------------------------------------------------------------------------------
@@ -233,3 +262,20 @@ def limits_blas_threads(run):
         with blas_threads():
             return run(*args, **kwargs)
     return limited
+
+
+def best_of(fn, repeat: int) -> float:
+    """Least wall time (s) of ``repeat`` calls of ``fn()``: the benchmarks' timer (the least is the
+    run least disturbed by whatever else the machine does).
+
+    >>> best_of(lambda: None, 3) >= 0.0
+    True
+    """
+    if int(repeat) < 1:
+        raise ValueError(f"repeat: expected an integer >= 1, got {repeat!r}")
+    best = np.inf
+    for _ in range(int(repeat)):
+        t0 = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - t0)
+    return best

@@ -20,6 +20,7 @@ import numpy as np
 
 from sfem_filters.benchmark import benchmark_model, pinned_benchmark
 from sfem_filters.filtering import StructuredEngine
+from sfem_filters.resources import best_of
 
 from ._core import fmt, md_table
 
@@ -33,14 +34,6 @@ TOLERANCES = {"*": (0.0, 0.0), "figure": None, **{k: None for k in (
     "discretisation_s", "M_t_s", "propagation_s", "update_s", "step_s", "peak_MB", "floor_s", "step_over_floor")}}
 FIGURE = "speed_step_timing.png"
 
-
-def best_of(fn, repeat: int) -> float:
-    best = np.inf
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        fn()
-        best = min(best, time.perf_counter() - t0)
-    return best
 
 
 def time_step(model, y, repeat: int) -> dict:

@@ -97,6 +97,8 @@ are started afresh (``spawn``), so a script that passes ``workers > 1`` needs th
 from __future__ import annotations
 
 import re
+import sys
+import time
 import warnings
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field, replace
@@ -108,7 +110,7 @@ from .._validate import integer, non_negative, probability
 from ..filtering import diagnostics
 from ..filtering.iterated import NOISE_LEVELS
 from ..filtering.smoother import PEAK_FACTOR, WORKING
-from ..resources import available_memory, blas_threads, process_pool, usable_cores
+from ..resources import available_memory, blas_threads, process_pool, starting_workers, usable_cores
 from .crossval import DEFAULT_FOLDS, cross_validate, observation_folds, spline_cross_validation
 from .effects import CATALOGUE, EXPLICIT_ONLY, build_effects
 from .measured import (NOMINAL, Run, Setup, angle_from_origin, default_max_iterations, equivalent_eigenstrain,
@@ -120,7 +122,7 @@ __all__ = ["LoopResult", "Round", "Variant", "closing_the_loop", "candidate_load
            "removals", "fit_workers", "usable_cores",
            "versus_spline", "SELECTIONS",
            "DRIVE_CORRECTIONS", "time_courses", "CRITERIA", "round_cross_validation", "DEFAULT_CANDIDATES", "LAPLACE",
-           "length_display", "not_converged_note"]
+           "length_display", "not_converged_note", "progress_line", "RoundsInterrupted"]
 
 #: How a round picks among significant candidates (``selection=``, ``--selection``): the first by
 #: score that improves the criterion, or the one of the fitted that improves it most.
@@ -425,15 +427,129 @@ def round_cross_validation(setup: Setup, variant: Variant, r: Run, folds: int = 
 
 
 def _fit(setup, variant: Variant, opts) -> Run:
+    """One fit of ``variant``; ``opts["description"]`` (optional) names it on its progress bar
+    (``"baseline (region map)"``, ``"round 2: + active_polar"``); the run's name is the variant's label."""
+    opts = dict(opts)
+    name = variant.label(variant.drive)
+    description = opts.pop("description", None) or name
     if variant.material is not None:
         opts = {**opts, "parameterisation": variant.material}
     # one BLAS thread per fit, whether the fits run one after the other or side by side: the
     # threads' order of summation is then the same, and so is every figure (measured: a second
-    # BLAS thread does not make a fit of the shipped slice faster, benchmarks/rounds_parallel.py)
+    # BLAS thread does not make a fit of the shipped slice faster, benchmarks/blas_threads.py)
     with blas_threads(1):
-        return run(setup, variant.effects, variant.drive, name=variant.label(variant.drive),
-                   effect_rates=variant.effect_rates, drive_trend=variant.drive_trend,
-                   process_scale=variant.process_scale, spring_scale=variant.spring_scale, **opts)
+        out = run(setup, variant.effects, variant.drive, name=description,
+                  effect_rates=variant.effect_rates, drive_trend=variant.drive_trend,
+                  process_scale=variant.process_scale, spring_scale=variant.spring_scale, **opts)
+    return replace(out, name=name) if isinstance(out, Run) else out
+
+
+def progress_line(text: str, enabled: bool = True) -> None:
+    """Write one line of progress on stderr, above any progress bar (``tqdm.write``), if ``enabled``.
+    Every progress message of the rounds goes through here (``progress=False``, the command
+    line's ``--quiet`` or ``--no-progress``: none)."""
+    if enabled:
+        tqdm.write(text, file=sys.stderr)
+
+
+def _duration(seconds: float) -> str:
+    """``seconds`` as ``"42 s"``, ``"3 min 05 s"`` or ``"1 h 02 min"``."""
+    s = int(round(max(float(seconds), 0.0)))
+    if s < 60:
+        return f"{s} s"
+    if s < 3600:
+        return f"{s // 60} min {s % 60:02d} s"
+    return f"{s // 3600} h {(s % 3600) // 60:02d} min"
+
+
+def _gain_text(entry: dict) -> str:
+    """A fitted model's evidence (and with ``criterion="cv"`` its cross-validation) against the current model."""
+    out = f"evidence {entry['evidence_gain']:+.1f} nats" if np.isfinite(entry["evidence_gain"]) else "evidence n/a"
+    if "cv_rmse_px" in entry:
+        out += f", CV {entry['cv_rmse_px']:.3f} px"
+    return out
+
+
+class _Progress:
+    """The rounds' progress lines (:func:`progress_line`): one as the baseline and as each round
+    ends, with the held-out error so far against the spline's, the elapsed time and an upper bound
+    of the time left; and, for an interruption, what had finished (:meth:`finished`)."""
+
+    def __init__(self, enabled: bool, max_rounds: int, material: str):
+        self.enabled, self.max_rounds, self.material = enabled, max_rounds, material
+        self.t0 = time.perf_counter()
+        self.rounds_t0 = self.round_t0 = None
+        self.rounds_done = 0
+        self.model = None                   # (label, held-out RMSE px) of the model so far
+        self.spline_px = None
+
+    def say(self, text: str) -> None:
+        progress_line(text, self.enabled)
+
+    def elapsed(self) -> float:
+        return time.perf_counter() - self.t0
+
+    def _heldout(self, r: "Round") -> str:
+        px = float(r.run.metrics["heldout_rmse_px"])
+        self.model = (r.variant.label(r.variant.drive), px)
+        spline = "" if self.spline_px is None else f" (spline {self.spline_px:.3f} px)"
+        return f"held-out error {px:.3f} px{spline}"
+
+    def baseline(self, r: "Round", spline_px: float) -> None:
+        self.spline_px = float(spline_px)
+        self.rounds_t0 = self.round_t0 = time.perf_counter()
+        material = "material fixed" if self.material == "none" else f"{self.material} map"
+        self.say(f"baseline ({material}): log p(y) {r.log_evidence:.1f} nats; {self._heldout(r)}; "
+                 f"elapsed {_duration(self.elapsed())}")
+
+    def round_end(self, number: int, tried: list, added: list, stop: str | None = None) -> None:
+        """Round ``number`` has ended: ``tried`` its fitted candidates and corrections, ``added`` the
+        rows it appended (the kept step and its backward steps), ``stop`` why the rounds end here."""
+        self.rounds_done = number
+        now = time.perf_counter()
+        took, self.round_t0 = now - self.round_t0, now
+        tried_text = ", ".join(f"{t['effect']} (" + (f"score {t['score']:.1f}, " if t.get("score") is not None else "")
+                               + f"{_gain_text(t)})" for t in tried)
+        parts = ["tried " + (tried_text or "nothing")]
+        for r in added:
+            if getattr(r, "removed", None):
+                parts.append(f"backward: took out {r.removed}")
+            elif r.added is not None:
+                parts.append(f"kept {r.added}")
+        if stop is not None:
+            parts.append(f"stopped: {stop}")
+        if added or self.model is None:
+            parts.append(self._heldout(added[-1]) if added else "")
+        else:
+            spline = "" if self.spline_px is None else f" (spline {self.spline_px:.3f} px)"
+            parts.append(f"held-out error {self.model[1]:.3f} px{spline}")
+        parts.append(f"elapsed {_duration(self.elapsed())}")
+        left = self.max_rounds - number
+        if stop is None and left > 0:
+            mean = (time.perf_counter() - self.rounds_t0) / number
+            parts.append(f"at most about {_duration(left * mean)} left (upper bound: {left} round"
+                         f"{'s' if left > 1 else ''} left x {_duration(mean)}, the mean round so far)")
+        self.say(f"round {number} ({_duration(took)}): " + "; ".join(p for p in parts if p))
+
+    def finished(self) -> str:
+        """What had finished when the rounds were interrupted, and that nothing of it is kept."""
+        if self.model is None:
+            done = "before the baseline fit finished"
+        else:
+            done = (f"after the baseline" + (f" and {self.rounds_done} round{'s' if self.rounds_done > 1 else ''}"
+                                            if self.rounds_done else "")
+                    + f" (model so far: {self.model[0]}, held-out error {self.model[1]:.3f} px)")
+        return (f"interrupted {done}, {_duration(self.elapsed())} in; nothing is kept (the rounds keep no "
+                f"checkpoint): run again to redo them")
+
+
+class RoundsInterrupted(KeyboardInterrupt):
+    """:func:`closing_the_loop` stopped by Ctrl-C (SIGINT): its worker processes are stopped and
+    ``message`` says what had finished (:meth:`_Progress.finished`)."""
+
+    def __init__(self, message: str):
+        super().__init__(message)
+        self.message = message
 
 
 def _fit_job(setup, variant: Variant, opts, cv_folds) -> tuple:
@@ -493,18 +609,24 @@ class _Fits:
             self.pool.shutdown(wait=False, cancel_futures=True)
         self.pool = None
 
-    def run(self, variants, label: str = "fits"):
+    def run(self, variants, label: str = "fits", names=None):
         """Yield ``(run, cv)`` for each variant, in the given order. A pool that cannot start or
         breaks (a worker killed, for example for memory) is a warning, and the fits not yet
-        returned are made here; an error of a fit itself is raised as it is."""
+        returned are made here; an error of a fit itself is raised as it is. ``names`` (one per
+        variant, optional) name the fits made here on their progress bars, after ``label``."""
         variants = list(variants)
+        names = [v.label(v.drive) if isinstance(v, Variant) else str(v) for v in variants] if names is None \
+            else list(names)
         done = 0
         if self.pool is not None and len(variants) > 1:
+            progress_line(f"{label}: fitting {len(variants)} models side by side in {self.workers} worker processes "
+                          f"({', '.join(names)})", self.progress)
             bar = tqdm(total=len(variants), desc=f"{label} ({self.workers} workers)", unit="fit",
                        disable=not self.progress, leave=False)
             futures = []
             try:
-                futures = [self.pool.submit(_fit_job, self.setup, v, self.quiet, self.cv_folds) for v in variants]
+                with starting_workers():                # the workers start with Ctrl-C ignored: abort() stops them
+                    futures = [self.pool.submit(_fit_job, self.setup, v, self.quiet, self.cv_folds) for v in variants]
                 for i, f in enumerate(futures):
                     out = f.result()
                     futures[i] = None                       # a fit is held once, by whoever takes it
@@ -518,12 +640,26 @@ class _Fits:
                 for f in futures:
                     if f is not None:
                         f.cancel()
-        for v in variants[done:]:
-            yield _fit_job(self.setup, v, self.opts, self.cv_folds)
+        for v, name in zip(variants[done:], names[done:]):
+            yield _fit_job(self.setup, v, {**self.opts, "description": f"{label}: {name}"}, self.cv_folds)
 
     def close(self) -> None:
         if self.pool is not None:
             self.pool.shutdown(wait=True, cancel_futures=True)
+
+    def abort(self) -> None:
+        """Stop at once (Ctrl-C): cancel the fits not started, terminate the workers and shut the
+        pool down, so that its queues and semaphores are released (no leaked semaphores)."""
+        pool, self.pool = self.pool, None
+        if pool is None:
+            return
+        workers = list((getattr(pool, "_processes", None) or {}).values())
+        for w in workers:
+            if w.is_alive():
+                w.terminate()
+        pool.shutdown(wait=True, cancel_futures=True)
+        for w in workers:
+            w.join(timeout=5.0)
 
 
 #: Corrections of the drive the rounds may make: from the drive in use to the one tried instead.
@@ -735,6 +871,20 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
         the memory holds them). The rounds take the same path and give the same figures whatever the
         number: the fits are the same and are judged in the same order. The baseline is one fit.
         Default 1 (this process only, as inside a batch job whose workers are already busy).
+    progress : bool
+        Progress on stderr (:func:`progress_line`): a line as the baseline and each round end (what
+        was tried, with its score and evidence; what was kept, or ``stopped: <reason>``; the held-out
+        error so far against the spline's; the elapsed time; and an upper bound of the time left,
+        the rounds left at most times the mean round so far), each fit's bar named after what it
+        fits (``baseline (region map)``, ``round 2: + active_polar``), and one bar per batch of fits
+        made side by side. Only stderr: the result is the same either way.
+
+    Raises
+    ------
+    RoundsInterrupted
+        On Ctrl-C (KeyboardInterrupt, of which it is a kind): the fits not started are cancelled,
+        the worker processes terminated and the pool shut down, and ``message`` says what had
+        finished (the rounds keep no checkpoint: nothing of them is kept).
     """
     if workers is not None:
         workers = integer("workers", workers, 1)
@@ -776,6 +926,10 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
         if unknown:
             raise ValueError(f"effects: expected 'auto', 'none' or names from {sorted(CATALOGUE)}, got {unknown}")
         effects = effects or "none"     # an empty sequence: no effect, as "none"
+    tracker = _Progress(bool(progress), max_rounds if effects == "auto" else 1, parameterisation)
+    tracker.say(f"closing the loop on {seq.n_points} points x {seq.n_frames} frames: mesh and baseline fit, then "
+                + ("at most {max_rounds} rounds" if effects == "auto" else "no rounds" if effects == "none"
+                   else "one fit with the given effects").format(max_rounds=max_rounds))
     setup = prepare(seq, landmarks, observe, holdout_seed, mesh=mesh, angle_origin_deg=angle_origin_deg)
     try:                                # before any fit: can the observed points be cross-validated?
         observation_folds(setup, folds)
@@ -787,30 +941,44 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
     opts = {"parameterisation": parameterisation, "max_loops": max_loops, "progress": progress,
             "estimator": estimator, "max_iterations": max_iterations, "measurement_noise": measurement_noise}
     start = Variant(drive=drive)
-    base = _fit(setup, start, opts)
-    fits = _Fits(setup, opts, 1 if effects != "auto" or workers == 1
-                 else fit_workers(workers, base.model.dim_state, seq.n_frames),
-                 folds if criterion == "cv" else None, progress)
+    fits = None
     try:
+        base = _fit(setup, start, {**opts, "description": "baseline (" + ("material fixed" if parameterisation == "none"
+                                                                           else f"{parameterisation} map") + ")"})
+        fits = _Fits(setup, opts, 1 if effects != "auto" or workers == 1
+                     else fit_workers(workers, base.model.dim_state, seq.n_frames),
+                     folds if criterion == "cv" else None, progress)
         return _rounds(seq, setup, start, base, fits, opts, effects=effects, drive=drive, landmarks=landmarks,
                        observe=observe, holdout_seed=holdout_seed, parameterisation=parameterisation,
                        max_loops=max_loops, progress=progress, estimator=estimator, max_iterations=max_iterations,
                        max_rounds=max_rounds, alpha=alpha, min_evidence=min_evidence, max_tries=max_tries,
                        names=names, corrections=corrections, criterion=criterion, folds=folds,
                        min_cv_gain=min_cv_gain, selection=selection, prune=prune, laplace=laplace,
-                       measurement_noise=measurement_noise, mesh=mesh, cv_possible=cv_possible)
+                       measurement_noise=measurement_noise, mesh=mesh, cv_possible=cv_possible, tracker=tracker)
+    except KeyboardInterrupt:
+        if fits is not None:
+            fits.abort()
+        raise RoundsInterrupted(tracker.finished()) from None
     finally:
-        fits.close()
+        if fits is not None:
+            fits.close()
 
 
 def _rounds(seq, setup, start, base, fits, opts, *, effects, drive, landmarks, observe, holdout_seed,
             parameterisation, max_loops, progress, estimator, max_iterations, max_rounds, alpha, min_evidence,
             max_tries, names, corrections, criterion, folds, min_cv_gain, selection, prune, laplace,
-            measurement_noise, mesh, cv_possible) -> LoopResult:
-    """The rounds of :func:`closing_the_loop` after its baseline fit (``fits`` makes the others)."""
+            measurement_noise, mesh, cv_possible, tracker) -> LoopResult:
+    """The rounds of :func:`closing_the_loop` after its baseline fit (``fits`` makes the others;
+    ``tracker``, a :class:`_Progress`, writes a line as the baseline and each round end)."""
     last = {}
     rounds = [Round(0, start, None, (), base, log_evidence=log_evidence(base),
                     cv=round_cross_validation(setup, start, base, folds) if cv_possible else None)]
+    g = setup.geometry
+    held = setup.node_of_point[setup.heldout]
+    # the spline's held-out error, the yardstick of every round's line (the same reference as the report's)
+    reference = spline_reference(seq.points, seq.displacement, setup.observed, setup.heldout,
+                                 g.radial[held], g.circumferential[held])
+    tracker.baseline(rounds[0], reference["heldout_rmse_px"])
 
     def judged(cur: Round, trial: Run, cv) -> tuple:
         """(gain, kept?, entry) of a fitted candidate under the criterion (``cv``: its
@@ -837,11 +1005,12 @@ def _rounds(seq, setup, start, base, fits, opts, *, effects, drive, landmarks, o
         stop = "none"
     elif effects != "auto":
         chosen = start.with_(effects=tuple(effects))
-        ext, cv = next(fits.run([chosen]))
+        ext, cv = next(fits.run([chosen], "given effects", ["+ " + ",".join(chosen.effects)]))
         rounds.append(kept(1, chosen, ",".join(chosen.effects), (), ext, first, np.nan,
                            [{"effect": ",".join(chosen.effects), "score": None,
                              "evidence_gain": log_evidence(ext) - rounds[0].log_evidence, "accepted": True}], cv))
         stop = "given"
+        tracker.round_end(1, rounds[-1].tried, rounds[-1:], "the given effects are fitted")
     else:
         stop, tests, rejected = "max_rounds", 0, set()
         # every model fitted, by its terms (effects in any order): none is fitted twice, forward or
@@ -851,6 +1020,7 @@ def _rounds(seq, setup, start, base, fits, opts, *, effects, drive, landmarks, o
         n_dofs = setup.mesh.n_dofs
         for number in range(1, max_rounds + 1):
             cur = rounds[-1]
+            n_before = len(rounds)
             G_cur = np.column_stack([loads[e] for e in cur.effects]) if cur.effects else np.zeros((n_dofs, 0))
             pool = [(n, G) for n, G in loads.items()
                     if n not in cur.effects and n not in rejected and not spans(G_cur, G)]
@@ -873,7 +1043,7 @@ def _rounds(seq, setup, start, base, fits, opts, *, effects, drive, landmarks, o
                     continue
                 planned.add(_key(variant))
                 plan.append((cand, replaced, variant))
-            outcomes = fits.run([v for _, _, v in plan], f"round {number}")
+            outcomes = fits.run([v for _, _, v in plan], f"round {number}", ["+ " + c["effect"] for c, _, _ in plan])
             for (cand, replaced, variant), (trial, cv) in zip(plan, outcomes):
                 seen.add(_key(variant))
                 gain, ok, entry = judged(cur, trial, cv)
@@ -903,7 +1073,8 @@ def _rounds(seq, setup, start, base, fits, opts, *, effects, drive, landmarks, o
                     seen.add(_key(variant))
                     plan.append((name, variant))
                 for (name, variant), (trial, cv) in zip(plan, fits.run([v for _, v in plan],
-                                                                       f"round {number}, corrections")):
+                                                                       f"round {number}, corrections",
+                                                                       [f"correction {n}" for n, _ in plan])):
                     gain, ok, entry = judged(cur, trial, cv)
                     tried.append({"effect": name, "score": None, **entry, "accepted": False})
                     if ok and (best is None or gain > best[0]):
@@ -916,6 +1087,9 @@ def _rounds(seq, setup, start, base, fits, opts, *, effects, drive, landmarks, o
                 stop = (criterion if any(t["score"] is not None for t in tried)
                         else "no significant candidate")
                 last = {"ranking": ranking, "threshold": float(threshold), "tried": tried}
+                tracker.round_end(number, tried, [], {"evidence": "no candidate or correction raised the evidence",
+                                                      "cv": "no candidate or correction lowered the CV error"}
+                                  .get(stop, stop))
                 break
             rounds.append(accepted)
             while prune:
@@ -929,7 +1103,8 @@ def _rounds(seq, setup, start, base, fits, opts, *, effects, drive, landmarks, o
                     seen.add(_key(variant))
                     plan.append((name, variant))
                 for (name, variant), (trial, cv) in zip(plan, fits.run([v for _, v in plan],
-                                                                       f"round {number}, backward")):
+                                                                       f"round {number}, backward",
+                                                                       [f"- {n}" for n, _ in plan])):
                     gain, ok, entry = judged(cur, trial, cv)
                     cur.backward.append({"removed": name, **entry, "accepted": False})
                     if ok and (best is None or gain > best[0]):
@@ -942,6 +1117,8 @@ def _rounds(seq, setup, start, base, fits, opts, *, effects, drive, landmarks, o
                 step.removed = name
                 rounds.append(step)
                 rejected.clear()        # an effect rejected beside the term now gone may pass without it
+            tracker.round_end(number, tried, rounds[n_before:],
+                              f"max_rounds ({max_rounds}) reached" if number == max_rounds else None)
     if laplace == "exact":
         rounds[-1].run = exact_posterior(setup, rounds[-1].run, progress)
     config = {"drive": drive, "landmarks": landmarks, "observe": observe, "holdout_seed": holdout_seed,
@@ -957,10 +1134,6 @@ def _rounds(seq, setup, start, base, fits, opts, *, effects, drive, landmarks, o
               "measurement_noise": measurement_noise, "mesh": mesh, "angle_origin_deg": setup.angle_origin_deg,
               "innovation_whitening": diagnostics.DEFAULT_WHITENING,
               "final": rounds[-1].variant.as_json()}
-    g = setup.geometry
-    held = setup.node_of_point[setup.heldout]
-    reference = spline_reference(seq.points, seq.displacement, setup.observed, setup.heldout,
-                                 g.radial[held], g.circumferential[held])
     if cv_possible:
         spline_cv = spline_cross_validation(setup, folds)
         reference["cross_validation"] = {k: spline_cv[k] for k in ("rmse_px", "rmse_radial_px",

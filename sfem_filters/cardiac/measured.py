@@ -180,8 +180,8 @@ def prepare(seq: Sequence, landmarks: int = 8, observe: str = "boundary", holdou
         How the points are triangulated. ``"delaunay"`` (the default, every figure in the docs
         so far): a Delaunay triangulation, whose diagonal in each full cell of a pixel lattice is
         a tie that Qhull breaks by the floating-point coordinates, so the same heart shifted,
-        turned or mirrored in the image gets other diagonals (and other numbers:
-        ``benchmarks/mesh_orientation.py``). ``"radial"``: points on a pixel lattice are meshed
+        turned or mirrored in the image gets other diagonals (and other numbers: the docs'
+        frozen mesh-orientation result). ``"radial"``: points on a pixel lattice are meshed
         by :func:`sfem_filters.fem.mesh.lattice_mesh` with every diagonal pointing towards the
         cavity centre, the same triangles moved with the heart (points off a lattice: an
         error). The cells, the boundary, and so the contours, landmarks and sectors are the same.
@@ -842,7 +842,7 @@ def exact_posterior(setup: Setup, r: Run, progress: bool = False) -> Run:
 
     The iterated smoother reports the inverse Gauss-Newton Hessian of the MAP cost as the
     material's covariance. Where the model misfits its data the curvature Gauss-Newton leaves out
-    can be large (``benchmarks/hessian_check.py``); this takes the exact Hessian of the profile
+    can be large (the docs' frozen Hessian check); this takes the exact Hessian of the profile
     cost at the run's mode (:func:`sfem_filters.filtering.iterated.exact_laplace`, 2 p + 1 gradient
     passes) and reports its inverse: the material's sd maps, the stiffness level's interval and the
     prior check then use it. ``metrics["material_covariance"]`` says which covariance was used

@@ -258,8 +258,8 @@ def moved_on_lattice(seq: Sequence, quarter_turns: int = 0, mirror: bool = False
     """The same heart placed otherwise in the image: mirrored, turned, shifted by whole pixels.
 
     The moves map the pixel lattice onto itself, so that a result that depends only on the
-    heart, not on where it lies in the image, must not change (``benchmarks/mesh_orientation.py``
-    measures how much it does). In this order:
+    heart, not on where it lies in the image, must not change (the docs' frozen mesh-orientation
+    result measures how much it does). In this order:
 
     1. ``mirror``: x -> W - 1 - x (columns reversed, ``mask[:, ::-1]``), vectors (dx, dy) -> (-dx, dy);
     2. ``quarter_turns`` times ``np.rot90`` of the masks: a pixel (x, y) goes to (y, W - 1 - x),

@@ -495,8 +495,8 @@ class IteratedSmoother:
         final pass's (free). ``"exact"``: the profile cost's exact Hessian at the mode by central
         differences of its exact gradient (:func:`~sfem_filters.filtering.curvature.profile_hessian`,
         2 p more gradient passes), the Laplace approximation proper; where the model misfits its
-        data the residual curvature Gauss-Newton leaves out can be large (``benchmarks/
-        hessian_check.py``). Not positive definite there (a run stopped short of a minimum): a
+        data the residual curvature Gauss-Newton leaves out can be large (the docs' frozen
+        result of the Hessian check). Not positive definite there (a run stopped short of a minimum): a
         warning, and the Gauss-Newton covariance is kept.
 
     max_extrapolation : float

@@ -518,7 +518,7 @@ def test_akinetic_segment_is_found_with_amplitude_near_zero():
 
 def _harmonic_rounds(**kw):
     """Rounds on a sequence whose undeclared load is a smooth active stress with a first angular
-    harmonic (``benchmarks/rounds_synthetic.py --cases harmonic``), ``active_harmonic`` named;
+    harmonic (``benchmarks/rounds_synthetic.py --cases harmonic`` at its last commit), ``active_harmonic`` named;
     ``selection="first"`` with 2 tries unless given."""
     kw = {"selection": "first", "max_tries": 2, **kw}
     amp = np.zeros(20)
@@ -571,7 +571,7 @@ def test_a_smooth_regional_stress_is_identified_as_the_harmonic_field(harmonic_r
 
 @pytest.mark.slow
 @pytest.mark.xfail(strict=True, raises=AssertionError,
-                   reason="measured (benchmarks/rounds_synthetic.py --cases harmonic --no-prune): "
+                   reason="measured (benchmarks/rounds_synthetic.py, since removed, --cases harmonic --no-prune): "
                                        "the six segments rank first at round 0 (542 against 409 for active_harmonic, "
                                        "which has more dof per frame), enter, and leave the harmonic field nothing "
                                        "significant to add; with selection='first' and no backward steps the rounds "
