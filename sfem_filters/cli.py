@@ -66,6 +66,23 @@ def _finite_float(text: str) -> float:
     return value
 
 
+def _non_negative_float(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        v = float("nan")
+    if not v >= 0 or not math.isfinite(v):
+        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {text!r}")
+    return v
+
+
+def _non_negative_int(text: str) -> int:
+    v = _integer(text, "an integer >= 0")
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}")
+    return v
+
+
 def _positive_int(text: str) -> int:
     v = _integer(text, "an integer >= 1")
     if v < 1:
@@ -245,6 +262,33 @@ def build_parser() -> argparse.ArgumentParser:
     o.add_argument("-q", "--quiet", action="store_true",
                    help="for scripts: no progress output (observe shows no bars; accepted as by every verb); "
                         "the results, errors and warnings are still printed")
+    s = sub.add_parser("strain", help="DENSE images -> Green-Lagrange strain of every reference pixel, with sd and "
+                                      "95%% bands, beside the conventional analysis",
+                       description="Phase to Lagrangian displacement of every reference myocardial pixel, the "
+                                   "finite-element smoother on a mesh chosen apart from the pixels, Green-Lagrange "
+                                   "strain (radial and circumferential about the reference myocardium's centre of "
+                                   "mass) with its sd, global and six-segment curves with 95%% bands; the "
+                                   "conventional analysis (finite differences) in the same run. JSON keys: points, "
+                                   "frame_times_s, strain, global, segments, conventional, seconds, route, settings "
+                                   "(the docs' validation page 'Strain against DENSE-Sim's ground truth' scores it).")
+    s.add_argument("path", help="a DENSE-Sim case folder (phase_x.npy, phase_y.npy, magnitude.npy, "
+                                "LV_mask_time_lowres.npy, config.yaml); DICOM folders and sequence files are not "
+                                "read by this verb yet")
+    s.add_argument("--json", required=True, metavar="OUT", help="write the strain report (JSON) to OUT")
+    s.add_argument("--route", choices=("dense", "contours"), default="dense",
+                   help="dense (default): from the DENSE phase; contours: from the masks' contours alone (not "
+                        "implemented yet)")
+    s.add_argument("--segment-start", type=_finite_float, default=0.0, metavar="DEG",
+                   help="start of segment 0: degrees about the centre from the image's +x axis towards +y "
+                        "(default 0; the anterior RV insertion when you know it)")
+    s.add_argument("--conventional-sigma", type=_non_negative_float, default=1.0, metavar="PX",
+                   help="Gaussian smoothing (pixels, inside the mask) of the conventional analysis beside ours "
+                        "(default 1; 0 none)")
+    s.add_argument("--snr", type=_positive_float, metavar="SNR",
+                   help="add complex Gaussian noise first (SNR = mean myocardial magnitude / noise sd), as the "
+                        "validation does; default none")
+    s.add_argument("--seed", type=_non_negative_int, default=0, help="seed of --snr's noise (default 0)")
+    _progress_options(s, "a line per step of the route")
     return p
 
 
@@ -450,6 +494,57 @@ def cmd_observe(args) -> int:
     return 0
 
 
+def cmd_strain(args) -> int:
+    import time
+
+    import numpy as np
+
+    from .cardiac import StrainRouteSettings, dense_strain
+    from .imaging import add_complex_noise, conventional_analysis, phase_to_displacement, read_dense_sim
+
+    if args.route != "dense":
+        raise ValueError("--route: the contours route is not implemented yet; expected dense")
+    if not os.path.isfile(os.path.join(args.path, "config.yaml")):
+        raise ValueError(f"path: expected a DENSE-Sim case folder with config.yaml, phase_x.npy, phase_y.npy, "
+                         f"magnitude.npy and LV_mask_time_lowres.npy, got {args.path!r}")
+    say = (lambda m: _message("strain", "progress", m)) if _progress(args) else (lambda m: None)
+    t0 = time.perf_counter()
+    say(f"reading {args.path}")
+    case = read_dense_sim(args.path)
+    if args.snr is not None:
+        say(f"adding complex noise at SNR {args.snr:g} (seed {args.seed})")
+        case = add_complex_noise(case, args.snr, args.seed)
+    say("phase to Lagrangian displacement")
+    tracks = phase_to_displacement(case)
+    ours = dense_strain(tracks, case.reference_mask, case.pixel_size_m,
+                        StrainRouteSettings(start_deg=args.segment_start), progress=say)
+    conv = conventional_analysis(case, sigma=args.conventional_sigma, centre=ours.centre,
+                                 start_deg=args.segment_start, tracks=tracks)
+    out = ours.to_dict()
+
+    def js(a):
+        a = np.asarray(a, float)
+        return np.where(np.isfinite(a), a.astype(object), None).tolist()
+    out["conventional"] = {
+        "smoothing_sigma_px": args.conventional_sigma,
+        "strain": {k: js(getattr(conv.strain, k)) for k in ("Ecc", "Err", "Ecr")},
+        "global": {"Ecc": js(conv.global_Ecc), "Err": js(conv.global_Err)},
+        "segments": {"start_deg": conv.start_deg, "Ecc": js(conv.segments_Ecc), "Err": js(conv.segments_Err)}}
+    out["settings"] = {**out["settings"], "noise_snr": args.snr, "noise_seed": args.seed if args.snr else None,
+                       "untracked_point_frames": int(tracks.n_untracked)}
+    out["seconds"] = time.perf_counter() - t0
+    g = ours.global_curves
+    peak_cc, peak_rr = int(np.nanargmin(g["Ecc"])), int(np.nanargmax(g["Err"]))
+    print(f"{len(ours.points)} reference pixels x {len(ours.frame_times_s)} frames; global peak Ecc "
+          f"{100 * g['Ecc'][peak_cc]:.2f}% (95% {100 * g['Ecc_lo'][peak_cc]:.2f} to {100 * g['Ecc_hi'][peak_cc]:.2f}) "
+          f"at {ours.frame_times_s[peak_cc]:.3f} s, Err {100 * g['Err'][peak_rr]:.2f}% "
+          f"(95% {100 * g['Err_lo'][peak_rr]:.2f} to {100 * g['Err_hi'][peak_rr]:.2f}) at "
+          f"{ours.frame_times_s[peak_rr]:.3f} s; conventional (sigma {args.conventional_sigma:g} px) "
+          f"{100 * np.nanmin(conv.global_Ecc):.2f}% / {100 * np.nanmax(conv.global_Err):.2f}%; {out['seconds']:.0f} s")
+    _write_json(args.json, out)
+    return 0
+
+
 def _write_json(path, payload):
     print(f"wrote {write_json(path, payload)}", file=sys.stderr)
 
@@ -477,7 +572,8 @@ def main(argv=None) -> int:
     try:
         # BLAS: --blas-threads, else SFEM_FILTERS_BLAS_THREADS, else the measured default
         with blas_threads(args.blas_threads), _warnings_as_lines():
-            return {"compare": cmd_compare, "dense": cmd_dense, "observe": cmd_observe}[args.command](args)
+            return {"compare": cmd_compare, "dense": cmd_dense, "observe": cmd_observe,
+                    "strain": cmd_strain}[args.command](args)
     except KeyboardInterrupt as exc:
         # Ctrl-C: the rounds have stopped their workers; one line says what finished and where it is kept
         _message(args.command, "interrupted", _interrupted(args, exc).removeprefix("interrupted").lstrip(" ;,"))

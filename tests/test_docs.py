@@ -64,7 +64,7 @@ def test_every_public_name_has_an_api_page(site):
 def test_the_cli_page_has_every_subcommand(site):
     html = (site / "reference" / "cli.html").read_text()
     sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
-    assert set(sub.choices) == {"compare", "dense", "observe"}
+    assert set(sub.choices) == {"compare", "dense", "observe", "strain"}
     for name, parser in sub.choices.items():
         assert re.search(rf'<h\d[^>]*>\s*{name}\s*<a class="headerlink"', html), f"no section for {name}"
         for action in parser._actions:

@@ -1,0 +1,78 @@
+"""``sfem-filters strain``: a DENSE-Sim case folder in, the issue's JSON out (names, shapes, bands)."""
+import json
+
+import numpy as np
+import pytest
+import yaml
+
+from sfem_filters import datasets
+from sfem_filters.cli import main
+
+CASE = "dense_sim/phantom_subject_1"
+
+
+@pytest.fixture(scope="module")
+def short_case(tmp_path_factory):
+    """The phantom case cut to its first 6 frames, written as a case folder is published."""
+    src = datasets.dataset_path(CASE)
+    dst = tmp_path_factory.mktemp("case") / "phantom_short"
+    dst.mkdir()
+    frames = 6
+    for name in ("phase_x", "phase_y", "magnitude", "GT_Ecc", "GT_Err"):
+        np.save(dst / f"{name}.npy", np.load(f"{src}/{name}.npy")[:frames])
+    np.save(dst / "LV_mask_time_lowres.npy", np.load(f"{src}/LV_mask_time_lowres.npy")[:frames + 1])
+    with open(f"{src}/config.yaml") as f:
+        config = yaml.safe_load(f)
+    config["sim_params"]["tt"] = config["sim_params"]["tt"][:frames + 1]
+    config["sim_params"]["Nt"] = frames
+    with open(dst / "config.yaml", "w") as f:
+        yaml.safe_dump(config, f)
+    return dst
+
+
+@pytest.mark.needs_data(CASE)
+def test_strain_writes_the_issue_json_with_bands_around_the_curves(short_case, tmp_path, capsys):
+    out = tmp_path / "strain.json"
+    assert main(["strain", str(short_case), "--json", str(out), "--snr", "30", "--segment-start", "30",
+                 "--quiet"]) == 0
+    d = json.loads(out.read_text())
+    P = len(d["points"])
+    F = len(d["frame_times_s"])
+    assert F == 6 and P > 500 and d["route"] == "dense" and d["seconds"] > 0
+    assert np.array(d["points"]).shape == (P, 2)
+    for k in ("Ecc", "Err", "Ecr", "Ecc_sd", "Err_sd"):
+        assert np.array(d["strain"][k], float).shape == (F, P), k
+    assert np.nanmin(np.array(d["strain"]["Ecc_sd"], float)) >= 0
+    for k in ("Ecc", "Err"):
+        g = {s: np.array(d["global"][k + s], float) for s in ("", "_lo", "_hi")}
+        assert g[""].shape == (F,) and np.all(g["_lo"] <= g[""]) and np.all(g[""] <= g["_hi"])
+        seg = {s: np.array(d["segments"][k + s], float) for s in ("", "_lo", "_hi")}
+        assert seg[""].shape == (6, F) and np.all(seg["_lo"] <= seg[""]) and np.all(seg[""] <= seg["_hi"])
+    assert d["segments"]["start_deg"] == 30
+    conv = d["conventional"]
+    assert conv["segments"]["start_deg"] == 30 and conv["smoothing_sigma_px"] == 1.0
+    assert np.array(conv["strain"]["Err"], float).shape == (F, P)
+    # the radial strain thickens the wall in systole in both analyses (DENSE-Sim's phantom)
+    assert np.array(d["global"]["Err"], float)[-1] > 0 and np.array(conv["global"]["Err"], float)[-1] > 0
+    assert d["settings"]["noise_snr"] == 30
+    printed = capsys.readouterr()
+    assert "reference pixels x 6 frames" in printed.out and "progress" not in printed.err
+
+
+@pytest.mark.parametrize("argv, expected", [
+    (["--route", "contours"], "--route: the contours route is not implemented yet"),
+])
+def test_strain_refuses_what_it_cannot_do_naming_the_argument(short_case, tmp_path, argv, expected, capsys):
+    assert main(["strain", str(short_case), "--json", str(tmp_path / "x.json"), *argv]) == 2
+    assert expected in capsys.readouterr().err
+
+
+def test_strain_refuses_a_folder_that_is_not_a_case(tmp_path, capsys):
+    assert main(["strain", str(tmp_path), "--json", str(tmp_path / "x.json")]) == 2
+    assert "path: expected a DENSE-Sim case folder" in capsys.readouterr().err
+
+
+def test_strain_argument_errors_say_what_was_expected(capsys):
+    with pytest.raises(SystemExit):
+        main(["strain", "x", "--json", "y", "--conventional-sigma", "-1"])
+    assert "a number >= 0" in capsys.readouterr().err
