@@ -46,34 +46,27 @@ def _seeds(text: str) -> list:
     return out
 
 
-def _positive_float(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        v = float("nan")
-    if not v > 0 or not math.isfinite(v):
-        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}")
-    return v
-
-
-def _finite_float(text: str) -> float:
+def _number(text: str, ok, expected: str) -> float:
+    """``float(text)`` if it is finite and ``ok(value)``, else an argparse error saying what was expected."""
     try:
         value = float(text)
     except ValueError:
         value = float("nan")
-    if not math.isfinite(value):
-        raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
+    if not math.isfinite(value) or not ok(value):
+        raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}")
     return value
 
 
+def _positive_float(text: str) -> float:
+    return _number(text, lambda v: v > 0, "a positive number")
+
+
+def _finite_float(text: str) -> float:
+    return _number(text, lambda v: True, "a finite number")
+
+
 def _non_negative_float(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        v = float("nan")
-    if not v >= 0 or not math.isfinite(v):
-        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {text!r}")
-    return v
+    return _number(text, lambda v: v >= 0, "a number >= 0")
 
 
 def _non_negative_int(text: str) -> int:
