@@ -13,9 +13,9 @@ import sys
 import warnings
 
 from ._io import write_json
-from .cardiac.closing import CRITERIA, LAPLACE, SELECTIONS, not_converged_note
+from .cardiac.closing import CRITERIA, LAPLACE, SEARCHES, SELECTIONS, not_converged_note
 from .cardiac.effects import CATALOGUE, EXPLICIT_ONLY
-from .cardiac.measured import DRIVES, ESTIMATORS, MESHES, OBSERVE, PARAMETERISATIONS, default_max_iterations
+from .cardiac.measured import DRIVES, ELEMENT_PX, ESTIMATORS, MESHES, OBSERVE, PARAMETERISATIONS, default_max_iterations
 from .filtering.engines import ENGINES
 from .filtering.smoother import MEMORY_ADVICE, InsufficientMemory
 from .filtering.iterated import NOISE_LEVELS
@@ -222,10 +222,29 @@ def build_parser() -> argparse.ArgumentParser:
                    help="fixed: the measurement noise at the data's noise floor (default); estimate: every fit "
                         "chooses its level by type-II maximum likelihood (about 3-5 fits each; smoother and the "
                         "evidence criterion only)")
-    d.add_argument("--mesh", choices=MESHES, default="delaunay",
+    d.add_argument("--search", choices=tuple(SEARCHES), default="fast",
+                   help="fast (default): every fit of a round started from the current model's mode "
+                        "(--warm-start) and screened with 3 iterations, only the one kept fitted to the end "
+                        "(--screen-iterations 3), at most 40 iterations; coarse: the same on a mesh of the wall "
+                        "apart from the points (--mesh polar), faster, another discretisation; full: every fit to "
+                        "the end from the prior (--no-warm-start --screen-iterations 0, 20 iterations). The options "
+                        "below override the search's values; the docs' validation page 'Closing the loop: fast and "
+                        "full search' measures what each finds and costs")
+    d.add_argument("--mesh", choices=MESHES, default=None,
                    help="delaunay: Delaunay triangles, whose diagonal in each full pixel cell Qhull picks by the "
-                        "coordinates (default); radial: every diagonal towards the cavity "
-                        "centre, the same mesh wherever the heart lies in the image (pixel lattices only)")
+                        "coordinates (--search fast, full); radial: every diagonal towards the cavity "
+                        "centre, the same mesh wherever the heart lies in the image (pixel lattices only); polar: "
+                        "a mesh of the wall apart from the points (rings at equal angles, layers across the wall, "
+                        "edges of --element-px), the points observed through its shape functions: the cost is set "
+                        "by the element size, not by the points (--search coarse)")
+    d.add_argument("--element-px", type=_positive_float, default=None, metavar="PX",
+                   help=f"element edge of --mesh polar, in the points' spacings (pixels; default {ELEMENT_PX:g})")
+    d.add_argument("--warm-start", action=argparse.BooleanOptionalAction, default=None,
+                   help="start each fit of a round from the material mode of the model it extends or prunes, not "
+                        "from the prior mean (the same cost and mode, fewer iterations; --search fast, coarse)")
+    d.add_argument("--screen-iterations", type=_non_negative_int, default=None, metavar="N",
+                   help="screen every fit of a round with at most N Gauss-Newton iterations and fit only the one "
+                        "that would be kept to the end (--search fast: 3; 0: every fit to the end, --search full)")
     d.add_argument("--angle-origin", type=_finite_float, default=0.0, metavar="DEG",
                    help="where landmark 0, sector 0 of the regional map and segment 0 start: the angle about the "
                         "cavity centre in degrees from the image's +x axis towards +y (down), for example the "
@@ -260,17 +279,19 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Phase to Lagrangian displacement of every reference myocardial pixel, the "
                                    "finite-element smoother on a mesh chosen apart from the pixels, Green-Lagrange "
                                    "strain (radial and circumferential about the reference myocardium's centre of "
-                                   "mass) with its sd, global and six-segment curves with 95%% bands; the "
-                                   "conventional analysis (finite differences) in the same run. JSON keys: points, "
-                                   "frame_times_s, strain, global, segments, conventional, seconds, route, settings "
+                                   "mass) with its sd, global and six-segment curves with 95% bands; the "
+                                   "conventional analysis (finite differences) and the thin-plate spline through "
+                                   "the same observed points in the same run. JSON keys: points, frame_times_s, "
+                                   "strain, global, segments, conventional, spline, truth (when the case has one), "
+                                   "peaks, seconds, route, settings "
                                    "(the docs' validation page 'Strain against DENSE-Sim's ground truth' scores it).")
     s.add_argument("path", help="a DENSE-Sim case folder (phase_x.npy, phase_y.npy, magnitude.npy, "
                                 "LV_mask_time_lowres.npy, config.yaml); DICOM folders and sequence files are not "
                                 "read by this verb yet")
     s.add_argument("--json", required=True, metavar="OUT", help="write the strain report (JSON) to OUT")
     s.add_argument("--route", choices=("dense", "contours"), default="dense",
-                   help="dense (default): from the DENSE phase; contours: from the masks' contours alone (not "
-                        "implemented yet)")
+                   help="dense (default): from the DENSE phase; contours: from the masks alone (tracked "
+                        "endo- and epicardial borders, the interior from the physics; no phase)")
     s.add_argument("--segment-start", type=_finite_float, default=0.0, metavar="DEG",
                    help="start of segment 0: degrees about the centre from the image's +x axis towards +y "
                         "(default 0; the anterior RV insertion when you know it)")
@@ -281,6 +302,14 @@ def build_parser() -> argparse.ArgumentParser:
                    help="add complex Gaussian noise first (SNR = mean myocardial magnitude / noise sd), as the "
                         "validation does; default none")
     s.add_argument("--seed", type=_non_negative_int, default=0, help="seed of --snr's noise (default 0)")
+    s.add_argument("--csv", metavar="PATH",
+                   help="also write the report as one tidy CSV table (one row per method, region = pixel, global "
+                        "or segment, frame and component; PATH ending .gz is compressed); see the how-to page "
+                        "'Command-line recipes'")
+    s.add_argument("--figures", metavar="DIR",
+                   help="write the figures (PNG) into DIR: segment and global curves with 95%% bands against "
+                        "the conventional analysis, the spline (and the ground truth when the case has one), "
+                        "rings of peak strain and time to peak")
     _progress_options(s, "a line per step of the route")
     return p
 
@@ -388,10 +417,11 @@ def cmd_compare(args) -> int:
 def cmd_dense(args) -> int:
     from .cardiac.closing import closing_the_loop, format_report
     from .cardiac.sequence import example_path, load_sequence
+    search = SEARCHES[args.search]
     config = dict(effects=args.effects, drive=args.drive, landmarks=args.landmarks, observe=args.observe,
                   holdout_seed=args.holdout_seed, parameterisation=args.parameterisation, max_loops=args.max_loops,
                   estimator=args.estimator,
-                  max_iterations=(default_max_iterations(args.drive) if args.max_iterations is None
+                  max_iterations=(search.max_iterations(args.drive) if args.max_iterations is None
                                   else args.max_iterations), max_rounds=args.max_rounds,
                   alpha=args.alpha, criterion=args.criterion, folds=args.folds,
                   # always in the configuration (and a batch job's fingerprint): the default changed
@@ -403,8 +433,16 @@ def cmd_dense(args) -> int:
         config["laplace"] = args.laplace
     if args.measurement_noise != "fixed":   # likewise
         config["measurement_noise"] = args.measurement_noise
-    if args.mesh != "delaunay":             # likewise
-        config["mesh"] = args.mesh
+    mesh = search.mesh if args.mesh is None else args.mesh
+    if mesh != "delaunay":                  # likewise
+        config["mesh"] = mesh
+        if mesh == "polar":
+            config["element_px"] = search.element_px if args.element_px is None else args.element_px
+    if (search.warm_start if args.warm_start is None else args.warm_start) and args.estimator == "smoother":
+        config["warm_start"] = True         # likewise
+    screen = search.screen_iterations if args.screen_iterations is None else (args.screen_iterations or None)
+    if screen is not None and args.estimator == "smoother":
+        config["screen_iterations"] = screen
     if args.angle_origin != 0.0:            # likewise
         config["angle_origin_deg"] = args.angle_origin
     if args.candidates is not None:
@@ -495,8 +533,6 @@ def cmd_strain(args) -> int:
     from .cardiac import StrainRouteSettings, dense_strain
     from .imaging import add_complex_noise, conventional_analysis, phase_to_displacement, read_dense_sim
 
-    if args.route != "dense":
-        raise ValueError("--route: the contours route is not implemented yet; expected dense")
     if not os.path.isfile(os.path.join(args.path, "config.yaml")):
         raise ValueError(f"path: expected a DENSE-Sim case folder with config.yaml, phase_x.npy, phase_y.npy, "
                          f"magnitude.npy and LV_mask_time_lowres.npy, got {args.path!r}")
@@ -509,11 +545,22 @@ def cmd_strain(args) -> int:
         case = add_complex_noise(case, args.snr, args.seed)
     say("phase to Lagrangian displacement")
     tracks = phase_to_displacement(case)
-    ours = dense_strain(tracks, case.reference_mask, case.pixel_size_m,
-                        StrainRouteSettings(start_deg=args.segment_start), progress=say)
+    if args.route == "contours":       # the masks alone (no phase): tracked borders, interior from the physics
+        from .cardiac.contours_route import ContourRouteSettings, contour_spline_strain, contour_strain
+        ours = contour_strain(case.masks, case.pixel_size_m, case.frame_times_s,
+                              ContourRouteSettings(start_deg=args.segment_start), progress=say)
+    else:
+        ours = dense_strain(tracks, case.reference_mask, case.pixel_size_m,
+                            StrainRouteSettings(start_deg=args.segment_start), progress=say)
     conv = conventional_analysis(case, sigma=args.conventional_sigma, centre=ours.centre,
                                  start_deg=args.segment_start, tracks=tracks)
     out = ours.to_dict()
+    if args.route == "contours":
+        from .imaging.strain_report import spline_block
+        say("thin-plate spline through the same tracked contour landmarks")
+        out["spline"] = spline_block(contour_spline_strain(ours), "the tracked contour landmarks (the points the "
+                                     "contours route observes, their full tracked displacement), each component "
+                                     "with the larger of the landmark's normal and tangential sd")
 
     def js(a):
         a = np.asarray(a, float)
@@ -525,6 +572,8 @@ def cmd_strain(args) -> int:
         "segments": {"start_deg": conv.start_deg, "Ecc": js(conv.segments_Ecc), "Err": js(conv.segments_Err)}}
     out["settings"] = {**out["settings"], "noise_snr": args.snr, "noise_seed": args.seed if args.snr else None,
                        "untracked_point_frames": int(tracks.n_untracked)}
+    if "spline" not in out:
+        out["spline"] = _dense_spline(tracks, ours.centre, args.segment_start, say)
     out["seconds"] = time.perf_counter() - t0
     g = ours.global_curves
     peak_cc, peak_rr = int(np.nanargmin(g["Ecc"])), int(np.nanargmax(g["Err"]))
@@ -534,8 +583,47 @@ def cmd_strain(args) -> int:
           f"(95% {100 * g['Err_lo'][peak_rr]:.2f} to {100 * g['Err_hi'][peak_rr]:.2f}) at "
           f"{ours.frame_times_s[peak_rr]:.3f} s; conventional (sigma {args.conventional_sigma:g} px) "
           f"{100 * np.nanmin(conv.global_Ecc):.2f}% / {100 * np.nanmax(conv.global_Err):.2f}%; {out['seconds']:.0f} s")
+    out = _strain_extras(case, out, say)
     _write_json(args.json, out)
+    if args.csv:
+        from .imaging.strain_report import strain_csv
+        say(f"writing the CSV table {args.csv}")
+        print(f"wrote {strain_csv(out, args.csv)}", file=sys.stderr)
+    if args.figures:
+        from .plotting.strain import strain_figures
+        say(f"drawing the figures into {args.figures}")
+        for p in strain_figures(out, args.figures):
+            print(f"wrote {p}", file=sys.stderr)
+        if "material" not in out:
+            say("no stiffness figure: the route holds the material fixed (its settings say so), so there is no "
+                "stiffness per segment with an sd to draw")
     return 0
+
+
+def _dense_spline(tracks, centre, start_deg: float, say) -> dict:
+    """The yardstick of the DENSE route: the thin-plate spline through the same observed points (every
+    tracked reference pixel, with the tracks' sd), its strain at the reference pixels, as the ``spline`` block."""
+    from .imaging.spline_strain import spline_strain
+    from .imaging.strain_report import spline_block
+
+    say("thin-plate spline through the same observed points (the tracked reference pixels)")
+    s = spline_strain(tracks.points, tracks.displacement, tracks.points, sd_px=tracks.sd, centre=centre,
+                      start_deg=start_deg, frame_times_s=tracks.frame_times_s)
+    return spline_block(s, "the tracked reference pixels (every datum the dense route observes), with their sd")
+
+
+def _strain_extras(case, out: dict, say) -> dict:
+    """The strain report with the case's ground truth as a ``truth`` block (when it has one) and the
+    peaks and times to peak of every method's curves (``peaks`` in each block)."""
+    from .imaging import truth_at_points
+    from .imaging.strain_report import truth_block, with_peaks
+
+    if case.has_truth and out.get("centre") is not None:
+        say("ground truth of the case at the reference pixels")
+        te, tr = truth_at_points(case)
+        out["truth"] = truth_block(te, tr, out["points"], out["centre"], out["segments"]["start_deg"],
+                                   source="DENSE-Sim GT_Ecc, GT_Err")
+    return with_peaks(out)
 
 
 def _write_json(path, payload):

@@ -59,12 +59,17 @@ def test_strain_writes_the_issue_json_with_bands_around_the_curves(short_case, t
     assert "reference pixels x 6 frames" in printed.out and "progress" not in printed.err
 
 
-@pytest.mark.parametrize("argv, expected", [
-    (["--route", "contours"], "--route: the contours route is not implemented yet"),
-])
-def test_strain_refuses_what_it_cannot_do_naming_the_argument(short_case, tmp_path, argv, expected, capsys):
-    assert main(["strain", str(short_case), "--json", str(tmp_path / "x.json"), *argv]) == 2
-    assert expected in capsys.readouterr().err
+@pytest.mark.needs_data(CASE)
+def test_strain_runs_the_contours_route_from_the_masks_alone(short_case, tmp_path):
+    """``--route contours``: the same JSON names, the route named, the spline through its landmarks beside."""
+    out = tmp_path / "c.json"
+    assert main(["strain", str(short_case), "--json", str(out), "--route", "contours", "--quiet"]) == 0
+    d = json.loads(out.read_text())
+    F, P = len(d["frame_times_s"]), len(d["points"])
+    assert d["route"] == "contours" and F == 6
+    assert np.array(d["strain"]["Ecc"], float).shape == (F, P)
+    assert np.array(d["segments"]["Err_lo"], float).shape == (6, F)
+    assert "landmarks" in d and "tracked contour landmarks" in d["spline"]["through"] and "conventional" in d
 
 
 def test_strain_refuses_a_folder_that_is_not_a_case(tmp_path, capsys):

@@ -40,14 +40,16 @@ def _row(case, out, truth, **extra) -> dict:
 def compute(settings: dict, out_dir) -> dict:
     warnings.simplefilter("ignore", RuntimeWarning)
     frames, rows = settings["frames"], []
-    kw = {"effects": "auto", "max_iterations": settings["max_iterations"], "max_rounds": settings["max_rounds"]}
+    # "loop": further settings of closing_the_loop (for example the search's: mesh, warm_start, screening)
+    kw = {"effects": "auto", "max_iterations": settings["max_iterations"], "max_rounds": settings["max_rounds"],
+          **settings.get("loop", {})}
     if "scale" in settings["cases"]:
         mesh = prepare(annulus_sequence(None, n_frames=4), 8).mesh
         for E in (5.0, 30.0, 100.0):
             mat = Material.uniform(mesh.n_elements, E * 1e3, NOMINAL["nu"])
             seq = annulus_sequence(None, seed=0, drive="pressure", material=mat, peak_pressure=2e3 * E / 10,
                                    n_frames=frames)
-            out = closing_the_loop(seq, drive="pressure", **{**kw, "max_iterations": 80})
+            out = closing_the_loop(seq, drive="pressure", **{**kw, "max_iterations": max(80, kw["max_iterations"])})
             m = out.baseline.metrics
             rows.append(_row(f"pressure drive, E = {E:g} kPa", out, "none", level_kPa=m["E_level_kPa"],
                              level_kPa_95=list(m["E_level_kPa_95"]), true_level_kPa=E))

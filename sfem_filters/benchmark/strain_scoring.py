@@ -13,7 +13,9 @@ the same pixels:
   x - cx)`` in degrees; segment peak error as for the global curve, reported as the mean and
   the maximum of its absolute value over the segments;
 * coverage: the percentage of (segment, frame) pairs whose true segment mean lies in the
-  estimate's 95% band (when bands are given), with the band's mean width.
+  estimate's 95% band (when bands are given), with the band's mean width; likewise, when
+  given, of the (frame, pixel) pairs by the pixel bands and of the frames by the global
+  curve's band (the spec's coverage is the segments'; these two are reported beside).
 
 >>> import numpy as np
 >>> from sfem_filters.benchmark.strain_scoring import score_strain
@@ -44,7 +46,9 @@ class StrainScore:
     ``global_peak_error_*`` are signed (estimate - truth); ``segment_peak_error_*_mean`` and
     ``_max`` are of absolute errors. ``coverage_pct_*`` and ``band_width_*`` are ``None``
     when no bands were given; ``coverage_pct`` pools the Ecc and Err segment-frames.
-    ``n_valid`` / ``n_total``: (frame, pixel) pairs scored / given.
+    ``n_valid`` / ``n_total``: (frame, pixel) pairs scored / given. ``*_pixels_*`` and
+    ``*_global_*``: coverage and mean width of the pixel and global-curve bands (``None`` when
+    not given).
     """
 
     pixel_rmse_Ecc: float
@@ -66,6 +70,14 @@ class StrainScore:
     band_width_Err: float | None
     n_valid: int
     n_total: int
+    coverage_pct_pixels_Ecc: float | None = None
+    coverage_pct_pixels_Err: float | None = None
+    band_width_pixels_Ecc: float | None = None
+    band_width_pixels_Err: float | None = None
+    coverage_pct_global_Ecc: float | None = None
+    coverage_pct_global_Err: float | None = None
+    band_width_global_Ecc: float | None = None
+    band_width_global_Err: float | None = None
 
     def to_dict(self) -> dict:
         """The metrics as plain floats, ints and ``None`` (JSON-ready)."""
@@ -91,7 +103,7 @@ def _coverage(band, true_seg, name: str):
 
 
 def score_strain(ecc, err, truth_ecc, truth_err, points, centre, start_deg: float = 0.0, ecc_band=None,
-                 err_band=None) -> StrainScore:
+                 err_band=None, pixel_bands=None, global_bands=None) -> StrainScore:
     """Score an estimate of Ecc and Err against the truth (spec ``strain-ground-truth.md``).
 
     Parameters
@@ -108,6 +120,10 @@ def score_strain(ecc, err, truth_ecc, truth_err, points, centre, start_deg: floa
         Start of segment 0 (degrees, from +x towards +y).
     ecc_band, err_band : pair of (6, F) arrays, optional
         Lower and upper 95% bounds of the estimate's segment curves (fraction).
+    pixel_bands : dict, optional
+        ``{"Ecc": (lo, hi), "Err": (lo, hi)}``, each bound (F, P): 95% bands of the pixels.
+    global_bands : dict, optional
+        ``{"Ecc": (lo, hi), "Err": (lo, hi)}``, each bound (F,): 95% bands of the global curves.
 
     Returns
     -------
@@ -150,6 +166,15 @@ def score_strain(ecc, err, truth_ecc, truth_err, points, centre, start_deg: floa
             k_in, k_n, width = _coverage(band, seg_true, f"{q.lower()}_band")
             out[f"coverage_pct_{q}"], out[f"band_width_{q}"] = PCT * k_in / k_n, width
             cov_in, cov_n = cov_in + k_in, cov_n + k_n
+        for name, bands, tru in (("pixels", pixel_bands, e["truth_" + q.lower()]),
+                                 ("global", global_bands, global_curve(e["truth_" + q.lower()]))):
+            if bands is None:
+                continue
+            if not isinstance(bands, dict) or q not in bands or len(bands[q]) != 2:
+                raise ValueError(f"{name[:-1] if name == 'pixels' else name}_bands: expected a dict with 'Ecc' "
+                                 f"and 'Err', each a pair (lo, hi), got {type(bands).__name__}")
+            k_in, k_n, width = _coverage(bands[q], tru, f"{'pixel' if name == 'pixels' else name}_bands[{q!r}]")
+            out[f"coverage_pct_{name}_{q}"], out[f"band_width_{name}_{q}"] = PCT * k_in / k_n, width
     both = ecc_band is not None and err_band is not None
     out["coverage_pct"] = PCT * cov_in / cov_n if both else None
     return StrainScore(**out, n_valid=int(valid.sum()), n_total=int(valid.size))

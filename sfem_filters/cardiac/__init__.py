@@ -31,12 +31,15 @@ the spline of its residual, and intervals for a difference of held-out errors),
 :mod:`~sfem_filters.cardiac.crossval` (cross-validation over the observed points),
 :mod:`~sfem_filters.cardiac.frontend` (images to a sequence, fusion),
 :mod:`~sfem_filters.cardiac.annulus` (synthetic sequences with a known answer),
-:mod:`~sfem_filters.cardiac.strain_route` (DENSE displacements to Green strain with its sd and banded curves).
+:mod:`~sfem_filters.cardiac.strain_route` (DENSE displacements to Green strain with its sd and banded curves),
+:mod:`~sfem_filters.cardiac.contours_route` (the same from myocardium masks alone: tracked borders, elastic interior).
 """
 from .annulus import annulus_mask, annulus_sequence, deformed_masks
 from .closing import (
+                       SEARCHES,
                        LoopResult,
                        Round,
+                       Search,
                        Variant,
                        candidate_loads,
                        closing_the_loop,
@@ -71,6 +74,7 @@ from .myocardium import (
                        lv_geometry,
                        mesh_from_mask,
                        mesh_from_points,
+                       polar_mesh,
                        tissue_mesh,
 )
 from .reference import angular_sectors, contour_interpolant, residual_spline, rmse_difference, spline_reference
@@ -82,16 +86,18 @@ from .sequence import (
                        moved_on_lattice,
                        save_sequence,
 )
+from .contours_route import ContourRouteSettings, ContourStrain, contour_spline_strain, contour_strain
 from .strain_route import DenseStrain, StrainRouteSettings, dense_strain
 
 __all__ = ["Sequence", "make_sequence", "load_sequence", "save_sequence", "example_path", "moved_on_lattice", "LVGeometry",
-           "lv_geometry", "mesh_from_points", "tissue_mesh", "mesh_from_mask", "contour_landmarks", "Effect", "CATALOGUE",
+           "lv_geometry", "mesh_from_points", "tissue_mesh", "polar_mesh", "mesh_from_mask", "contour_landmarks", "Effect", "CATALOGUE",
            "build_effects", "NOMINAL", "PARAMETERISATIONS", "DRIVES", "OBSERVE", "MESHES", "Setup", "Run", "prepare",
            "build_model", "run", "evaluate", "noise_floor", "strain_maps", "measured_wall_kinematics",
-           "LoopResult", "Round", "Variant", "closing_the_loop", "candidate_loads", "format_report", "log_evidence",
+           "LoopResult", "Round", "Variant", "Search", "SEARCHES", "closing_the_loop", "candidate_loads", "format_report", "log_evidence",
            "removals",
            "spline_reference", "residual_spline", "rmse_difference", "angular_sectors", "kriged_heldout", "material_conflict",
            "contour_interpolant", "cross_validate", "observation_folds",
            "spline_cross_validation", "observe", "fusion_setup",
-           "compare_fusion", "annulus_mask", "annulus_sequence", "deformed_masks", "dense_strain", "DenseStrain",
+           "compare_fusion", "annulus_mask", "annulus_sequence", "deformed_masks", "dense_strain", "DenseStrain", "contour_strain", "ContourStrain",
+           "ContourRouteSettings", "contour_spline_strain",
            "StrainRouteSettings"]

@@ -113,8 +113,8 @@ from ..filtering.smoother import PEAK_FACTOR, WORKING
 from ..resources import available_memory, blas_threads, process_pool, starting_workers, usable_cores
 from .crossval import DEFAULT_FOLDS, cross_validate, observation_folds, spline_cross_validation
 from .effects import CATALOGUE, EXPLICIT_ONLY, build_effects
-from .measured import (NOMINAL, Run, Setup, angle_from_origin, default_max_iterations, equivalent_eigenstrain,
-                       exact_posterior, kriged_heldout, measured_wall_kinematics, prepare, run, with_covariance)
+from .measured import (ELEMENT_PX, NOMINAL, Run, Setup, angle_from_origin, default_max_iterations,
+                       equivalent_eigenstrain, exact_posterior, kriged_heldout, measured_wall_kinematics, prepare, run, with_covariance)
 from .reference import angular_sectors, rmse_difference, spline_reference
 from .sequence import Sequence
 
@@ -126,6 +126,41 @@ __all__ = ["LoopResult", "Round", "Variant", "closing_the_loop", "candidate_load
 
 #: How a round picks among significant candidates (``selection=``, ``--selection``): the first by
 #: score that improves the criterion, or the one of the fitted that improves it most.
+@dataclass(frozen=True)
+class Search:
+    """How thoroughly the rounds search, and on what mesh (:func:`closing_the_loop`'s settings of the
+    same names; ``max_iterations`` None: :func:`~sfem_filters.cardiac.measured.default_max_iterations`
+    of the drive, at least ``min_iterations``)."""
+
+    mesh: str = "delaunay"
+    element_px: float = ELEMENT_PX
+    warm_start: bool = False
+    screen_iterations: int | None = None
+    min_iterations: int = 1
+
+    def max_iterations(self, drive: str) -> int:
+        """The smoother's iteration limit under this search for ``drive``."""
+        return max(default_max_iterations(drive), self.min_iterations)
+
+    def settings(self) -> dict:
+        """The :func:`closing_the_loop` keywords of this search (beside ``max_iterations``)."""
+        return {"mesh": self.mesh, "element_px": self.element_px, "warm_start": self.warm_start,
+                "screen_iterations": self.screen_iterations}
+
+
+#: The searches the ``dense`` command offers (``--search``). ``fast``, the default: every fit of a
+#: round started from the current model's mode and screened with 3 Gauss-Newton iterations, only the
+#: one kept fitted to the end, and room for the baseline to converge (40 iterations); the same path,
+#: final model and held-out errors as ``full`` on the measured slice and the synthetic checks.
+#: ``coarse``: the same on a mesh of the wall apart from the points (2-pixel edges), a few times
+#: faster again, but another discretisation, which finds other effects on the synthetic checks
+#: (drawn on the node-per-point mesh). ``full``: every fit to the end from the prior on the
+#: node-per-point mesh (what the command did before the searches). The docs' validation page
+#: "Closing the loop: fast and full search" measures what each finds and costs.
+SEARCHES = {"fast": Search(warm_start=True, screen_iterations=3, min_iterations=40),
+            "coarse": Search(mesh="polar", warm_start=True, screen_iterations=3, min_iterations=40),
+            "full": Search()}
+
 SELECTIONS = ("first", "best")
 
 #: What decides whether a candidate is kept (``criterion=``, ``--criterion``): the evidence
@@ -587,13 +622,13 @@ class _Fits:
     first accepted one, ``selection="first"``) may have run for nothing.
     """
 
-    def __init__(self, setup, opts, workers: int, cv_folds, progress: bool):
+    def __init__(self, setup, opts, workers: int, cv_folds, progress: bool, warm_start: bool = False):
         if opts.get("estimator") == "smoother":
             # most fits are tried and let go: the variances of their kinematics and strains are
             # made only for those kept (kept(), measured.with_covariance: the same figures)
             opts = {**opts, "covariance": False}
         self.setup, self.opts, self.workers, self.cv_folds = setup, opts, workers, cv_folds
-        self.progress = progress
+        self.progress, self.warm_start = progress, bool(warm_start) and opts.get("estimator") == "smoother"
         self.quiet = {**opts, "progress": False}            # one bar for a batch of fits, not one per worker
         self.pool = None
         if workers > 1:
@@ -609,12 +644,18 @@ class _Fits:
             self.pool.shutdown(wait=False, cancel_futures=True)
         self.pool = None
 
-    def run(self, variants, label: str = "fits", names=None):
+    def run(self, variants, label: str = "fits", names=None, warm=None, iterations: int | None = None):
         """Yield ``(run, cv)`` for each variant, in the given order. A pool that cannot start or
         breaks (a worker killed, for example for memory) is a warning, and the fits not yet
         returned are made here; an error of a fit itself is raised as it is. ``names`` (one per
-        variant, optional) name the fits made here on their progress bars, after ``label``."""
+        variant, optional) name the fits made here on their progress bars, after ``label``.
+        ``warm``: the run whose material mode the fits start from (with ``warm_start``; a fit of
+        another parameterisation starts from the prior mean); ``iterations``: at most this many
+        Gauss-Newton iterations instead of the rounds' limit (a screening fit)."""
         variants = list(variants)
+        extra = {"warm_start": warm.result.theta} if self.warm_start and warm is not None else {}
+        if iterations is not None:
+            extra["max_iterations"] = min(int(iterations), int(self.opts.get("max_iterations") or iterations))
         names = [v.label(v.drive) if isinstance(v, Variant) else str(v) for v in variants] if names is None \
             else list(names)
         done = 0
@@ -626,7 +667,8 @@ class _Fits:
             futures = []
             try:
                 with starting_workers():                # the workers start with Ctrl-C ignored: abort() stops them
-                    futures = [self.pool.submit(_fit_job, self.setup, v, self.quiet, self.cv_folds) for v in variants]
+                    futures = [self.pool.submit(_fit_job, self.setup, v, {**self.quiet, **extra}, self.cv_folds)
+                               for v in variants]
                 for i, f in enumerate(futures):
                     out = f.result()
                     futures[i] = None                       # a fit is held once, by whoever takes it
@@ -641,7 +683,7 @@ class _Fits:
                     if f is not None:
                         f.cancel()
         for v, name in zip(variants[done:], names[done:]):
-            yield _fit_job(self.setup, v, {**self.opts, "description": f"{label}: {name}"}, self.cv_folds)
+            yield _fit_job(self.setup, v, {**self.opts, **extra, "description": f"{label}: {name}"}, self.cv_folds)
 
     def close(self) -> None:
         if self.pool is not None:
@@ -796,7 +838,9 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
                      corrections: bool = True, criterion: str = "evidence", folds: int = DEFAULT_FOLDS,
                      min_cv_gain: float = 0.01, selection: str = "best", prune: bool = True,
                      laplace: str = "gauss-newton", measurement_noise: str = "fixed",
-                     mesh: str = "delaunay", angle_origin_deg: float = 0.0, workers: int | None = 1) -> LoopResult:
+                     mesh: str = "delaunay", angle_origin_deg: float = 0.0, workers: int | None = 1,
+                     element_px: float = ELEMENT_PX, warm_start: bool = False,
+                     screen_iterations: int | None = None) -> LoopResult:
     """Baseline run, then rounds of ranking and adding effects (module docstring), with the spline
     reference.
 
@@ -808,11 +852,27 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
         before any fit.
     drive, parameterisation : str
         See :func:`sfem_filters.cardiac.measured.build_model`.
-    landmarks, observe, holdout_seed, mesh, angle_origin_deg :
+    landmarks, observe, holdout_seed, mesh, element_px, angle_origin_deg :
         See :func:`sfem_filters.cardiac.measured.prepare` (``mesh="radial"``: every diagonal of the
         pixel lattice towards the cavity centre, so that the heart's position and orientation in
-        the image do not change the mesh; ``angle_origin_deg``: where landmark 0, sector 0 and
-        segment 0 start, degrees from the image's +x axis towards +y).
+        the image do not change the mesh; ``mesh="polar"``: a mesh of the wall apart from the
+        points, edges of about ``element_px`` point spacings, the points observed through its shape
+        functions, at a cost set by the element size; ``angle_origin_deg``: where landmark 0,
+        sector 0 and segment 0 start, degrees from the image's +x axis towards +y).
+    warm_start : bool
+        Start each fit of a round (candidates, corrections, backward steps) from the material mode
+        of the model it extends or prunes instead of the prior mean (smoother only; a fit of
+        another parameterisation starts from the prior). The MAP cost is the same; fewer
+        Gauss-Newton iterations reach its stop rule (measured in the docs' how-to on run time).
+    screen_iterations : int, optional
+        Screening (smoother only): every fit of a round (candidates, corrections, backward steps)
+        is first made with at most this many Gauss-Newton iterations and judged by the criterion
+        there; only the one that would be kept is then fitted to the full limit (from the
+        screening fit's material with ``warm_start``) and kept if it still improves the criterion.
+        Warm-started from the current model's mode, where the smoother has already re-estimated
+        every trajectory and effect amplitude (they are linear in the data given the material), a
+        few iterations move the evidence most of its way. ``None`` (default): every fit to the
+        full limit.
     estimator : {"smoother", "cyclic", "roukf"}
         The iterated smoother (at most ``max_iterations`` Gauss-Newton steps; default
         :func:`~sfem_filters.cardiac.measured.default_max_iterations` of the drive: 20, 80 under a measured pressure) or the
@@ -930,7 +990,15 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
     tracker.say(f"closing the loop on {seq.n_points} points x {seq.n_frames} frames: mesh and baseline fit, then "
                 + ("at most {max_rounds} rounds" if effects == "auto" else "no rounds" if effects == "none"
                    else "one fit with the given effects").format(max_rounds=max_rounds))
-    setup = prepare(seq, landmarks, observe, holdout_seed, mesh=mesh, angle_origin_deg=angle_origin_deg)
+    if not isinstance(warm_start, (bool, np.bool_)):
+        raise ValueError(f"warm_start: expected True or False, got {warm_start!r}")
+    if screen_iterations is not None:
+        screen_iterations = integer("screen_iterations", screen_iterations, 1)
+        if estimator != "smoother":
+            raise ValueError(f"screen_iterations: screening stops the iterated smoother early; expected "
+                             f"estimator='smoother', got {estimator!r}")
+    setup = prepare(seq, landmarks, observe, holdout_seed, mesh=mesh, angle_origin_deg=angle_origin_deg,
+                    element_px=element_px)
     try:                                # before any fit: can the observed points be cross-validated?
         observation_folds(setup, folds)
         cv_possible = True
@@ -947,14 +1015,15 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
                                                                            else f"{parameterisation} map") + ")"})
         fits = _Fits(setup, opts, 1 if effects != "auto" or workers == 1
                      else fit_workers(workers, base.model.dim_state, seq.n_frames),
-                     folds if criterion == "cv" else None, progress)
+                     folds if criterion == "cv" else None, progress, warm_start=warm_start)
         return _rounds(seq, setup, start, base, fits, opts, effects=effects, drive=drive, landmarks=landmarks,
                        observe=observe, holdout_seed=holdout_seed, parameterisation=parameterisation,
                        max_loops=max_loops, progress=progress, estimator=estimator, max_iterations=max_iterations,
                        max_rounds=max_rounds, alpha=alpha, min_evidence=min_evidence, max_tries=max_tries,
                        names=names, corrections=corrections, criterion=criterion, folds=folds,
                        min_cv_gain=min_cv_gain, selection=selection, prune=prune, laplace=laplace,
-                       measurement_noise=measurement_noise, mesh=mesh, cv_possible=cv_possible, tracker=tracker)
+                       measurement_noise=measurement_noise, mesh=mesh, cv_possible=cv_possible, tracker=tracker,
+                       warm_start=warm_start, screen_iterations=screen_iterations)
     except KeyboardInterrupt:
         if fits is not None:
             fits.abort()
@@ -967,14 +1036,14 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
 def _rounds(seq, setup, start, base, fits, opts, *, effects, drive, landmarks, observe, holdout_seed,
             parameterisation, max_loops, progress, estimator, max_iterations, max_rounds, alpha, min_evidence,
             max_tries, names, corrections, criterion, folds, min_cv_gain, selection, prune, laplace,
-            measurement_noise, mesh, cv_possible, tracker) -> LoopResult:
+            measurement_noise, mesh, cv_possible, tracker, warm_start=False, screen_iterations=None) -> LoopResult:
     """The rounds of :func:`closing_the_loop` after its baseline fit (``fits`` makes the others;
     ``tracker``, a :class:`_Progress`, writes a line as the baseline and each round end)."""
     last = {}
     rounds = [Round(0, start, None, (), base, log_evidence=log_evidence(base),
                     cv=round_cross_validation(setup, start, base, folds) if cv_possible else None)]
-    g = setup.geometry
-    held = setup.node_of_point[setup.heldout]
+    g = setup.point_geometry
+    held = setup.heldout
     # the spline's held-out error, the yardstick of every round's line (the same reference as the report's)
     reference = spline_reference(seq.points, seq.displacement, setup.observed, setup.heldout,
                                  g.radial[held], g.circumferential[held])
@@ -993,6 +1062,17 @@ def _rounds(seq, setup, start, base, fits, opts, *, effects, drive, landmarks, o
             ok = bool(np.isfinite(gain) and gain > min_evidence)
         return float(gain), ok, entry
 
+    def confirmed(cur: Round, variant, trial: Run, cv, gain: float, label: str, entry: dict) -> tuple:
+        """A screened fit that would be kept, fitted to the full limit: ``(run, cv, gain, ok)``;
+        ``entry`` (its row of the round) gets the full fit's figures and the screening gain beside."""
+        if screen_iterations is None or trial.metrics.get("converged", True):
+            return trial, cv, gain, True
+        full, cv = next(fits.run([variant], label, ["confirm " + variant.label(drive)], warm=trial))
+        gain, ok, new = judged(cur, full, cv)
+        entry.update({"screened_" + k: v for k, v in entry.items() if k in ("evidence_gain", "cv_gain_px")})
+        entry.update(new)
+        return full, cv, gain, ok
+
     def kept(number, variant, added, replaced, trial, ranking, threshold, tried, cv) -> Round:
         if getattr(trial.result, "method", "") == "iterated_smoother":
             with blas_threads(1):                      # on one BLAS thread, as its fit (_fit)
@@ -1005,7 +1085,7 @@ def _rounds(seq, setup, start, base, fits, opts, *, effects, drive, landmarks, o
         stop = "none"
     elif effects != "auto":
         chosen = start.with_(effects=tuple(effects))
-        ext, cv = next(fits.run([chosen], "given effects", ["+ " + ",".join(chosen.effects)]))
+        ext, cv = next(fits.run([chosen], "given effects", ["+ " + ",".join(chosen.effects)], warm=base))
         rounds.append(kept(1, chosen, ",".join(chosen.effects), (), ext, first, np.nan,
                            [{"effect": ",".join(chosen.effects), "score": None,
                              "evidence_gain": log_evidence(ext) - rounds[0].log_evidence, "accepted": True}], cv))
@@ -1043,7 +1123,8 @@ def _rounds(seq, setup, start, base, fits, opts, *, effects, drive, landmarks, o
                     continue
                 planned.add(_key(variant))
                 plan.append((cand, replaced, variant))
-            outcomes = fits.run([v for _, _, v in plan], f"round {number}", ["+ " + c["effect"] for c, _, _ in plan])
+            outcomes = fits.run([v for _, _, v in plan], f"round {number}", ["+ " + c["effect"] for c, _, _ in plan],
+                                warm=cur.run, iterations=screen_iterations)
             for (cand, replaced, variant), (trial, cv) in zip(plan, outcomes):
                 seen.add(_key(variant))
                 gain, ok, entry = judged(cur, trial, cv)
@@ -1058,8 +1139,12 @@ def _rounds(seq, setup, start, base, fits, opts, *, effects, drive, landmarks, o
                     break
             if best is not None:
                 gain, name, replaced, variant, trial, k, cv = best
-                tried[k]["accepted"] = True
-                accepted = kept(number, variant, name, replaced, trial, ranking, threshold, tried, cv)
+                trial, cv, gain, ok = confirmed(cur, variant, trial, cv, gain, f"round {number}", tried[k])
+                if ok:
+                    tried[k]["accepted"] = True
+                    accepted = kept(number, variant, name, replaced, trial, ranking, threshold, tried, cv)
+                else:
+                    rejected.add(name)
             if corrections and accepted is None:
                 # no effect passes: every correction of the model's own drive and priors that the
                 # residual points to is fitted, and the one with the largest gain of the criterion
@@ -1074,15 +1159,19 @@ def _rounds(seq, setup, start, base, fits, opts, *, effects, drive, landmarks, o
                     plan.append((name, variant))
                 for (name, variant), (trial, cv) in zip(plan, fits.run([v for _, v in plan],
                                                                        f"round {number}, corrections",
-                                                                       [f"correction {n}" for n, _ in plan])):
+                                                                       [f"correction {n}" for n, _ in plan],
+                                                                       warm=cur.run, iterations=screen_iterations)):
                     gain, ok, entry = judged(cur, trial, cv)
                     tried.append({"effect": name, "score": None, **entry, "accepted": False})
                     if ok and (best is None or gain > best[0]):
                         best = (gain, name, variant, trial, len(tried) - 1, cv)
                 if best is not None:
                     gain, name, variant, trial, k, cv = best
-                    tried[k]["accepted"] = True
-                    accepted = kept(number, variant, name, (), trial, ranking, threshold, tried, cv)
+                    trial, cv, gain, ok = confirmed(cur, variant, trial, cv, gain, f"round {number}, corrections",
+                                                    tried[k])
+                    if ok:
+                        tried[k]["accepted"] = True
+                        accepted = kept(number, variant, name, (), trial, ranking, threshold, tried, cv)
             if accepted is None:
                 stop = (criterion if any(t["score"] is not None for t in tried)
                         else "no significant candidate")
@@ -1104,7 +1193,8 @@ def _rounds(seq, setup, start, base, fits, opts, *, effects, drive, landmarks, o
                     plan.append((name, variant))
                 for (name, variant), (trial, cv) in zip(plan, fits.run([v for _, v in plan],
                                                                        f"round {number}, backward",
-                                                                       [f"- {n}" for n, _ in plan])):
+                                                                       [f"- {n}" for n, _ in plan], warm=cur.run,
+                                                                       iterations=screen_iterations)):
                     gain, ok, entry = judged(cur, trial, cv)
                     cur.backward.append({"removed": name, **entry, "accepted": False})
                     if ok and (best is None or gain > best[0]):
@@ -1112,6 +1202,10 @@ def _rounds(seq, setup, start, base, fits, opts, *, effects, drive, landmarks, o
                 if best is None:
                     break
                 gain, name, variant, trial, k, cv = best
+                trial, cv, gain, ok = confirmed(cur, variant, trial, cv, gain, f"round {number}, backward",
+                                                cur.backward[k])
+                if not ok:
+                    break
                 cur.backward[k]["accepted"] = True
                 step = kept(number, variant, None, (), trial, [], np.nan, [], cv)
                 step.removed = name
@@ -1132,6 +1226,9 @@ def _rounds(seq, setup, start, base, fits, opts, *, effects, drive, landmarks, o
               "corrections": bool(corrections), "criterion": criterion, "folds": folds,
               "min_cv_gain": min_cv_gain, "selection": selection, "prune": bool(prune), "laplace": laplace,
               "measurement_noise": measurement_noise, "mesh": mesh, "angle_origin_deg": setup.angle_origin_deg,
+              **({"element_px": setup.element_px} if setup.element_px is not None else {}),
+              **({"warm_start": True} if warm_start else {}),
+              **({"screen_iterations": screen_iterations} if screen_iterations is not None else {}),
               "innovation_whitening": diagnostics.DEFAULT_WHITENING,
               "final": rounds[-1].variant.as_json()}
     if cv_possible:
@@ -1171,7 +1268,7 @@ def versus_spline(setup: Setup, U, spline_U, level: float = 0.95) -> dict | None
     """
     h = setup.heldout
     meas = setup.seq.displacement[:, h]
-    angles = angle_from_origin(setup, setup.mesh.nodes[setup.node_of_point[h]])
+    angles = angle_from_origin(setup, setup.point_mesh.nodes[h])
     n = max(int(setup.n_landmarks), 2)
     sectors = angular_sectors(angles, n)
     if len(np.unique(sectors)) < 2:
@@ -1264,11 +1361,16 @@ def _format_report(report: dict) -> str:
     b, e = report["baseline"], report["extended"]
     cfg = report["config"]
     lines = [f"{cfg['n_points']} points, {cfg['n_frames']} frames; mesh {cfg['mesh_nodes']} nodes, "
-             f"{cfg['mesh_elements']} triangles ({cfg.get('mesh', 'delaunay')}); {cfg['n_observed']} observed, {cfg['n_heldout']} held out "
+             f"{cfg['mesh_elements']} triangles ({cfg.get('mesh', 'delaunay')}"
+             + (f", edges ~{cfg['element_px']:g} px" if cfg.get("element_px") else "")
+             + f"); {cfg['n_observed']} observed, {cfg['n_heldout']} held out "
              f"({cfg['landmarks']} landmarks per contour"
              + (f" from {cfg['angle_origin_deg']:g} deg" if cfg.get("angle_origin_deg", 0.0) else "")
              + f", observe {cfg['observe']}, drive {cfg['drive']}, "
-             f"material {cfg['parameterisation']}, estimator {cfg['estimator']})",
+             f"material {cfg['parameterisation']}, estimator {cfg['estimator']}"
+             + (", fits warm-started" if cfg.get("warm_start") else "")
+             + (f", screened with {cfg['screen_iterations']} iterations" if cfg.get("screen_iterations") else "")
+             + ")",
              f"noise floor {report['noise_floor_px']:.3f} px" + (
                  f"; nominal (not in the file): {report['nominal']}" if report["nominal"] else ""),
              "data: wall area x{w:.3f} and wall thickness {t0:.2f} -> {tp:.2f} px at frame {f} (peak area); mean strain "

@@ -48,7 +48,7 @@ from .._validate import integer
 from ..fem.material import Material
 from ..filtering.iterated import open_loop
 from ..filtering.smoother import smooth
-from .measured import Setup, build_model, noise_floor
+from .measured import Setup, at_points, build_model, noise_floor
 from .reference import heldout_errors, residual_spline, spline_reference
 
 __all__ = ["observation_folds", "cross_validate", "spline_cross_validation", "DEFAULT_FOLDS"]
@@ -100,8 +100,7 @@ def _without(setup: Setup, data, fold) -> Setup:
 
 
 def _directions(setup: Setup, points):
-    nodes = setup.node_of_point[points]
-    return setup.geometry.radial[nodes], setup.geometry.circumferential[nodes]
+    return setup.point_geometry.radial[points], setup.point_geometry.circumferential[points]
 
 
 def _scores(setup: Setup, data, parts, U) -> dict:
@@ -167,7 +166,7 @@ def cross_validate(setup: Setup, material, effects=(), drive: str = "penalty", f
         lin = model.linearise(open_loop(model), sensitivity=False)
         nr = model.n_restart
         states = lin.to_model(smooth(lin, y).smoothed[:, :nr])
-        u = (model.displacements(states).reshape(F, -1, 2) / setup.spacing)[:, setup.node_of_point]
+        u = at_points(setup, model.displacements(states).reshape(F, -1, 2) / setup.spacing)
         U[:, start:start + len(fold)] = u[:, fold]
         # plus the spline of its residual at the points the fold's model observed (sub.observed
         # leaves the fold out; the fold's data only score the prediction, discarded here)

@@ -160,7 +160,7 @@ def fusion_setup(seq: Sequence, tracks: BoundaryTracks, velocity: VelocityData |
     obs = np.full((F, P, 2), np.nan)
     sig = np.full((F, P), np.nan)
     conf = np.zeros((F, P))
-    geo = setup.geometry
+    geo = setup.point_geometry
     for contour, loop in ((0, geo.endo), (1, geo.epi)):
         lm = np.intersect1d(setup.landmarks, loop)
         d, s, c, _ = track_to_nodes(tracks, seq.points[lm], contour)

@@ -32,6 +32,7 @@ import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
+import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from .._validate import as_float_array, integer, positive
@@ -40,7 +41,7 @@ from ..fem.elasticity import stiffness_matrix
 from ..fem.loads import penalty_load, penalty_stiffness, pressure_load
 from ..fem.material import Material, Parameterisation
 from ..fem.mesh import lattice_mesh
-from ..fem.observation import node_observation_matrix
+from ..fem.observation import interpolation_matrix, node_observation_matrix
 from ..fem.strain import nodal_strains
 from ..filtering import diagnostics
 from ..filtering.cyclic import cyclic_estimate
@@ -54,6 +55,7 @@ from .effects import build_effects, segment_labels
 from .myocardium import (
     contour_landmarks,
     lv_geometry,
+    polar_mesh,
     polar_strain_operator,
     polar_strains,
     tissue_mesh,
@@ -100,7 +102,7 @@ DRIVES = ("penalty", "contour", "pressure", "none")
 #: Which points are observed (``observe=``, ``--observe``).
 OBSERVE = ("boundary", "boundary+midwall")
 #: How :func:`prepare` triangulates the points (its ``mesh`` argument).
-MESHES = ("delaunay", "radial")
+MESHES = ("delaunay", "radial", "polar")
 
 
 #: The smoother's iteration limit when none is given (``max_iterations=None``, ``--max-iterations``):
@@ -108,6 +110,8 @@ MESHES = ("delaunay", "radial")
 #: slowly (the 100 kPa synthetic annulus of the rounds' validation needs 57 iterations), so that 20 could leave the
 #: level's interval short of the truth.
 MAX_ITERATIONS = {"default": 20, "pressure": 80}
+#: Target element edge of ``mesh="polar"`` (:func:`prepare`), in the points' spacings (pixels).
+ELEMENT_PX = 2.0
 
 
 def default_max_iterations(drive: str) -> int:
@@ -160,10 +164,25 @@ class Setup:
     velocity_points: np.ndarray = field(default=None)    # points with velocity data
     velocity: np.ndarray = field(default=None)           # (F, V, 2) data units per second
     velocity_sigma: np.ndarray = field(default=None)     # (F, V) per-component sd, units per second
+    # the points' own mesh and geometry (contours, landmarks, directions at the points); the same
+    # objects as mesh and geometry when the mesh has a node per point (node_of_point), else the
+    # mesh is chosen apart from the points (mesh="polar") and ``interpolation`` (sparse (P, n_nodes),
+    # the shape functions at each point) carries nodal values to the points
+    point_mesh: object = field(default=None)
+    point_geometry: object = field(default=None)
+    interpolation: object = field(default=None)
+    element_px: float | None = None                      # target element edge of mesh="polar", point spacings
+
+    def __post_init__(self):
+        if self.point_mesh is None:
+            self.point_mesh = self.mesh
+        if self.point_geometry is None:
+            self.point_geometry = self.geometry
 
 
 def prepare(seq: Sequence, landmarks: int = 8, observe: str = "boundary", holdout_seed: int = 0,
-            n_sectors: int = 6, mesh: str = "delaunay", angle_origin_deg: float = 0.0) -> Setup:
+            n_sectors: int = 6, mesh: str = "delaunay", angle_origin_deg: float = 0.0,
+            element_px: float = ELEMENT_PX) -> Setup:
     """Mesh the points and split them into observed and held-out sets.
 
     Parameters
@@ -185,6 +204,17 @@ def prepare(seq: Sequence, landmarks: int = 8, observe: str = "boundary", holdou
         by :func:`sfem_filters.fem.mesh.lattice_mesh` with every diagonal pointing towards the
         cavity centre, the same triangles moved with the heart (points off a lattice: an
         error). The cells, the boundary, and so the contours, landmarks and sectors are the same.
+        ``"polar"``: a mesh chosen apart from the points (:func:`sfem_filters.cardiac.myocardium.polar_mesh`):
+        node rings at equal angles about the cavity centre, layers at equal fractions of the wall,
+        edges of about ``element_px``, the wall widened by half the points' spacing so that every
+        point lies inside; the points are observed and held out through the elements' shape
+        functions (Eq. 12 as an interpolation, :func:`sfem_filters.fem.observation.interpolation_matrix`)
+        and the drive's springs pull at the points through them too. Its cost is set by the
+        element size, not by the number of points (the filter's cost grows as the cube of the
+        nodes); contours, landmarks and held-out points are those of the points' own mesh.
+    element_px : float
+        Target element edge of ``mesh="polar"``, in the points' spacings (pixels on a pixel
+        lattice; > 0). Default :data:`ELEMENT_PX`.
     angle_origin_deg : float
         Where the angles about the cavity centre start (degrees, ``atan2(y, x)`` in the data's
         axes: x to the right, y down the image, so angles grow clockwise on screen): landmark 0 of
@@ -223,6 +253,7 @@ def prepare(seq: Sequence, landmarks: int = 8, observe: str = "boundary", holdou
         nominal.append("frame_interval")
     pts = seq.points * spacing
     tri_mesh, _, lattice = tissue_mesh(pts)
+    element_px = positive("element_px", element_px, "point spacings")
     # the contours (and so the cavity centre, the radial directions and the wall's nodes) do not
     # depend on the diagonals of full cells: one geometry serves either mesh
     geometry = lv_geometry(tri_mesh)
@@ -237,7 +268,6 @@ def prepare(seq: Sequence, landmarks: int = 8, observe: str = "boundary", holdou
                              "lattice's tissue; use mesh='delaunay'")
         tri_mesh = radial
     mesh = tri_mesh
-    node_of_point = np.arange(len(pts))
     shortest = min(len(geometry.endo), len(geometry.epi))
     if landmarks > shortest:
         raise ValueError(f"landmarks: expected at most {shortest} per contour (the shorter contour's points), "
@@ -266,6 +296,15 @@ def prepare(seq: Sequence, landmarks: int = 8, observe: str = "boundary", holdou
         mid = geometry.midwall
         observed = np.union1d(lm, rng.choice(mid, size=len(mid) // 2, replace=False))
     heldout = np.setdiff1d(np.arange(len(pts)), observed)
+    point_mesh, point_geometry, interpolation = mesh, geometry, None
+    node_of_point = np.arange(len(pts))
+    if mesh_kind == "polar":
+        # the points' contours (their own mesh's boundary), widened by half a spacing
+        mesh = polar_mesh(pts[geometry.endo], pts[geometry.epi], geometry.centre, element_px * lattice,
+                          margin=0.5 * lattice)
+        geometry = lv_geometry(mesh)
+        interpolation = interpolation_matrix(mesh, pts, max_outside=0.5 * lattice)
+        node_of_point = None
     # regional map: angular sectors x (inner, outer) halves of the wall
     # (the segments of active_segments, counted the same way from the same origin)
     sector = (segment_labels(mesh, geometry, n_sectors, angle_origin_deg) if n_sectors > 1
@@ -281,7 +320,28 @@ def prepare(seq: Sequence, landmarks: int = 8, observe: str = "boundary", holdou
                  node_of_point=node_of_point, landmarks=lm, observed=observed, heldout=heldout,
                  noise_px=noise_px, n_landmarks=landmarks, observe=observe,
                  holdout_seed=holdout_seed, regions=2 * sector + layer, mesh_kind=mesh_kind,
-                 angle_origin_deg=angle_origin_deg)
+                 angle_origin_deg=angle_origin_deg, point_mesh=point_mesh, point_geometry=point_geometry,
+                 interpolation=interpolation, element_px=element_px if mesh_kind == "polar" else None)
+
+
+def at_points(setup: Setup, nodal) -> np.ndarray:
+    """Nodal values (..., n_nodes, k) at the data points (..., P, k): the node of each point, or the
+    element shape functions at it (``mesh="polar"``, :func:`prepare`)."""
+    a = np.asarray(nodal, float)
+    if setup.interpolation is None:
+        return a[..., setup.node_of_point, :]
+    moved = np.moveaxis(a, -2, 0)
+    out = setup.interpolation @ moved.reshape(moved.shape[0], -1)
+    return np.moveaxis(out.reshape((-1,) + moved.shape[1:]), 0, -2)
+
+
+def point_rows(setup: Setup, points) -> sp.csr_matrix:
+    """Observation rows (Eq. 12) of the x and y displacement at data points ``points`` (indices, in
+    that order; rows point by point, x before y), sparse (2 len(points), n_dofs)."""
+    points = np.asarray(points, np.int64)
+    if setup.interpolation is None:
+        return node_observation_matrix(setup.mesh, setup.node_of_point[points], keep_order=True)
+    return sp.csr_matrix(sp.kron(setup.interpolation[points], sp.eye(2)))
 
 
 def _filled(u):
@@ -363,7 +423,6 @@ def build_model(setup: Setup, effects=(), drive: str = "penalty", parameterisati
     Kdiag = np.median(stiffness_matrix(mesh, nominal.E, nominal.nu).diagonal())
     loads = np.zeros((F, mesh.n_dofs))
     penalty = None
-    nodes = setup.node_of_point
     load_std = None
     if int(drive_lag) != drive_lag or drive_lag not in (0, 1):
         raise ValueError(f"drive_lag: expected 0 or 1 frames, got {drive_lag!r}")
@@ -371,21 +430,30 @@ def build_model(setup: Setup, effects=(), drive: str = "penalty", parameterisati
         raise ValueError("drive_trend: the trend extrapolates from the previous frames; it needs drive_lag=1")
     if drive in ("penalty", "contour"):
         if drive == "penalty":
-            drive_nodes = nodes[setup.landmarks]
+            drive_points = setup.landmarks
             targets = _filled(data[:, setup.landmarks]) * s                    # (F, L, 2) m
             conf = _confidence(seq, setup.landmarks, setup.obs_confidence)
             interp = None
         else:
-            drive_nodes, targets, conf, interp = _contour_targets(setup, data)
-        held = mesh.nodes[drive_nodes[np.mean(np.atleast_2d(conf), axis=0) > 0]]
+            drive_points, targets, conf, interp = _contour_targets(setup, data)
+        held = setup.point_mesh.nodes[drive_points[np.mean(np.atleast_2d(conf), axis=0) > 0]]
         if len(held) < 3 or np.linalg.matrix_rank(held - held[0], tol=1e-9 * np.ptp(mesh.nodes)) < 2:
-            raise ValueError(f"confidence: {len(held)} of the drive's {len(drive_nodes)} landmark nodes have a "
+            raise ValueError(f"confidence: {len(held)} of the drive's {len(drive_points)} landmark nodes have a "
                              "confidence > 0 in some frame, not spread over the plane, so the springs cannot hold the "
                              "tissue's rigid-body motion; expected confidence > 0 on at least 3 landmarks not on one line")
-        dofs = node_dofs(drive_nodes)
         conf = np.repeat(conf, 2, axis=-1)                                      # per dof
         k = NOMINAL["penalty"] * positive("spring_scale", spring_scale) * Kdiag
-        penalty = penalty_stiffness(mesh.n_dofs, dofs, k, conf.mean(axis=0) if conf.ndim == 2 else conf)
+        c_mean = conf.mean(axis=0) if conf.ndim == 2 else conf
+        if setup.interpolation is None:                                         # a spring on each point's node
+            dofs = node_dofs(setup.node_of_point[drive_points])
+            penalty = penalty_stiffness(mesh.n_dofs, dofs, k, c_mean)
+            spread = None
+        else:
+            # a spring at each point through the shape functions: energy k c |D u - b|^2 / 2, so the
+            # stiffness D^T (k c) D and the load D^T (k c b) (on a node, D selects it: the same springs)
+            Dd = point_rows(setup, drive_points)
+            penalty = sp.csr_matrix(Dd.T @ sp.diags(k * np.clip(c_mean, 0, 1)) @ Dd)
+            spread = Dd.T.tocsr()
         # Zero-order hold of the data: over the interval into frame t the springs pull toward the
         # targets measured at frame t - drive_lag; with the causal lag 1, frame t's data enter only
         # through the measurement update and the innovation stays a one-step-ahead prediction error.
@@ -393,7 +461,8 @@ def build_model(setup: Setup, effects=(), drive: str = "penalty", parameterisati
             src = max(t - int(drive_lag), 0)
             c_t = conf[src] if conf.ndim == 2 else conf
             target = 2.0 * targets[src] - targets[src - 1] if drive_trend and src >= 1 else targets[src]
-            loads[t] = penalty_load(mesh.n_dofs, dofs, k, target.reshape(-1), c_t)
+            loads[t] = (penalty_load(mesh.n_dofs, dofs, k, target.reshape(-1), c_t) if spread is None
+                        else spread @ (k * np.clip(c_t, 0, 1) * target.reshape(-1)))
         # Process noise: the targets move by an unknown amount between frames, so they are
         # uncertain by the data's own frame-to-frame landmark motion; the random spring loads
         # reach the tissue through the dynamics (elastically correlated noise).
@@ -401,16 +470,20 @@ def build_model(setup: Setup, effects=(), drive: str = "penalty", parameterisati
             landmark_step_px = np.sqrt(np.nanmean(np.diff(data[:, setup.landmarks], n=2 if drive_trend else 1,
                                                           axis=0) ** 2))
         step = landmark_step_px * s
-        c_mean = conf.mean(axis=0) if conf.ndim == 2 else conf
-        if interp is None:
+        if interp is None and spread is None:
             load_std = np.zeros(mesh.n_dofs)
             load_std[dofs] = k * step * c_mean
         else:
             # the contour's targets move as the interpolant of independent landmark steps: loads
             # correlated along the contour, one unit-variance pattern per landmark and component
-            W = np.kron(interp, np.eye(2)) * (k * step * c_mean)[:, None]        # (contour dofs, 2 L)
-            load_std = np.zeros((mesh.n_dofs, W.shape[1]))
-            load_std[dofs] = W
+            # (or per spring and component, each spread over its element's nodes)
+            W = (np.eye(2 * len(drive_points)) if interp is None else np.kron(interp, np.eye(2))) \
+                * (k * step * c_mean)[:, None]                                    # (drive dofs, patterns)
+            if spread is None:
+                load_std = np.zeros((mesh.n_dofs, W.shape[1]))
+                load_std[dofs] = W
+            else:
+                load_std = np.asarray(spread @ W)
     else:
         ground = NOMINAL["foundation"] * Kdiag
         penalty = penalty_stiffness(mesh.n_dofs, np.arange(mesh.n_dofs), ground)
@@ -419,12 +492,12 @@ def build_model(setup: Setup, effects=(), drive: str = "penalty", parameterisati
                 raise ValueError("drive: 'pressure' needs a sequence with a cavity 'pressure' per frame")
             unit = pressure_load(mesh, setup.geometry.endo_edges, 1.0)
             loads = seq.pressure[:, None] * unit[None]
-    D = node_observation_matrix(mesh, nodes[setup.observed], keep_order=True)
+    D = point_rows(setup, setup.observed)
     y = data[:, setup.observed].reshape(F, -1) * s
     sigma = _sigma(seq, setup) * s                                       # per observed row, m
     Dv = None
     if setup.velocity_points is not None:
-        Dv = node_observation_matrix(mesh, nodes[setup.velocity_points], keep_order=True)
+        Dv = point_rows(setup, setup.velocity_points)
         y = np.hstack([y, setup.velocity.reshape(F, -1) * s])
         v_sd = np.repeat(_per_frame(setup.velocity_sigma), 2, axis=1)
         sigma = np.hstack([sigma if sigma.ndim == 2 else np.broadcast_to(sigma, (F, sigma.size)), v_sd * s])
@@ -466,17 +539,17 @@ def build_model(setup: Setup, effects=(), drive: str = "penalty", parameterisati
 
 
 def _contour_targets(setup: Setup, data) -> tuple:
-    """Nodes of both contours, their target trajectories (F, N, 2) in m, confidences (N,) or
-    (F, N), and the interpolation matrix (N, L) from the landmarks (``setup.landmarks`` order)
-    to the contour nodes: each contour's landmarks interpolated along it in angle (periodic
-    cubic spline, linear in the landmarks' values)."""
-    g, mesh, s = setup.geometry, setup.mesh, setup.spacing
+    """Points of both contours (the points' own mesh's boundary), their target trajectories
+    (F, N, 2) in m, confidences (N,) or (F, N), and the interpolation matrix (N, L) from the
+    landmarks (``setup.landmarks`` order) to the contour points: each contour's landmarks
+    interpolated along it in angle (periodic cubic spline, linear in the landmarks' values)."""
+    g, mesh, s = setup.point_geometry, setup.point_mesh, setup.spacing
     conf_lm = _confidence(setup.seq, setup.landmarks, setup.obs_confidence)
     nodes, targets, conf = [], [], []
     interp = np.zeros((0, len(setup.landmarks)))
     for loop in (g.endo, g.epi):
-        on = np.flatnonzero(np.isin(setup.node_of_point[setup.landmarks], loop))
-        lm_nodes = setup.node_of_point[setup.landmarks[on]]
+        on = np.flatnonzero(np.isin(setup.landmarks, loop))
+        lm_nodes = setup.landmarks[on]
         values = _filled(data[:, setup.landmarks[on]]) * s                           # (F, L, 2)
         ang_lm, ang = g.angle(mesh.nodes[lm_nodes]), g.angle(mesh.nodes[loop])
         nodes.append(loop)
@@ -554,15 +627,15 @@ def kriged_heldout(setup: Setup, U) -> dict:
     seen = np.array(setup.seq.displacement)
     if setup.obs_displacement is not None:
         seen[:, setup.observed] = setup.obs_displacement[:, setup.observed]
-    held = setup.node_of_point[setup.heldout]
+    held = setup.heldout
     return residual_spline(setup.seq.points, seen, U, setup.observed, setup.heldout,
-                           setup.geometry.radial[held], setup.geometry.circumferential[held])
+                           setup.point_geometry.radial[held], setup.point_geometry.circumferential[held])
 
 
 def angle_from_origin(setup: Setup, xy) -> np.ndarray:
     """Angle (rad, in [0, 2 pi)) of points ``xy`` (m) about the cavity centre, counted from the
     set-up's ``angle_origin_deg`` as its landmarks and sectors are."""
-    return np.mod(setup.geometry.angle(xy) - np.radians(setup.angle_origin_deg), 2 * np.pi)
+    return np.mod(setup.point_geometry.angle(xy) - np.radians(setup.angle_origin_deg), 2 * np.pi)
 
 
 def region_label(setup: Setup, element: int) -> str:
@@ -642,12 +715,12 @@ def evaluate(setup: Setup, model: SFEMModel, result, seconds: float = 0.0, obser
     """
     s = setup.spacing
     F = setup.seq.n_frames
-    U = model.displacements(result.states).reshape(F, -1, 2)[:, setup.node_of_point] / s
+    U = at_points(setup, model.displacements(result.states).reshape(F, -1, 2)) / s
     meas = setup.seq.displacement
     h = setup.heldout
     r = meas[:, h] - U[:, h]                                              # (F, H, 2)
-    er = setup.geometry.radial[setup.node_of_point[h]]
-    ec = setup.geometry.circumferential[setup.node_of_point[h]]
+    er = setup.point_geometry.radial[h]
+    ec = setup.point_geometry.circumferential[h]
     errors = heldout_errors(r, er, ec)
     rows = np.arange(2 * len(setup.observed)).reshape(-1, 2)
     nis = diagnostics.nis_summary(result.history)
@@ -738,8 +811,10 @@ def evaluate(setup: Setup, model: SFEMModel, result, seconds: float = 0.0, obser
     if smoother and "strain_polar" in result.output_sd:
         eps = (model.output_operators()["strain_polar"] @ result.states[:, : model.n_restart].T).T
         sd = result.output_sd["strain_polar"]
-        eps = eps.reshape(F, -1, 3)[:, setup.node_of_point]
-        sd = sd.reshape(F, -1, 3)[:, setup.node_of_point]
+        # at a point inside an element: the shape functions' mix of the nodes' strains, and of
+        # their sds (an upper bound of the mix's sd, which the nodes' correlation can only lower)
+        eps = at_points(setup, eps.reshape(F, -1, 3))
+        sd = at_points(setup, sd.reshape(F, -1, 3))
         metrics.update({"strain_polar": eps.tolist(), "strain_polar_sd": sd.tolist(),
                         "strain_sd_median": np.median(sd, axis=(0, 1)).tolist()})
     if model.dim_eta:
@@ -757,7 +832,7 @@ def run(setup: Setup, effects=(), drive: str = "penalty", parameterisation: str 
         landmark_step_px: float | None = None, beta: float | None = None, model_options: dict | None = None,
         estimator: str = "smoother", max_iterations: int | None = None, effect_rates: bool = False,
         drive_trend: bool = False, spring_scale: float = 1.0, measurement_noise: str = "fixed",
-        covariance: bool = True) -> Run:
+        covariance: bool = True, warm_start=None) -> Run:
     """Build the model, estimate and evaluate.
 
     ``estimator`` (:data:`ESTIMATORS`): ``"smoother"``, the iterated smoother with at most
@@ -773,7 +848,11 @@ def run(setup: Setup, effects=(), drive: str = "penalty", parameterisation: str 
     ``covariance=False`` (smoother only) leaves out the smoothed variances of the kinematics and
     strains (no ``strain_polar`` / ``_sd`` in the metrics), the dearest part of a fit's final pass;
     the estimate, its evidence and the material's covariance are the same. :func:`with_covariance`
-    adds them later.
+    adds them later. ``warm_start`` (smoother only): a material vector (the model's coordinates, for
+    example another fit's ``result.theta`` of the same parameterisation) the Gauss-Newton
+    iterations start from instead of the prior mean (:class:`~sfem_filters.filtering.iterated.IteratedSmoother`
+    ``start``): the cost and its mode are the same, reached in fewer iterations from a nearby
+    model's mode; a vector of another length (another parameterisation) is not used.
     """
     if not isinstance(covariance, (bool, np.bool_)):
         raise TypeError(f"covariance: expected True or False, got {covariance!r}")
@@ -790,6 +869,12 @@ def run(setup: Setup, effects=(), drive: str = "penalty", parameterisation: str 
     model, y = build_model(setup, effects, drive, parameterisation, process_scale, landmark_step_px, beta,
                            model_options, effect_rates=effect_rates, drive_trend=drive_trend,
                            spring_scale=spring_scale)
+    start = None
+    if warm_start is not None and estimator == "smoother":
+        theta = np.asarray(warm_start, float).ravel()
+        if theta.size == model.dim_state - model.n_restart and theta.size and np.all(np.isfinite(theta)):
+            start = np.zeros((setup.seq.n_frames, model.dim_state))
+            start[:, model.n_restart:] = theta
     t0 = time.perf_counter()
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message="cyclic_estimate: the material did not converge")
@@ -797,7 +882,7 @@ def run(setup: Setup, effects=(), drive: str = "penalty", parameterisation: str 
         if estimator == "smoother":
             result = IteratedSmoother(max_iterations=max_iterations, measurement_noise=measurement_noise,
                                       covariance=bool(covariance)).run(
-                model, y, progress=progress, description=name or "dense")
+                model, y, progress=progress, description=name or "dense", start=start)
         else:
             result = cyclic_estimate(model, y, max_loops=max_loops, tol=tol, progress=progress,
                                      description=name or "dense",
@@ -877,10 +962,10 @@ def strain_maps(setup: Setup, U_px, relative_to_first: bool = True) -> np.ndarra
     U = np.asarray(U_px, float)
     U = U - U[0] if relative_to_first else U
     missing = ~np.all(np.isfinite(U), axis=-1)                                  # (F, P)
-    eps = nodal_strains(setup.mesh, np.where(missing[..., None], 0.0, U).reshape(len(U), -1) * setup.spacing)
-    out = polar_strains(setup.geometry, eps)                                  # e_xx, e_yy, gamma_xy -> polar
+    eps = nodal_strains(setup.point_mesh, np.where(missing[..., None], 0.0, U).reshape(len(U), -1) * setup.spacing)
+    out = polar_strains(setup.point_geometry, eps)                            # e_xx, e_yy, gamma_xy -> polar
     if missing.any():
-        tri = setup.mesh.elements
+        tri = setup.point_mesh.elements
         touched = np.zeros_like(missing)
         for t in np.flatnonzero(missing.any(axis=1)):
             touched[t, tri[missing[t][tri].any(axis=1)].ravel()] = True
@@ -898,7 +983,7 @@ def measured_wall_kinematics(setup: Setup) -> dict:
     the displacement RMS of the first frame (is it at rest?) and between the last and first
     frames (does the cycle close?). Data units (pixels).
     """
-    g, seq = setup.geometry, setup.seq
+    g, seq = setup.point_geometry, setup.seq
     P = seq.points
     U = np.asarray(seq.displacement, float)
     ok = np.all(np.isfinite(U), axis=-1)                                 # (F, P): a datum
@@ -941,7 +1026,7 @@ def wall_area_ratios(setup: Setup, U_px) -> np.ndarray:
     taken over the triangles whose three points all have data in that frame (the whole mesh when
     nothing is missing); NaN where none has.
     """
-    tri = setup.mesh.elements
+    tri = setup.point_mesh.elements
     U = np.asarray(U_px, float)
     ok = np.all(np.isfinite(U), axis=-1)
     ref = np.abs(triangle_double_areas(setup.seq.points, tri))

@@ -354,6 +354,86 @@ def contour_landmarks(geometry: LVGeometry, mesh: TriMesh, n_per_contour: int, o
     return out[0], out[1]
 
 
+def _winding(contour_xy, centre) -> tuple:
+    """Net turn (rad) of a closed contour about ``centre`` and the turn it takes backwards."""
+    d = np.asarray(contour_xy, float) - np.asarray(centre, float)
+    a = np.arctan2(d[:, 1], d[:, 0])
+    step = np.angle(np.exp(1j * np.diff(np.append(a, a[0]))))
+    net = float(step.sum())
+    return net, float(-step[step * np.sign(net) < 0].sum() * np.sign(net))
+
+
+def polar_mesh(endo_xy, epi_xy, centre, size: float, margin: float = 0.0) -> TriMesh:
+    """A structured mesh of the wall between two contours seen from the cavity centre.
+
+    Node rings at ``n`` equal angles about ``centre``; on each ray, ``layers + 1`` nodes at equal
+    fractions of the wall from the endocardial radius (minus ``margin``) to the epicardial radius
+    (plus ``margin``), both radii interpolated in angle (:func:`sfem_filters.geometry.radius_by_angle`);
+    each cell of the (angle, layer) grid split into two triangles, the diagonal alternating in a
+    checkerboard so that no direction is favoured. ``n`` and ``layers`` make edges of about
+    ``size``: ``n = round(mid-wall circumference / size)`` (at least 12) and ``layers =
+    round(mean thickness / size)`` (at least 2, so that the wall can bend and thicken across its
+    depth). The mesh's cost is set by ``size``, not by the image's pixels, and its elements follow
+    the wall's own radial and circumferential directions.
+
+    Parameters
+    ----------
+    endo_xy, epi_xy : (n, 2) arrays
+        The endo- and epicardial contours (m), each star-shaped about ``centre``: a ray from the
+        centre crosses it once (the usual short-axis slice).
+    centre : (2,) array
+        Cavity centre (m).
+    size : float
+        Target element edge (m, > 0).
+    margin : float
+        Widening of the wall on both sides (m, >= 0); half a pixel spacing makes the mesh cover
+        every pixel whose centre lies on the contours.
+
+    Raises
+    ------
+    ValueError
+        Contours that are not star-shaped about the centre (a ray would cross one twice), or a
+        wall of non-positive thickness in some direction.
+    """
+    size = positive("size", size, "m")
+    margin = float(as_float_array("margin", margin, shape=()))
+    if margin < 0:
+        raise ValueError(f"margin: expected >= 0 m, got {margin}")
+    c = as_float_array("centre", centre, shape=(2,))
+    loops = {}
+    for name, xy in (("endo_xy", endo_xy), ("epi_xy", epi_xy)):
+        xy = as_float_array(name, xy, shape=(None, 2))
+        if len(xy) < 3:
+            raise ValueError(f"{name}: expected a closed contour of at least 3 points, got {len(xy)}")
+        net, back = _winding(xy, c)
+        if abs(abs(net) - 2 * np.pi) > 1e-6 or back > 0.2:
+            raise ValueError(f"{name}: expected a contour star-shaped about the cavity centre (winding once "
+                             f"around it), got a net turn of {np.degrees(net):.0f} degrees with {np.degrees(back):.0f} "
+                             "degrees backwards; use a mesh through the points instead")
+        loops[name] = xy
+    probe = np.linspace(0.0, 2 * np.pi, 720, endpoint=False)
+    r_in = radius_by_angle(loops["endo_xy"], c, probe) - margin
+    r_out = radius_by_angle(loops["epi_xy"], c, probe) + margin
+    if np.any(r_out - r_in <= 0) or np.any(r_in <= 0):
+        raise ValueError("epi_xy: expected the epicardium outside the endocardium in every direction from the centre")
+    n = max(12, int(round(np.pi * np.mean(r_in + r_out) / size)))
+    layers = max(2, int(round(np.mean(r_out - r_in) / size)))
+    theta = 2 * np.pi * np.arange(n) / n
+    a = radius_by_angle(loops["endo_xy"], c, theta) - margin
+    b = radius_by_angle(loops["epi_xy"], c, theta) + margin
+    frac = np.arange(layers + 1) / layers
+    r = a[:, None] + (b - a)[:, None] * frac[None, :]                          # (n, layers + 1)
+    nodes = (c[None, None, :] + r[..., None] * np.stack([np.cos(theta), np.sin(theta)], axis=1)[:, None, :])
+    idx = np.arange(n * (layers + 1)).reshape(n, layers + 1)
+    elements = []
+    for i in range(n):
+        i1 = (i + 1) % n
+        for j in range(layers):
+            p, q, s_, t = idx[i, j], idx[i1, j], idx[i1, j + 1], idx[i, j + 1]
+            elements += [[p, q, s_], [p, s_, t]] if (i + j) % 2 == 0 else [[p, q, t], [q, s_, t]]
+    return TriMesh(nodes.reshape(-1, 2), np.array(elements))
+
+
 def describe(mesh: TriMesh, geometry: LVGeometry) -> dict:
     """Counts and quality of a myocardial mesh (for reports)."""
     q = mesh_quality(mesh)

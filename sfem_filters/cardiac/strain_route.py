@@ -40,26 +40,67 @@ The DENSE route of issue 42 (items 3 and 4), as a library function, :func:`dense
      misses); process noise 0.1 of that floor per frame (the library's rule for measured data,
      :func:`sfem_filters.cardiac.measured.build_model`), on the velocity over the frame interval;
    * *element size*: 2.5 px (:class:`StrainRouteSettings`).
-4. **Strain.** ``F = I + grad u`` with ``grad u`` the element's (constant) gradient of the linear
-   triangle holding each reference pixel: the FE field's own gradient, with nothing smoothed on
-   top (a recovered nodal gradient would average over the neighbouring elements, i.e. smooth
-   across a 3-7 pixel wall once more). ``E = (F^T F - I) / 2`` (Green-Lagrange), projected on the
-   radial and circumferential directions about the reference mask's centre of mass
+4. **Strain.** ``F = I + grad u`` with ``grad u`` the *recovered* gradient (default,
+   ``strain="recovered"``, :func:`gradient_operators`): at each node the area-weighted mean of the
+   constant gradients of the linear triangles around it (nodal averaging, Zienkiewicz & Zhu 1992),
+   interpolated at each reference pixel by the shape functions. Why, by measurement (one case at
+   SNR 30, the error budget of issue 42's strain work, the validation page's ablation rows): the
+   linear triangle's own constant gradient (``strain="element"``) jumps from element to element and
+   carries the noise of its three nodes alone, so it is the noisiest part of the route (pixel
+   RMSE of Ecc worse than the unsmoothed finite differences); a finer mesh is no remedy (at
+   1.5 px each element sees fewer data and the smoother's cost, cubic in the nodes, leaves the
+   3-minute budget); the recovered gradient averages over about one element edge (2.5 px) and
+   reproduces an affine field's constant gradient exactly (the patch test). Both are linear in
+   the nodal displacements. ``E = (F^T F - I) / 2`` (Green-Lagrange), projected on the radial and
+   circumferential directions about the reference mask's centre of mass
    (:func:`sfem_filters.imaging.strain.mask_centre`) unless a centre is given.
 5. **Its uncertainty (delta method).** ``E`` is linearised about the estimate: ``dE = sym(dG) +
-   (G^T dG + dG^T G) / 2`` with ``dG = B dU``, so ``dEcc = (F e_c) . (dG e_c)`` and ``dErr =
-   (F e_r) . (dG e_r)``, linear in ``dU`` with coefficients that change from frame to frame. The
-   smoother reports smoothed variances only of *static* output rows
-   (:func:`sfem_filters.filtering.smoother.smooth` ``outputs``), not of a per-frame operator, so
-   the linearised rows are fed to it as follows: (a) per element, the 4 components of ``dG`` and
-   their 6 pairwise sums (10 static rows), whose variances give the element's full 4 x 4
-   smoothed covariance of ``dG`` at every frame (``cov(a, b) = (var(a + b) - var a - var b) / 2``),
-   from which each pixel's Ecc and Err variance is ``a^T C a``; (b) the global and six segment
-   curves (means of the linearised pixel strains) as one static row per curve, component and
-   frame, of which only frame t's variance is read at frame t. So the curves' 95% bands
-   (``+- 1.96 sd``) use the full posterior covariance of the displacement, not independent pixels.
-   The nonlinearity is handled by this first-order linearisation at the posterior mean (its error
-   is second order in the displacement-gradient sd, about 1e-2 here, against strains of 1e-1).
+   (G^T dG + dG^T G) / 2`` with ``dG = R dU`` (R the gradient operator of step 4), so ``dEcc =
+   (F e_c) . (dG e_c)`` and ``dErr = (F e_r) . (dG e_r)``, linear in ``dU`` with coefficients that
+   change from frame to frame. The smoother reports smoothed variances only of *static* output
+   rows (:func:`sfem_filters.filtering.smoother.smooth` ``outputs``), not of a per-frame operator,
+   so the linearised rows are fed to it as follows: (a) per item of the gradient (node, or element
+   for ``"element"``), the 4 components of ``dG`` and their 6 pairwise sums (10 static rows), whose
+   variances give the item's full 4 x 4 smoothed covariance of ``dG`` at every frame (``cov(a, b)
+   = (var(a + b) - var a - var b) / 2``), from which each pixel's Ecc and Err variance follows
+   (:func:`point_variance`: exact for an element, a slight upper bound for an interpolation of
+   nodal gradients); (b) the global and six segment curves (means of the linearised pixel strains)
+   as one static row per curve, component and frame, of which only frame t's variance is read at
+   frame t. So the curves' 95% bands (``+- 1.96 sd``) use the full posterior covariance of the
+   displacement, not independent pixels. The nonlinearity is handled by this first-order
+   linearisation at the posterior mean (its error is second order in the displacement-gradient
+   sd, about 1e-2 here, against strains of 1e-1).
+6. **Honest bands** (``noise_scale=True``, ``discrepancy=True``). The smoother's variance assumes the model's noise
+   levels and a model without error; measured against DENSE-Sim's truth its bands covered the
+   true segment curves in a fifth to a half of the segment-frames. Two terms, each from the data
+   alone:
+
+   (a) *the noise level*, by type-II maximum likelihood: the common factor ``c`` on R, Q and the
+   initial covariance that maximises the evidence, in closed form the mean normalised innovation
+   squared (:func:`noise_scale`); it leaves the estimate unchanged and scales every smoothed
+   variance by ``c`` (the data's noise is not white: the simulator's phase texture is correlated
+   over neighbouring pixels and frames, and the temporal noise floor of step 3 sees only its
+   white part). Reported as ``settings["noise_scale_ml"]``;
+   (b) *the model discrepancy* (what a smoother of this mesh and prior flattens), empirical Bayes
+   by the method of moments (:func:`discrepancy_variance`): against the unsmoothed
+   finite-difference strain of the same tracks (:func:`sfem_filters.imaging.strain.strain_on_grid`,
+   unbiased for the tracks but noisy), per curve (global and each segment), the cross moment of
+   the disagreements over two halves of the curve's pixels (a segment's two 30-degree halves;
+   for the global curve the six first halves against the six second), which share the
+   discrepancy but not the noise, so that neither the noise's level nor its correlation over
+   frames need be known. The discrepancy variance is ``tau0^2 + k^2 m_t^2`` (a constant part and
+   one proportional to the curve's square, the bias of a smoothing scaling with what it
+   flattens; the data fit both, so they choose the profile over the frames), one model for the
+   global curve and one shared by the six segments (fitted to the moments of all six: one
+   segment's frames alone give a noisy moment, which the non-negativity clips upwards); each
+   pixel takes the segments' ``tau0`` and ``k`` (a pixel's own finite differences are far too
+   noisy to tell). Reported as ``settings["discrepancy_sd"]``.
+
+   ``Ecc_sd`` and ``Err_sd`` (and the curves' ``*_sd`` and bands) are the total; the smoother's
+   own (with ``c``) stay beside as ``Ecc_sd_model``, ``Err_sd_model`` and the curves'
+   ``*_sd_model``. What neither term can see: a bias that the tracks themselves carry (the
+   reference shares it), such as the radial strain of the first pixel layers at the
+   endocardium, which the tracks of the noise-free images already miss.
 
 Units: pixels for points and displacements at the interface (x = column, y = row), SI inside
 (the mesh in metres, from the case's pixel size); strain is a fraction; times in s.
@@ -71,6 +112,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 import scipy.sparse as sp
+from scipy.optimize import nnls
 
 from .._validate import as_float_array, positive
 from ..fem.elasticity import stiffness_matrix, strain_displacement
@@ -84,8 +126,8 @@ from ..filtering.linearised import linearise
 from ..filtering.smoother import smooth
 from ..imaging.contours import mask_borders
 from ..imaging.dense import LagrangianDisplacement
-from ..imaging.strain import N_SEGMENTS, green_strain, mask_centre, project_strain, radial_circumferential, \
-    segment_labels
+from ..imaging.strain import N_SEGMENTS, global_curve, green_strain, mask_centre, project_strain, \
+    radial_circumferential, segment_labels, strain_on_grid
 from ..model import SFEMModel
 from .effects import build_effects
 from .measured import EFFECT_STEP, NOMINAL
@@ -94,7 +136,8 @@ from .myocardium import lv_geometry, tissue_mesh
 __all__ = ["StrainRouteSettings", "DenseStrain", "NodalFitModel", "reference_mesh", "observation_points",
            "nodal_fit", "compliant_modulus", "temporal_noise_floor", "build_dense_model", "element_gradient_operator",
            "linearised_rows", "strain_and_sd", "dense_strain", "MESHES", "INFORMATION_FLOOR",
-           "RELAXATION_CYCLES", "Z95"]
+           "RELAXATION_CYCLES", "Z95", "STRAINS", "gradient_operators", "point_variance", "discrepancy_variance",
+           "noise_scale", "DenseRouteStrain"]
 
 #: How the reference myocardium is meshed (``mesh=``).
 MESHES = ("gmsh", "pixels")
@@ -104,6 +147,8 @@ INFORMATION_FLOOR = 1e-8
 RELAXATION_CYCLES = 10.0
 #: Two-sided 95% normal quantile.
 Z95 = 1.959963984540054
+#: Which displacement gradient the strain is computed from (``strain=``).
+STRAINS = ("recovered", "element")
 
 
 @dataclass(frozen=True)
@@ -137,6 +182,17 @@ class StrainRouteSettings:
     centre : tuple or None
         Centre (x, y) in pixels of the radial directions and segments; None: the centre of
         mass of the reference mask.
+    strain : {"recovered", "element"}
+        Displacement gradient the strain is computed from (module docstring, step 4):
+        ``"recovered"``, the nodal average of the element gradients interpolated by the shape
+        functions (:func:`gradient_operators`); ``"element"``, the linear triangle's own constant
+        gradient.
+    noise_scale : bool
+        Scale the smoother's variances by the maximum-likelihood noise level (:func:`noise_scale`,
+        step 6 a).
+    discrepancy : bool
+        Add the model-discrepancy variance (:func:`discrepancy_variance`, step 6) to the
+        smoother's own variance in the reported sd and bands.
     """
 
     mesh: str = "gmsh"
@@ -148,10 +204,18 @@ class StrainRouteSettings:
     process_fraction: float = 0.1
     start_deg: float = 0.0
     centre: tuple | None = None
+    strain: str = "recovered"
+    noise_scale: bool = True
+    discrepancy: bool = True
 
     def __post_init__(self):
         if self.mesh not in MESHES:
             raise ValueError(f"mesh: expected one of {MESHES}, got {self.mesh!r}")
+        if self.strain not in STRAINS:
+            raise ValueError(f"strain: expected one of {STRAINS}, got {self.strain!r}")
+        for name in ("noise_scale", "discrepancy"):
+            if not isinstance(getattr(self, name), (bool, np.bool_)):
+                raise TypeError(f"{name}: expected True or False, got {getattr(self, name)!r}")
         positive("element_px", self.element_px, "pixels")
         if self.E is not None:
             positive("E", self.E, "Pa")
@@ -216,7 +280,11 @@ class DenseStrain:
     mesh: TriMesh = field(repr=False)
 
     def band(self, quantity: str, which: str = "segments") -> tuple:
-        """``(lo, hi)`` of a curve's 95% band: quantity ``"Ecc"`` or ``"Err"``, ``"segments"`` or ``"global"``."""
+        """``(lo, hi)`` of a 95% band: quantity ``"Ecc"`` or ``"Err"``; ``"segments"``, ``"global"`` or
+        ``"pixels"`` (``+- 1.96`` of the pixels' sd)."""
+        if which == "pixels":
+            v, sd = getattr(self, quantity), getattr(self, f"{quantity}_sd")
+            return v - Z95 * sd, v + Z95 * sd
         d = self.segment_curves if which == "segments" else self.global_curves
         return d[f"{quantity}_lo"], d[f"{quantity}_hi"]
 
@@ -232,6 +300,28 @@ class DenseStrain:
                            "Err_sd": js(self.Err_sd)},
                 "global": {k: js(v) for k, v in self.global_curves.items()}, "segments": seg,
                 "seconds": self.seconds, "settings": self.settings}
+
+
+@dataclass(frozen=True, eq=False)
+class DenseRouteStrain(DenseStrain):
+    """:class:`DenseStrain` of the DENSE route, with the smoother's own sd beside the total.
+
+    ``Ecc_sd`` and ``Err_sd`` (and the curves' ``*_sd``, ``*_lo``, ``*_hi``) hold the total
+    uncertainty, the smoother's variance plus the model-discrepancy variance (module docstring,
+    step 6); ``Ecc_sd_model`` and ``Err_sd_model`` (F, P) hold the smoother's alone, as do the
+    curves' ``*_sd_model`` entries.
+    """
+
+    Ecc_sd_model: np.ndarray = field(repr=False)
+    Err_sd_model: np.ndarray = field(repr=False)
+
+    def to_dict(self) -> dict:
+        """The issue-42 JSON names, plus ``strain.Ecc_sd_model`` and ``strain.Err_sd_model``."""
+        out = super().to_dict()
+        for q in ("Ecc", "Err"):
+            a = np.asarray(getattr(self, f"{q}_sd_model"), float)
+            out["strain"][f"{q}_sd_model"] = np.where(np.isfinite(a), a.astype(object), None).tolist()
+        return out
 
 
 # ----------------------------------------------------------------------------------- the mesh
@@ -442,7 +532,8 @@ def build_dense_model(mesh: TriMesh, tracks: LagrangianDisplacement, pixel_size_
                           R_frames=R)
     info = {"n_points_moved_into_mesh": int(np.count_nonzero(moved)), "largest_move_px": float(moved.max() / s),
             "noise_floor_px": floor_px, "tracks_sd_rms_px": sd_rms, "sd_scale": sd_scale,
-            "process_std_px": q / s, "frame_interval_s": T, "E_Pa": E, "alpha_per_s": alpha, "wall_thickness_px": _wall_thickness(mesh) / s,
+            "process_std_px": q / s, "frame_interval_s": T, "E_Pa": E, "alpha_per_s": alpha,
+            "wall_thickness_px": _wall_thickness(mesh) / s,
             "initial_std_px": u0_sd / s}
     return model, y, info, Xin
 
@@ -507,17 +598,20 @@ def strain_and_sd(grad, cov, points, centre) -> tuple:
 _PAIRS = [(i, j) for i in range(4) for j in range(i + 1, 4)]
 
 
-def _gradient_rows(mesh: TriMesh, Ge: np.ndarray) -> sp.csr_matrix:
-    """10 rows per element on the global dofs: its 4 gradient components, then their 6 pairwise sums."""
+def _gradient_rows(mesh: TriMesh, Ge: np.ndarray, elements=None) -> sp.csr_matrix:
+    """10 rows per element on the global dofs: its 4 gradient components, then their 6 pairwise sums.
+
+    ``elements``: the elements to give rows to, in this order (default all)."""
     dofs = mesh.element_dofs
+    which = np.arange(mesh.n_elements) if elements is None else np.asarray(elements, int)
     rows, cols, vals = [], [], []
-    for e in range(mesh.n_elements):
+    for i_e, e in enumerate(which):
         comps = [Ge[e, i] for i in range(4)] + [Ge[e, i] + Ge[e, j] for i, j in _PAIRS]
         for k, r in enumerate(comps):
-            rows.extend([10 * e + k] * 6)
+            rows.extend([10 * i_e + k] * 6)
             cols.extend(dofs[e].tolist())
             vals.extend(r.tolist())
-    return sp.csr_matrix((vals, (rows, cols)), shape=(10 * mesh.n_elements, mesh.n_dofs))
+    return sp.csr_matrix((vals, (rows, cols)), shape=(10 * len(which), mesh.n_dofs))
 
 
 def _covariance_from_rows(v: np.ndarray) -> np.ndarray:
@@ -533,6 +627,163 @@ def _covariance_from_rows(v: np.ndarray) -> np.ndarray:
     return C
 
 
+def gradient_operators(mesh: TriMesh, points_m, kind: str = "recovered") -> tuple:
+    """Sparse operators of the displacement gradient: at the mesh's items and at the points.
+
+    ``"element"``: the items are the elements, component k of element e is ``B[e, k] @ U_e``
+    (:func:`element_gradient_operator`), and a point takes its element's. ``"recovered"``: the
+    items are the nodes, each the area-weighted mean of the gradients of the elements around
+    it (nodal averaging, the simplest of the recovered gradients of Zienkiewicz & Zhu 1992),
+    and a point takes the shape-function interpolation of its element's three nodal values.
+    Both reproduce the constant gradient of an affine displacement exactly (the patch test);
+    the recovered one is continuous and averages each gradient over the ring of elements
+    around a node (about one element edge, 2.5 px, either way): the linear triangle's constant
+    gradient jumps from element to element and carries the noise of its three nodes alone.
+
+    Parameters
+    ----------
+    mesh : TriMesh
+    points_m : (P, 2) array
+        Points inside the mesh (m).
+    kind : {"recovered", "element"}
+
+    Returns
+    -------
+    ops : list of 4 sparse (m, n_dofs) matrices
+        Components (G00, G01, G10, G11), ``G_ij = d u_i / d X_j``, at the m items.
+    weights : sparse (P, m) matrix
+        Each point's gradient is ``weights @`` the items' (rows of non-negative weights summing
+        to 1).
+    """
+    if kind not in STRAINS:
+        raise ValueError(f"kind: expected one of {STRAINS}, got {kind!r}")
+    Ge = element_gradient_operator(mesh)
+    ne = mesh.n_elements
+    rows = np.repeat(np.arange(ne), 6)
+    cols = mesh.element_dofs.ravel()
+    ops = [sp.csr_matrix((Ge[:, k].ravel(), (rows, cols)), shape=(ne, mesh.n_dofs)) for k in range(4)]
+    pts = as_float_array("points_m", points_m, shape=(None, 2))
+    if kind == "element":
+        elem = _element_of(mesh, pts)
+        weights = sp.csr_matrix((np.ones(len(pts)), (np.arange(len(pts)), elem)), shape=(len(pts), ne))
+        return ops, weights
+    area = np.repeat(mesh.areas, 3)
+    S = sp.csr_matrix((area, (mesh.elements.ravel(), np.repeat(np.arange(ne), 3))), shape=(mesh.n_nodes, ne))
+    S = sp.diags(1.0 / np.asarray(S.sum(axis=1)).ravel()) @ S
+    weights = sp.csr_matrix(point_observation_matrix(mesh, pts))[0::2, 0::2]
+    return [sp.csr_matrix(S @ op) for op in ops], sp.csr_matrix(weights)
+
+
+def _component_rows(ops) -> sp.csr_matrix:
+    """(10 m, n_dofs): the 4 components of every item, then their 6 pairwise sums (block by block)."""
+    return sp.vstack(list(ops) + [ops[i] + ops[j] for i, j in _PAIRS], format="csr")
+
+
+def _covariance_from_blocks(v: np.ndarray, m: int) -> np.ndarray:
+    """(F, m, 4, 4) covariances from (F, 10 m) variances of :func:`_component_rows`."""
+    v = v.reshape(v.shape[0], 10, m)
+    C = np.zeros((v.shape[0], m, 4, 4))
+    for i in range(4):
+        C[..., i, i] = v[:, i]
+    for k, (i, j) in enumerate(_PAIRS):
+        C[..., i, j] = C[..., j, i] = 0.5 * (v[:, 4 + k] - v[:, i] - v[:, j])
+    return C
+
+
+def point_variance(weights, a, C) -> np.ndarray:
+    """Variance (F, P) of the linearised strain ``a . dG`` at each point from the items' gradient covariance.
+
+    ``sum_i w_pi a^T C_i a``: exact where a point takes one item's gradient (``"element"``);
+    for an interpolation of nodal gradients the exact variance ``a^T cov(sum_i w_i g_i) a`` is
+    at most this (Jensen: ``(sum w sd)^2 <= sum w sd^2`` for weights summing to 1, and
+    ``var(sum w g) <= (sum w sd)^2``), equal when the three nodes' gradients are perfectly
+    correlated, as nearly so as patches sharing most of their elements are. So the pixel sd
+    is, if anything, a slight overstatement; the curves' bands use the exact rows.
+
+    Parameters
+    ----------
+    weights : sparse (P, m)
+    a : (F, P, 4) array
+    C : (F, m, 4, 4) array
+    """
+    W = sp.coo_matrix(weights)
+    q = np.einsum("fnk,fnkl,fnl->fn", a[:, W.row], C[:, W.col], a[:, W.row]) * W.data[None]
+    out = np.zeros(a.shape[:2])
+    np.add.at(out, (slice(None), W.row), q)
+    return np.maximum(out, 0.0)
+
+
+def discrepancy_variance(diff_a, diff_b, estimate) -> tuple:
+    """Model-discrepancy variance of a curve from two noisy, unbiased looks at it (empirical Bayes).
+
+    ``diff_a`` and ``diff_b`` are, frame by frame, an unbiased but noisy reference minus the
+    estimate over two halves of the curve's pixels (for a segment its two 30-degree halves):
+    ``d_t = -b_t + e_t``, the estimate's discrepancy ``b`` (what the model lacks), shared by the
+    halves, plus noise ``e`` that the halves do not share (the phase texture is correlated over a
+    few pixels, not across a half-segment). The cross moment ``E[d_a,t d_b,t] = b_t^2`` holds
+    whatever the noise's level and its correlation over frames, so no noise level need be
+    estimated (a noise floor from temporal differences misses the texture's correlation over
+    frames and would call it discrepancy). The discrepancy's variance at frame t is modelled as
+    ``tau_t^2 = tau0^2 + k^2 m_t^2`` (``m`` the estimate): a part that does not depend on the
+    strain, and one proportional to it (the bias of a smoothing scales with the field it
+    flattens), both fitted by non-negative least squares to the moment equations ``d_a,t d_b,t =
+    tau0^2 + k^2 m_t^2``, so the data choose the profile over the frames; both are zero (in the
+    mean) when the estimate agrees with the reference within the noise. Where the halves' biases
+    differ the cross moment is their product, at most the mean of their squares.
+
+    Parameters
+    ----------
+    diff_a, diff_b : (F,) arrays
+        Reference minus estimate over each half, per frame (NaN where missing); F >= 2 frames
+        where both are finite. Several curves sharing one model: their frames concatenated.
+    estimate : (F,) array
+        The estimate of the whole curve (curves).
+
+    Returns
+    -------
+    tau0_2 : float
+        The constant part (units of the values squared), >= 0.
+    k2 : float
+        The relative part (dimensionless), >= 0.
+    """
+    a = as_float_array("diff_a", diff_a, shape=(None,), allow_nan=True)
+    b = as_float_array("diff_b", diff_b, shape=a.shape, allow_nan=True)
+    m = as_float_array("estimate", estimate, shape=a.shape, allow_nan=True)
+    ok = np.isfinite(a) & np.isfinite(b) & np.isfinite(m)
+    if ok.sum() < 2:
+        raise ValueError(f"diff_a, diff_b, estimate: expected at least 2 frames where all are finite, got {ok.sum()}")
+    A = np.column_stack([np.ones(int(ok.sum())), m[ok] ** 2])
+    scale = np.maximum(np.abs(A).max(axis=0), 1e-300)                      # column scaling for nnls
+    sol, _ = nnls(A / scale, a[ok] * b[ok])
+    tau0_2, k2 = sol / scale
+    return float(tau0_2), float(k2)
+
+
+def noise_scale(nis, n_obs) -> float:
+    """Maximum-likelihood common scale of every covariance of a linear-Gaussian state-space model.
+
+    Scaling R, Q and the initial covariance by one factor ``c`` leaves the Kalman gains and the
+    smoothed means unchanged and multiplies every innovation covariance ``S_t`` by ``c``; the
+    log-likelihood is then maximised in closed form by ``c = sum_t e_t^T S_t^-1 e_t / sum_t m_t``,
+    the mean normalised innovation squared per observed row (Harvey 1989, sec. 3.4: the
+    concentrated likelihood), and every smoothed covariance scales by ``c``. Type-II maximum
+    likelihood of the noise level, at no extra pass.
+
+    Parameters
+    ----------
+    nis : (F,) array
+        Each frame's ``e_t^T S_t^-1 e_t`` (NaN where nothing was observed).
+    n_obs : (F,) array
+        Rows observed in each frame.
+    """
+    nis = np.asarray(nis, float)
+    n = np.asarray(n_obs, float)
+    ok = np.isfinite(nis) & (n > 0)
+    if not ok.any():
+        raise ValueError("nis, n_obs: expected some observed frame, got none")
+    return float(np.sum(nis[ok]) / np.sum(n[ok]))
+
+
 def _curve_rows(Ge, elem, a, groups, ndofs, dofs) -> np.ndarray:
     """(len(groups), n_dofs) rows: the mean over each group's points of ``a_p . (B_e(p) U)``."""
     out = np.zeros((len(groups), ndofs))
@@ -544,7 +795,7 @@ def _curve_rows(Ge, elem, a, groups, ndofs, dofs) -> np.ndarray:
 
 
 def dense_strain(tracks: LagrangianDisplacement, reference_mask, pixel_size_m: float,
-                 settings: StrainRouteSettings | None = None, progress=None) -> DenseStrain:
+                 settings: StrainRouteSettings | None = None, progress=None) -> DenseRouteStrain:
     """The DENSE route: tracks in, Green-Lagrange strain with sd and curves with 95% bands out.
 
     Parameters
@@ -562,7 +813,8 @@ def dense_strain(tracks: LagrangianDisplacement, reference_mask, pixel_size_m: f
 
     Returns
     -------
-    DenseStrain
+    DenseRouteStrain
+        A :class:`DenseStrain` with the smoother's own sd beside the total.
     """
     t0 = time.perf_counter()
     cfg = StrainRouteSettings() if settings is None else settings
@@ -588,15 +840,17 @@ def dense_strain(tracks: LagrangianDisplacement, reference_mask, pixel_size_m: f
     free = model.dofmap.free
     U = np.zeros((F, mesh.n_dofs))
     U[:, free] = result.states[:, :n]
-    # gradients at the points
-    Ge = element_gradient_operator(mesh)
-    elem = _element_of(mesh, Xin)
-    dofs = mesh.element_dofs
-    grad = np.einsum("pkd,fpd->fpk", Ge[elem], U[:, dofs[elem]]).reshape(F, P, 2, 2)
+    # gradients at the points: G = R_k U, R_k = weights @ ops[k] (element or recovered, step 4)
+    ops, weights = gradient_operators(mesh, Xin, cfg.strain)
+    R = [sp.csr_matrix(weights @ op) for op in ops]
+    grad = np.stack([(Rk @ U.T).T for Rk in R], axis=-1).reshape(F, P, 2, 2)
     labels = segment_labels(X, centre, cfg.start_deg)
     groups = [np.arange(P)] + [np.flatnonzero(labels == k) for k in range(N_SEGMENTS)]
+    A = np.zeros((len(groups), P))
+    for g, sel in enumerate(groups):
+        A[g, sel] = 1.0 / max(sel.size, 1)
     a_cc, a_rr = linearised_rows(grad, X, centre)
-    curve_rows = np.concatenate([np.concatenate([_curve_rows(Ge, elem, a[t], groups, mesh.n_dofs, dofs)
+    curve_rows = np.concatenate([np.concatenate([sum(sp.csr_matrix(A * a[t][:, k]) @ R[k] for k in range(4)).toarray()
                                                  for a in (a_cc, a_rr)]) for t in range(F)])   # (F * 14, n_dofs)
     say("covariance pass (linearised strain)")
     lin = linearise(model, result.states)
@@ -605,21 +859,52 @@ def dense_strain(tracks: LagrangianDisplacement, reference_mask, pixel_size_m: f
         op = sp.csr_matrix(op)[:, free]
         return lin.output_in_xi(sp.hstack([op, sp.csr_matrix((op.shape[0], nr - n))], format="csr"))
 
-    outputs = {"gradient": on_state(_gradient_rows(mesh, Ge)), "curves": on_state(curve_rows)}
+    outputs = {"gradient": on_state(_component_rows(ops)), "curves": on_state(curve_rows)}
     sm = smooth(lin, y, outputs=outputs, covariance=True)
-    C = _covariance_from_rows(sm.variances["gradient"])                        # (F, n_el, 4, 4)
-    ecc, err, ecr, sd_cc, sd_rr = strain_and_sd(grad, C[:, elem], X, centre)
+    c_ml = noise_scale(sm.nis, sm.n_obs) if cfg.noise_scale else 1.0         # step 6 (a)
+    C = c_ml * _covariance_from_blocks(sm.variances["gradient"], ops[0].shape[0])       # (F, m, 4, 4)
+    E = green_strain(grad)
+    ecc, err, ecr = project_strain(E, X, centre)
+    sd_cc = np.sqrt(point_variance(weights, a_cc, C))
+    sd_rr = np.sqrt(point_variance(weights, a_rr, C))
     k = 2 * (1 + N_SEGMENTS)
     vc = sm.variances["curves"].reshape(F, F, k)[np.arange(F), np.arange(F)]    # frame t's rows at frame t
-    sd_curves = np.sqrt(np.maximum(vc, 0.0))                                    # (F, 14)
+    sd_curves = np.sqrt(c_ml * np.maximum(vc, 0.0))                             # (F, 14)
+    # step 6: the model discrepancy, against the unsmoothed finite-difference strain of the same tracks
+    ref = strain_on_grid(X, tracks.displacement, centre)
+    half = segment_labels(X, centre, cfg.start_deg + 30.0) == labels             # second 30 degrees of a segment
     means = {"Ecc": ecc, "Err": err}
-    glob, segs = {}, {}
+    refs = {"Ecc": ref.Ecc, "Err": ref.Err}
+    pixel_sd = {"Ecc": sd_cc, "Err": sd_rr}
+    glob, segs, total_sd, tau_report = {}, {}, {}, {}
     for q_i, q in enumerate(("Ecc", "Err")):
         m_all = np.stack([means[q][:, g].mean(axis=1) if g.size else np.full(F, np.nan) for g in groups], axis=1)
+        r_all = np.stack([global_curve(refs[q][:, g]) if g.size else np.full(F, np.nan) for g in groups], axis=1)
         sd_all = sd_curves[:, q_i * (1 + N_SEGMENTS):(q_i + 1) * (1 + N_SEGMENTS)]
+        tau = np.zeros((len(groups), 2))                  # (tau0^2, k^2): the global curve's, then the segments'
+        if cfg.discrepancy:
+            looks = []
+            for g, sel in enumerate(groups):
+                halves = [sel[half[sel] == h] for h in (False, True)]
+                da, db = ((global_curve(refs[q][:, hv]) - means[q][:, hv].mean(axis=1)) if hv.size
+                          else np.full(F, np.nan) for hv in halves)
+                enough = np.sum(np.isfinite(da) & np.isfinite(db)) >= 2
+                looks.append((da, db, m_all[:, g]) if enough else None)
+            if looks and looks[0] is not None:
+                tau[0] = discrepancy_variance(*looks[0])
+            segs_looks = [lk for lk in looks[1:] if lk is not None]
+            if segs_looks:                                # one model for the six segments: 6 F moments
+                tau[1:] = discrepancy_variance(*(np.concatenate(parts) for parts in zip(*segs_looks)))
+        # a pixel takes its segment's discrepancy (its own finite differences are far too noisy to tell)
+        tp = tau[1:][labels]
+        total_sd[q] = np.sqrt(pixel_sd[q] ** 2 + tp[None, :, 0] + tp[None, :, 1] * means[q] ** 2)
+        tau_report[q] = {"global": np.sqrt(tau[0]).tolist(), "segments": np.sqrt(tau[1]).tolist()}
         for d, sl in ((glob, 0), (segs, slice(1, None))):
-            mu, sd = m_all[:, sl].T, sd_all[:, sl].T
+            mu, sd_m = m_all[:, sl].T, sd_all[:, sl].T
+            c0, k2 = (tau[1:, :1], tau[1:, 1:]) if d is segs else (tau[0, 0], tau[0, 1])
+            sd = np.sqrt(sd_m ** 2 + c0 + k2 * mu ** 2)
             d[q], d[f"{q}_sd"], d[f"{q}_lo"], d[f"{q}_hi"] = mu, sd, mu - Z95 * sd, mu + Z95 * sd
+            d[f"{q}_sd_model"] = sd_m
     Dp = point_observation_matrix(mesh, Xin)
     disp_px = (Dp @ U.T).T.reshape(F, P, 2) / s
     seconds = time.perf_counter() - t0
@@ -628,10 +913,19 @@ def dense_strain(tracks: LagrangianDisplacement, reference_mask, pixel_size_m: f
                     "element_px_mean_edge": float(edges), "dim_state": int(model.dim_state),
                     "material": "fixed: E of compliant_modulus unless given, nu nominal",
                     "estimator": "IteratedSmoother (material fixed: one Kalman-RTS pass), then a covariance pass",
-                    "strain": "Green-Lagrange of the linear triangles' element gradient",
-                    "sd": "delta method at the posterior mean, full smoothed covariance of U"}
+                    "strain": ("Green-Lagrange of the recovered (nodal-average) gradient" if cfg.strain == "recovered"
+                               else "Green-Lagrange of the linear triangles' element gradient"),
+                    "sd": "delta method at the posterior mean, full smoothed covariance of U"
+                          + (" (x the ML noise scale)" if cfg.noise_scale else "")
+                          + (", plus the discrepancy variance against the unsmoothed finite-difference strain"
+                             if cfg.discrepancy else ""),
+                    "noise_scale_ml": c_ml,
+                    "discrepancy_sd": {"what": "[tau0 (fraction), k (relative)], tau_t^2 = tau0^2 + k^2 m_t^2; "
+                                               "one model for the global curve, one for the six segments",
+                                       **tau_report}}
     say(f"done in {seconds:.1f} s")
-    return DenseStrain(points=X.copy(), frame_times_s=np.asarray(tracks.frame_times_s, float).copy(),
-                       centre=np.asarray(centre, float), start_deg=float(cfg.start_deg), labels=labels, Ecc=ecc,
-                       Err=err, Ecr=ecr, Ecc_sd=sd_cc, Err_sd=sd_rr, global_curves=glob, segment_curves=segs,
-                       displacement=disp_px, seconds=seconds, settings=settings_out, mesh=mesh)
+    return DenseRouteStrain(points=X.copy(), frame_times_s=np.asarray(tracks.frame_times_s, float).copy(),
+                            centre=np.asarray(centre, float), start_deg=float(cfg.start_deg), labels=labels, Ecc=ecc,
+                            Err=err, Ecr=ecr, Ecc_sd=total_sd["Ecc"], Err_sd=total_sd["Err"], global_curves=glob,
+                            segment_curves=segs, displacement=disp_px, seconds=seconds, settings=settings_out,
+                            mesh=mesh, Ecc_sd_model=sd_cc, Err_sd_model=sd_rr)

@@ -42,11 +42,20 @@ def export_dense(loop: LoopResult, directory) -> list:
           "velocity_m_s": model.velocities(result.states).reshape(F, n, 2)}
     m = ext.metrics
     nodes = setup.node_of_point
-    for key in ("strain_polar", "strain_polar_sd"):
-        if key in m:
-            field = np.zeros((F, n, 3))
-            field[:, nodes] = np.asarray(m[key], float)
-            pd[key] = field
+    at_points = {}
+    if nodes is None:           # a mesh apart from the points: the nodes' own strains, the points' beside
+        if "strain_polar" in m:
+            op = model.output_operators()["strain_polar"]
+            pd["strain_polar"] = (op @ result.states[:, : model.n_restart].T).T.reshape(F, n, 3)
+            if "strain_polar" in getattr(result, "output_sd", {}):
+                pd["strain_polar_sd"] = np.asarray(result.output_sd["strain_polar"], float).reshape(F, n, 3)
+            at_points = {key: np.asarray(m[key], float) for key in ("strain_polar", "strain_polar_sd") if key in m}
+    else:
+        for key in ("strain_polar", "strain_polar_sd"):
+            if key in m:
+                field = np.zeros((F, n, 3))
+                field[:, nodes] = np.asarray(m[key], float)
+                pd[key] = field
     cd = _material_fields(model, result.theta, result.posterior_cov)
     pc = m.get("prior_conflict")
     if pc:                                  # NaN where the data carry no information on the quantity
@@ -62,7 +71,7 @@ def export_dense(loop: LoopResult, directory) -> list:
     observed[setup.observed] = 1
     cloud = write_series(directory, "points", setup.seq.points * s, np.arange(setup.seq.n_points)[:, None], times,
                          {"measured_m": measured, "estimated_m": estimated, "residual_m": measured - estimated,
-                          "observed": observed}, None, cell_type="vertex")
+                          "observed": observed, **at_points}, None, cell_type="vertex")
     return [tissue, cloud]
 
 

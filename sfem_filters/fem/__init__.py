@@ -35,7 +35,7 @@ from .loads import penalty_load, penalty_stiffness, pressure_load, stress_loads
 from .material import Material, Parameterisation, correlated_prior
 from .mesh import (TriMesh, check_mesh, delaunay_mesh, delaunay_triangles, lattice_mesh, lattice_offset, mesh_quality,
                    rectangle_mesh, triangle_angles)
-from .observation import locate_points, node_observation_matrix, point_observation_matrix
+from .observation import interpolation_matrix, locate_points, node_observation_matrix, point_observation_matrix
 from .polygon_mesh import circle_polygon, edge_lengths, polygon_mesh, resample_polygon
 from .statespace import (ModalSystem, StiffnessPlan, continuous_matrices, discretize_zoh, reference_sensitivity,
                          stiffness_plan)
@@ -49,5 +49,5 @@ __all__ = ["TriMesh", "check_mesh", "rectangle_mesh", "delaunay_mesh", "delaunay
            "rayleigh_damping", "pressure_load", "stress_loads", "penalty_stiffness", "penalty_load",
            "node_dofs", "DofMap", "Material", "Parameterisation", "correlated_prior", "ModalSystem",
            "StiffnessPlan", "stiffness_plan", "continuous_matrices", "discretize_zoh", "reference_sensitivity",
-           "node_observation_matrix",
+           "node_observation_matrix", "interpolation_matrix",
            "point_observation_matrix", "locate_points", "element_strains", "nodal_average", "nodal_strains"]

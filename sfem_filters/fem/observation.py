@@ -100,3 +100,44 @@ def point_observation_matrix(mesh: TriMesh, points) -> sp.csr_matrix:
                 cols.append(2 * node + c)
                 vals.append(lam[a])
     return sp.csr_matrix((vals, (rows, cols)), shape=(2 * len(element), mesh.n_dofs))
+
+
+def interpolation_matrix(mesh: TriMesh, points, max_outside: float = 0.0) -> sp.csr_matrix:
+    """Shape-function weights of each point: the sparse (p, n_nodes) map from nodal values to the
+    values at ``points`` (m), each row the barycentric coordinates of the point in its triangle.
+
+    A point outside the mesh by at most ``max_outside`` (m) takes the weights of the nearest point
+    of the triangle that holds it most nearly (its negative barycentric coordinates clipped to 0
+    and the rest renormalised): a data point on a jagged pixel border that the mesh's smoother
+    boundary leaves a fraction of a pixel outside. Farther out is an error.
+
+    Parameters
+    ----------
+    points : (p, 2) array
+        Positions in metres.
+    max_outside : float
+        Largest distance (m, >= 0) a point may lie outside the mesh.
+    """
+    check_mesh("mesh", mesh)
+    pts = as_float_array("points", points, shape=(None, 2))
+    max_outside = non_negative("max_outside", max_outside)
+    tri = mesh.nodes[mesh.elements]
+    v0 = tri[:, 0]
+    Tinv = np.linalg.inv(np.stack([tri[:, 1] - v0, tri[:, 2] - v0], axis=2))
+    rows, cols, vals = [], [], []
+    for k, p in enumerate(pts):
+        lam12 = np.einsum("eij,ej->ei", Tinv, p[None] - v0)
+        lam = np.column_stack([1.0 - lam12.sum(axis=1), lam12])
+        e = int(np.argmax(lam.min(axis=1)))
+        w = lam[e]
+        if w.min() < -1e-9:
+            w = np.clip(w, 0.0, None)
+            w = w / w.sum()
+            gap = float(np.linalg.norm(w @ tri[e] - p))
+            if gap > max_outside:
+                raise ValueError(f"points: point {k} at {tuple(p.tolist())} m lies {gap:.3g} m outside the mesh; "
+                                 f"expected at most max_outside={max_outside:.3g} m")
+        rows.extend([k] * 3)
+        cols.extend(mesh.elements[e].tolist())
+        vals.extend(w.tolist())
+    return sp.csr_matrix((vals, (rows, cols)), shape=(len(pts), mesh.n_nodes))

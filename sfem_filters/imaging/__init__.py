@@ -25,7 +25,9 @@ Modules: :mod:`~sfem_filters.imaging.readers` (npz/npy, DICOM, NIfTI),
 :mod:`~sfem_filters.imaging.segmentation` (morphological Chan-Vese),
 :mod:`~sfem_filters.imaging.contours`, :mod:`~sfem_filters.imaging.tracking`,
 :mod:`~sfem_filters.imaging.confidence` (bending energy, goodness, uniqueness, LPC, weights),
-:mod:`~sfem_filters.imaging.phase_contrast` (velocity sampling and error model).
+:mod:`~sfem_filters.imaging.phase_contrast` (velocity sampling and error model),
+:mod:`~sfem_filters.imaging.spline_strain` (thin-plate-spline strain through tracked points, the
+physics-free baseline), :mod:`~sfem_filters.imaging.strain_report` (peaks, ground-truth curves and the tidy CSV of a strain report).
 """
 from .confidence import (bending_energy, goodness_uniqueness, local_phase_coherence, match_confidence,
                          segment_bending_energy, velocity_coherence, weighted_std)
@@ -34,6 +36,8 @@ from .dense import (DenseCase, LagrangianDisplacement, add_complex_noise, make_d
                     read_dense_dicom, read_dense_sim, reference_points, truth_at_points)
 from .strain import (StrainField, curve_peak, global_curve, green_strain, mask_centre, segment_curves, segment_labels,
                      strain_on_grid)
+from .spline_strain import SplineStrain, spline_strain, tps_gradient_operators
+from .strain_report import peaks, spline_block, strain_csv, truth_block, with_peaks
 from .contours import Borders, check_myocardium_mask, curvature, mask_borders, midwall_pixels, pixel_depth, resample_closed
 from .phase_contrast import VelocityData, sample_bilinear, sample_velocity, synthetic_phase_contrast
 from .readers import ImageSeries, make_image_series, read_images
@@ -48,4 +52,6 @@ __all__ = ["bending_energy", "segment_bending_energy", "goodness_uniqueness", "m
            "DenseCase", "LagrangianDisplacement", "make_dense_case", "read_dense_sim", "read_dense_dicom",
            "add_complex_noise", "phase_to_displacement", "reference_points", "truth_at_points", "StrainField",
            "strain_on_grid", "green_strain", "mask_centre", "segment_labels", "global_curve", "segment_curves",
-           "curve_peak", "ConventionalStrain", "conventional_analysis", "conventional_from_displacement"]
+           "curve_peak", "ConventionalStrain", "conventional_analysis", "conventional_from_displacement",
+           "peaks", "truth_block", "spline_block", "with_peaks", "strain_csv", "SplineStrain", "spline_strain",
+           "tps_gradient_operators"]

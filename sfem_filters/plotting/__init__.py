@@ -8,10 +8,13 @@ Each ``*_figures(result, directory)`` writes its set of figures and returns thei
 Modules: :mod:`~sfem_filters.plotting.comparison` (the paper's Figs. 1-5, and ``summary_figure`` of D and p
 over many noise draws),
 :mod:`~sfem_filters.plotting.measured` (residual, strain, material and NIS of the measured-data
-workflow), :mod:`~sfem_filters.plotting.frontend` (tracked contours, velocity coherence).
+workflow), :mod:`~sfem_filters.plotting.frontend` (tracked contours, velocity coherence),
+:mod:`~sfem_filters.plotting.strain` (segment and global strain curves with bands, peak rings, from a
+strain report's JSON).
 """
 from .comparison import comparison_figures, summary_figure
 from .frontend import observe_figures
 from .measured import dense_figures
+from .strain import strain_figures
 
-__all__ = ["comparison_figures", "summary_figure", "dense_figures", "observe_figures"]
+__all__ = ["comparison_figures", "summary_figure", "dense_figures", "observe_figures", "strain_figures"]

@@ -31,7 +31,7 @@ def dense_residual_maps(loop: LoopResult, path: str):
     mag = [np.linalg.norm(r, axis=2) for r in res]
     worst = int(np.nanargmax(np.sqrt(np.nanmean(mag[0] ** 2, axis=1))))
     origin = setup.angle_origin_deg
-    ang = angle_from_origin(setup, setup.mesh.nodes[setup.node_of_point[h]])
+    ang = angle_from_origin(setup, setup.point_mesh.nodes[h])
     order = np.argsort(ang)
     vmax = np.nanpercentile(mag[0], 99)
     fig, axes = plt.subplots(2, 2, figsize=(11, 8.8), layout="constrained")
@@ -79,7 +79,7 @@ def dense_strain_maps(loop: LoopResult, path: str, frame: int | None = None):
     if frame is None:
         size = [np.nanmean(np.abs(m[:, 1])) if np.isfinite(m[:, 1]).any() else -np.inf for m in meas]
         frame = int(np.argmax(size))
-    tri = _triangulation(setup.mesh, unit=k / setup.spacing)        # mesh in m; shown as the data
+    tri = _triangulation(setup.point_mesh, unit=k / setup.spacing)  # the points' mesh in m; shown as the data
     rows = 3 if sd is not None else 2
     fig, axes = plt.subplots(rows, 3, figsize=(13, 3.9 * rows), layout="constrained", squeeze=False)
     for j, (label, sym, div) in enumerate((("radial", "E_rr", "RdBu_r"), ("circumferential", "E_cc", "RdBu_r"),

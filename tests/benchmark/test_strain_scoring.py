@@ -94,3 +94,19 @@ def test_errors_name_the_argument():
         score_strain(truth, truth, truth, truth, PTS, C, ecc_band=(np.ones((6, 3)), np.ones((6, 3))))
     with pytest.raises(ValueError, match="expected some"):
         score_strain(np.full((2, 6), np.nan), truth, truth, truth, PTS, C)
+
+
+def test_pixel_and_global_band_coverage_and_width():
+    truth = np.tile([[0.0], [0.1]], (1, 6))                                 # 2 frames, 6 pixels
+    lo, hi = truth - 0.01, truth + 0.01                                    # pixel bands 2 points wide
+    hi[1, 2] = 0.095                                                       # one (frame, pixel) pair misses
+    g = truth.mean(axis=1)                                                 # global curve 0 and 10 points
+    s = score_strain(truth, truth, truth, truth, PTS, C, pixel_bands={"Ecc": (lo, hi), "Err": (lo, hi)},
+                     global_bands={"Ecc": (g - 0.03, g + 0.03), "Err": (g + 0.001, g + 0.03)})
+    assert s.coverage_pct_pixels_Ecc == pytest.approx(100 * 11 / 12)
+    assert s.band_width_pixels_Ecc == pytest.approx((11 * 2.0 + 0.5) / 12)
+    assert s.coverage_pct_global_Ecc == pytest.approx(100.0) and s.band_width_global_Ecc == pytest.approx(6.0)
+    assert s.coverage_pct_global_Err == pytest.approx(0.0)                 # the band sits above the truth
+    assert s.coverage_pct_Ecc is None                                      # no segment bands given
+    with pytest.raises(ValueError, match="global_bands"):
+        score_strain(truth, truth, truth, truth, PTS, C, global_bands={"Ecc": (g, g)})

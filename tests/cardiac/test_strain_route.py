@@ -156,7 +156,7 @@ def test_dense_strain_on_a_small_ring_gives_the_issue_names_and_honest_shapes():
         assert np.all(r.global_curves[f"{q}_sd"] <= getattr(r, f"{q}_sd").max(axis=1) + 1e-12)
     d = r.to_dict()
     assert set(d) >= {"points", "frame_times_s", "strain", "global", "segments", "seconds", "route", "settings"}
-    assert set(d["strain"]) == {"Ecc", "Err", "Ecr", "Ecc_sd", "Err_sd"}
+    assert set(d["strain"]) == {"Ecc", "Err", "Ecr", "Ecc_sd", "Err_sd", "Ecc_sd_model", "Err_sd_model"}
     assert set(d["global"]) >= {"Ecc", "Err", "Ecc_lo", "Ecc_hi", "Err_lo", "Err_hi"}
     assert d["segments"]["start_deg"] == 15.0 and np.shape(d["segments"]["Err_hi"]) == (6, F)
     # the truth's strain (exact Green strain of u, by central differences of the field) is recovered in the mean

@@ -1,0 +1,605 @@
+"""Strain from myocardium masks alone: tracked borders as data, the interior from the physics.
+
+The contours route of issue 42 (item 2), Shi & Liu (2003) section 2.6 as a strain estimator,
+:func:`contour_strain`. No phase is used: the only input is a myocardium mask per frame.
+
+1. **Landmarks.** The reference mask's endo- and epicardial contours (marching squares at level
+   1/2, :func:`sfem_filters.imaging.contours.mask_borders`), resampled at equal arc length with
+   one point per ``landmark_spacing_px`` of border (default 1 px: a binary mask places its border
+   to within a pixel, so denser points add no information and sparser ones discard some), are
+   tracked frame to frame through the masks by bending-energy matching with a confidence per
+   match (Eqs. 35-37, :func:`sfem_filters.imaging.tracking.track_masks`, its default options
+   otherwise). Their Lagrangian displacement (pixels) is the route's data (step 2 says which part).
+2. **What the masks say: motion across the border.** A tracked border point is known well
+   *across* the border and poorly *along* it (the aperture problem: on a smooth arc every
+   candidate fits equally well, and twist is invisible in masks). By default
+   (``along_border="none"``) only the motion across the border is data; the tracker's sliding
+   along it, a drift correlated along the contour, is not (``along_border="tracked"`` adds it
+   with the tracker's own sd, accumulated from the confidences of the chain of matches, Eq. 37,
+   :class:`sfem_filters.imaging.tracking.BoundaryTracks` ``sigma``). The sd across the border is
+   the larger of the quantisation of a binary border, ``1 / sqrt(12)`` px (uniform within a
+   pixel), and the data's own temporal noise floor across the border
+   (:func:`sfem_filters.cardiac.strain_route.temporal_noise_floor` of the normal component).
+3. **Mesh and observation.** The reference myocardium meshed by Gmsh exactly as the DENSE route
+   (:func:`sfem_filters.cardiac.strain_route.reference_mesh`, element edge 2.5 px). Each landmark
+   sits in a boundary element with its shape-function weights (Eq. 12 as an interpolation,
+   :func:`sfem_filters.fem.observation.point_observation_matrix`); each border node observes its
+   own normal displacement, the hat-weighted mean of its landmarks' motion across the border
+   (:func:`border_node_data`). Fitting the points to the polygon's nodes instead would read the
+   small angle between adjacent edges as information about the nodes' sliding and amplify the
+   normals' noise about tenfold into it.
+4. **The interior from the physics.** No datum lies inside the wall. The prior says the wall
+   moves as an elastic body: each frame's *change* of displacement is a Gaussian field whose
+   precision is the stiffness (its log density minus the elastic energy, :func:`elastic_prior`;
+   Young's modulus scales out, rigid motion free). Two consequences: given the border, the
+   interior's mean is the elastic equilibrium field of that border with no body force (static
+   condensation, ``u_I = -K_II^-1 K_IB u_B``, :func:`elastic_extension`), so the interior strain
+   comes from the physics; and a border motion costs the elastic energy it puts into the wall, so
+   the sliding along the border that no datum sets is the one the wall's elasticity prefers. In
+   the state-space model this is the process and initial noise, ``q^2 C`` on displacement and
+   ``(q / T)^2 C`` on velocity (``C`` the prior's covariance, scaled to unit mean variance on the
+   border), plus a white floor :data:`INTERIOR_FREEDOM` times smaller that only keeps ``Q``
+   invertible. The dynamics are the DENSE route's
+   (:func:`sfem_filters.cardiac.strain_route.compliant_modulus`: elastic forces negligible over
+   the cycle, so the state carries the motion from frame to frame, a damped constant-velocity
+   prior through mass and mass damping). The estimator is the DENSE route's
+   (:class:`sfem_filters.filtering.iterated.IteratedSmoother`, material fixed: a Kalman-RTS
+   pass); the process noise starts at ``process_fraction`` (0.1, the library's rule for measured
+   data) of the noise floor across the border per frame and its level is then chosen by the
+   data's evidence (``process_noise="estimate"``): how fast the wall may accelerate is the data's
+   to say, and a fixed level flattens a short systole's peak.
+
+   The material: the library's nominal tissue (Poisson's ratio 0.45), in *plane stress*. A
+   short-axis slice of a ventricle that shortens longitudinally is free through the plane
+   (``sigma_zz = 0``), and its in-plane area is not conserved (through-plane shortening thickens
+   the wall in the plane). The DENSE route's plane strain with a near-incompressible ratio makes
+   every in-plane area change ten times dearer than shear (2D bulk over shear modulus
+   ``1 / (1 - 2 nu)``), so the prior would hold back the wall's thickening that the borders
+   show; plane stress of the same tissue makes it three times dearer. On the library's
+   plane-strain elements this is the exact equivalent ratio ``nu / (1 + nu)`` = 0.31 (Young's
+   modulus scales out). Near-incompressibility is not what makes the wall thicken here: both
+   borders are data, so the wall's area at every frame is given by them. Unlike a spline through
+   both borders, the elastic field knows where the cavity is (the spline couples the two borders
+   across it).
+
+5. **Strain and its sd.** As the DENSE route: Green-Lagrange strain of each linear triangle's
+   gradient at every reference pixel, projected about the reference mask's centre of mass; sd
+   and curve bands by the delta method at the posterior mean with the smoothed covariance
+   (:func:`sfem_filters.cardiac.strain_route.strain_and_sd`). The bands say how well the borders
+   are known *given* the elastic interior; they do not hold the interior's model error.
+
+Units: pixels for points and displacements at the interface (x = column, y = row), SI inside
+(the mesh in metres); strain is a fraction; times in s. Masks carry no phase noise: the route's
+only error is the masks' pixel quantisation and the tracking.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from .._validate import as_float_array, positive
+from ..fem.elasticity import stiffness_matrix
+from ..fem.loads import penalty_stiffness
+from ..fem.material import Material
+from ..fem.mesh import TriMesh
+from ..fem.observation import point_observation_matrix
+from ..filtering.iterated import IteratedSmoother
+from ..filtering.linearised import linearise
+from ..filtering.smoother import smooth
+from ..imaging.contours import check_myocardium_mask, mask_borders
+from ..imaging.spline_strain import SplineStrain, spline_strain
+from ..imaging.strain import N_SEGMENTS, mask_centre, segment_labels
+from ..imaging.tracking import BoundaryTracks, TrackingOptions, track_masks
+from .measured import NOMINAL
+from .strain_route import (Z95, DenseStrain, NodalFitModel, compliant_modulus, element_gradient_operator,
+                           linearised_rows, observation_points, reference_mesh, strain_and_sd, temporal_noise_floor)
+
+__all__ = ["ContourRouteSettings", "ContourStrain", "contour_strain", "contour_landmark_tracks", "elastic_extension",
+           "elastic_prior", "border_node_data", "landmark_sd", "contour_spline_strain", "QUANTISATION_SD_PX",
+           "INTERIOR_FREEDOM"]
+
+#: Sd (px) of a border placed by a binary mask: uniform within one pixel, ``1 / sqrt(12)``.
+QUANTISATION_SD_PX = 1.0 / np.sqrt(12.0)
+#: White process noise on every dof, relative to the border's: only keeps Q invertible.
+INTERIOR_FREEDOM = 1e-3
+
+
+@dataclass(frozen=True)
+class ContourRouteSettings:
+    """Settings of the contours route (each by a principle; see the module docstring).
+
+    Attributes
+    ----------
+    landmark_spacing_px : float
+        Border length (pixels) per tracked landmark: 1 px, the mask's resolution.
+    element_px : float
+        Target element edge (pixels) of the Gmsh mesh of the reference myocardium: the DENSE
+        route's 2.5 px.
+    nu : float
+        Poisson's ratio of the tissue (nominal 0.45).
+    plane : {"stress", "strain"}
+        The slice's state in the wall's elastic prior. ``"stress"`` (default): free to shorten
+        through the plane (sigma_zz = 0), as a short-axis slice of a ventricle that shortens
+        longitudinally is; on the plane-strain elements this is Poisson's ratio ``nu / (1 + nu)``
+        (the exact plane-stress equivalent; Young's modulus scales out). ``"strain"``: the DENSE
+        route's plane strain with ``nu`` itself, whose near-incompressibility makes any in-plane
+        area change ten times dearer than shear.
+    normal_sd_px : float
+        Least sd (pixels) of a landmark across the border: the binary mask's quantisation.
+    process_fraction : float
+        Process noise per frame as a fraction of the border data's noise floor (0.1, the library's
+        rule for measured data).
+    min_landmarks : int
+        Fewest landmarks per contour (16: a small ring still gets a smooth border).
+    along_border : {"none", "tracked"}
+        Whether the landmarks' motion *along* the border is data. ``"none"`` (default): only their
+        motion across it, the part a mask sequence determines; along a smooth border the masks have
+        no grip (the aperture problem) and the tracker's sliding is a drift correlated along the
+        contour (a pure dilation of a circular ring: up to ~1 px in 8 frames,
+        ``tests/cardiac/test_contours_route.py``), a bias that no independent error sd can hold; the
+        elastic prior then sets the sliding. ``"tracked"``: also the tracker's tangential motion,
+        with its sd accumulated from the match confidences (Eq. 37).
+    process_noise : {"fixed", "estimate"}
+        ``"estimate"`` (default): the level above times one factor chosen by maximum evidence (type-II
+        maximum likelihood, :class:`sfem_filters.filtering.iterated.IteratedSmoother`
+        ``process_noise``): the data judge how fast the wall may accelerate. ``"fixed"``: the level
+        as set (it flattens a short systole's peak).
+    start_deg : float
+        Start of segment 0 (degrees from the image's +x axis towards +y).
+    centre : tuple or None
+        Centre (x, y) in pixels of the radial directions and segments; None: the centre of mass of
+        the reference mask.
+    """
+
+    landmark_spacing_px: float = 1.0
+    element_px: float = 2.5
+    nu: float = NOMINAL["nu"]
+    plane: str = "stress"
+    normal_sd_px: float = QUANTISATION_SD_PX
+    process_fraction: float = 0.1
+    min_landmarks: int = 16
+    along_border: str = "none"
+    process_noise: str = "estimate"
+    start_deg: float = 0.0
+    centre: tuple | None = None
+
+    @property
+    def nu_plane_strain(self) -> float:
+        """Poisson's ratio of the plane-strain elements: ``nu / (1 + nu)`` in plane stress, else ``nu``."""
+        return self.nu / (1.0 + self.nu) if self.plane == "stress" else self.nu
+
+    def __post_init__(self):
+        positive("landmark_spacing_px", self.landmark_spacing_px, "pixels")
+        positive("element_px", self.element_px, "pixels")
+        if not 0 < self.nu < 0.5:
+            raise ValueError(f"nu: expected a Poisson's ratio in (0, 0.5), got {self.nu!r}")
+        if self.plane not in ("stress", "strain"):
+            raise ValueError(f"plane: expected 'stress' or 'strain', got {self.plane!r}")
+        positive("normal_sd_px", self.normal_sd_px, "pixels")
+        positive("process_fraction", self.process_fraction)
+        if self.along_border not in ("none", "tracked"):
+            raise ValueError(f"along_border: expected 'none' or 'tracked', got {self.along_border!r}")
+        if self.process_noise not in ("fixed", "estimate"):
+            raise ValueError(f"process_noise: expected 'fixed' or 'estimate', got {self.process_noise!r}")
+        if isinstance(self.min_landmarks, bool) or int(self.min_landmarks) != self.min_landmarks \
+                or self.min_landmarks < 8:
+            raise ValueError(f"min_landmarks: expected an integer >= 8, got {self.min_landmarks!r}")
+        if self.centre is not None:
+            object.__setattr__(self, "centre", tuple(float(v) for v in as_float_array("centre", self.centre,
+                                                                                      shape=(2,))))
+
+
+@dataclass(frozen=True, eq=False)
+class ContourStrain(DenseStrain):
+    """:class:`~sfem_filters.cardiac.strain_route.DenseStrain` of the contours route, with its data.
+
+    Extra attributes: ``tracks`` (the :class:`~sfem_filters.imaging.tracking.BoundaryTracks`
+    through the masks, index 0 the reference), ``landmark_sd`` (F, L, 2): the landmarks' normal
+    and tangential sd (pixels); ``nodal_displacement`` (F, n_dofs): the estimate at the mesh's
+    nodes (pixels, x before y per node).
+    """
+
+    tracks: BoundaryTracks = field(repr=False)
+    landmark_sd: np.ndarray = field(repr=False)
+    nodal_displacement: np.ndarray = field(repr=False)
+
+    def to_dict(self) -> dict:
+        """The issue-42 JSON names (as the DENSE route), ``route`` = ``"contours"``, and the landmarks."""
+        out = super().to_dict()
+        out["route"] = "contours"
+        L = self.tracks.points
+        out["landmarks"] = {"points": L.tolist(), "contour": self.tracks.contour.tolist(),
+                            "n_endo": int(np.sum(self.tracks.contour == 0)),
+                            "n_epi": int(np.sum(self.tracks.contour == 1))}
+        return out
+
+
+# ------------------------------------------------------------------------------------ checks
+def _check_inputs(masks, pixel_size_m, frame_times_s) -> tuple:
+    m = np.asarray(masks)
+    if m.ndim != 3:
+        raise ValueError(f"masks: expected an (F + 1, H, W) mask sequence (index 0 the reference), got shape {m.shape}")
+    if m.dtype != bool and not np.isin(m, (0, 1)).all():
+        raise ValueError("masks: expected boolean (or 0/1) myocardium masks")
+    m = m.astype(bool)
+    check_myocardium_mask(m[0], "masks[0]")
+    s = positive("pixel_size_m", pixel_size_m, "m")
+    t = as_float_array("frame_times_s", frame_times_s, shape=(None,))
+    if len(t) != len(m) - 1:
+        raise ValueError(f"frame_times_s: expected one time per frame after the reference, {len(m) - 1} for "
+                         f"masks of shape {m.shape}, got {len(t)}")
+    if len(t) < 3:
+        raise ValueError(f"frame_times_s: expected at least 3 frames, got {len(t)}")
+    if np.any(np.diff(t) <= 0) or t[0] <= 0:
+        raise ValueError("frame_times_s: expected strictly increasing times (s) after the reference at t = 0")
+    return m, s, t
+
+
+# ----------------------------------------------------------------------------- the landmarks
+def contour_landmark_tracks(masks, spacing_px: float = 1.0, min_landmarks: int = 16) -> BoundaryTracks:
+    """Endo- and epicardial landmarks of ``masks[0]``, tracked through the masks (Eqs. 35-37).
+
+    The number of landmarks of each contour is its length (pixels) over ``spacing_px``, at least
+    ``min_landmarks``; the tracker's other options are its defaults
+    (:class:`sfem_filters.imaging.tracking.TrackingOptions`).
+
+    Parameters
+    ----------
+    masks : (F + 1, H, W) bool array
+        Myocardium masks, index 0 the reference.
+    """
+    m = np.asarray(masks, bool)
+    b = mask_borders(m[0], 64, 96)
+    lengths = [float(np.sum(np.linalg.norm(np.diff(np.vstack([c, c[:1]]), axis=0), axis=1))) for c in (b.endo, b.epi)]
+    n = [max(int(min_landmarks), int(round(L / positive("spacing_px", spacing_px, "pixels")))) for L in lengths]
+    return track_masks(m, TrackingOptions(n_endo=n[0], n_epi=n[1]))
+
+
+def _normals(tracks: BoundaryTracks) -> np.ndarray:
+    """Outward-or-inward unit normals (L, 2) of the reference contours at the landmarks (the sign is irrelevant)."""
+    out = []
+    for k in (0, 1):
+        p = tracks.points[tracks.contour == k]
+        tg = np.roll(p, -1, axis=0) - np.roll(p, 1, axis=0)
+        tg /= np.linalg.norm(tg, axis=1, keepdims=True)
+        out.append(np.column_stack([tg[:, 1], -tg[:, 0]]))
+    return np.concatenate(out)
+
+
+def landmark_sd(tracks: BoundaryTracks, normal_sd_px: float) -> tuple:
+    """Normal and tangential sd (F, L) in pixels of the landmarks' displacement (frames after the reference).
+
+    Tangential: the tracker's accumulated sd. Normal: the larger of ``normal_sd_px`` and the
+    temporal noise floor of the displacement's normal component (second differences in time).
+    """
+    n = _normals(tracks)
+    d = tracks.displacement[1:]
+    dn = np.einsum("fpk,pk->fp", d, n)[..., None]
+    floor = temporal_noise_floor(dn) if len(d) >= 3 else 0.0
+    s_n = np.full(d.shape[:2], max(float(normal_sd_px), floor))
+    s_t = np.maximum(tracks.sigma[1:], s_n)
+    return s_n, s_t, floor
+
+
+def border_node_data(mesh: TriMesh, D, displacement_px, sd_normal_px, sd_tangent_px, pixel_size_m: float) -> tuple:
+    """The landmarks' motion as data on the border nodes: each node's normal and tangential displacement.
+
+    A tracked border point tells how the *curve* moved across itself; along a smooth curve it says
+    little. Fitting point displacements to the polygon's nodes would read the small angle between
+    adjacent edges as information about the nodes' sliding (``sin`` of half the angle between two
+    edges, ~0.1), amplifying the normals' noise tenfold into tangential motion. So each border node
+    ``a`` gets its own two data, in its own frame (outward normal ``n_a``: the mean of its two
+    boundary edges' normals; tangent ``t_a``): the hat-weighted mean over the landmarks on its two
+    edges (weights ``w_aj``, the landmark's shape-function weight on node ``a``) of ``n_a . d_j``
+    and ``t_a . d_j``, with variance ``sum_j w_aj^2 s_j^2 / (sum_j w_aj)^2`` (independent
+    landmarks; ``s_j`` the landmark's normal or tangential sd). The normal datum is a local mean of
+    the curve's motion over the node's two elements; a node no landmark touches has no datum.
+    Variance: the hat-weighted mean of the landmarks' variances, ``sum_j w_aj s_j^2 / sum_j w_aj``,
+    not the smaller variance of a mean of independent data: landmarks a pixel apart on a binary
+    border share its staircase, so their quantisation errors are correlated over a node's support.
+    With ``sd_tangent_px=None`` only the normal data are returned (one row per node).
+
+    Parameters
+    ----------
+    mesh : TriMesh
+        The mesh (m).
+    D : (2L, n_dofs) sparse matrix
+        The landmarks' point observation operator.
+    displacement_px : (F, L, 2) array
+        The landmarks' displacements (pixels).
+    sd_normal_px, sd_tangent_px : (F, L) arrays
+        Their sd across and along the border (pixels); ``sd_tangent_px`` None: no tangential data.
+    pixel_size_m : float
+
+    Returns
+    -------
+    H : (m, n_dofs) sparse matrix
+        Rows ``n_a`` (and ``t_a``) on node a's dofs, node by node.
+    y : (F, m) array
+        The data (m).
+    R : (F, m, m) array
+        Their (diagonal) covariance (m^2).
+    nodes : (k,) int array
+        The border nodes with data.
+    """
+    s = positive("pixel_size_m", pixel_size_m, "m")
+    edges = mesh.boundary_edges()
+    e = mesh.nodes[edges[:, 1]] - mesh.nodes[edges[:, 0]]
+    out = np.column_stack([e[:, 1], -e[:, 0]]) / np.linalg.norm(e, axis=1, keepdims=True)   # tissue on the left
+    normal = np.zeros((mesh.n_nodes, 2))
+    np.add.at(normal, edges[:, 0], out)
+    np.add.at(normal, edges[:, 1], out)
+    Wx = sp.csr_matrix(D)[0::2, 0::2].toarray()                          # (L, n_nodes) hat weights
+    Wx[Wx < 1e-6] = 0.0
+    total = Wx.sum(axis=0)
+    nodes = np.flatnonzero((total > 0) & (np.linalg.norm(normal, axis=1) > 0))
+    n = normal[nodes] / np.linalg.norm(normal[nodes], axis=1, keepdims=True)
+    t = np.column_stack([-n[:, 1], n[:, 0]])
+    W = Wx[:, nodes] / total[nodes]                                      # (L, k), columns sum to 1
+    d = np.asarray(displacement_px, float)
+    F = d.shape[0]
+    dirs = [n] if sd_tangent_px is None else [n, t]
+    sds = [sd_normal_px] if sd_tangent_px is None else [sd_normal_px, sd_tangent_px]
+    k, c = len(nodes), len(dirs)
+    y = np.empty((F, c * k))
+    R = np.zeros((F, c * k, c * k))
+    for f in range(F):
+        mean = W.T @ d[f]                                                # (k, 2) hat-weighted mean motion
+        for j, (e, sd) in enumerate(zip(dirs, sds)):
+            y[f, j::c] = np.sum(mean * e, axis=1)
+            R[f, np.arange(j, c * k, c), np.arange(j, c * k, c)] = W.T @ np.asarray(sd, float)[f] ** 2
+    rows = np.repeat(np.arange(c * k), 2)
+    cols = np.repeat(np.column_stack([2 * nodes, 2 * nodes + 1]), c, axis=0).ravel()
+    vals = np.stack(dirs, axis=1).reshape(-1)
+    H = sp.csr_matrix((vals, (rows, cols)), shape=(c * k, mesh.n_dofs))
+    return H, y * s, R * s * s, nodes
+
+
+def elastic_extension(mesh: TriMesh, boundary_dofs, nu: float) -> np.ndarray:
+    """(n_dofs, m): each border dof's unit displacement extended into the wall by elastic equilibrium.
+
+    Rows of ``boundary_dofs`` are the identity; the other dofs ``u_I = -K_II^-1 K_IB u_B``
+    (plane-strain linear elasticity with Poisson's ratio ``nu``, no body force; Young's modulus
+    scales out). This is the conditional mean of the interior under :func:`elastic_prior`.
+    """
+    K = stiffness_matrix(mesh, 1.0, nu).tocsc()
+    B = np.asarray(boundary_dofs, int)
+    inner = np.setdiff1d(np.arange(mesh.n_dofs), B)
+    X = np.zeros((mesh.n_dofs, len(B)))
+    X[B, np.arange(len(B))] = 1.0
+    if inner.size:
+        from_b = -(K[inner][:, B]).toarray()
+        X[inner] = spla.splu(K[inner][:, inner].tocsc()).solve(from_b)
+    return X
+
+
+def elastic_prior(mesh: TriMesh, nu: float, boundary_dofs) -> np.ndarray:
+    """(n_dofs, n_dofs) covariance of a displacement whose log density is minus its elastic energy.
+
+    ``C = c K^+ + r Z Z^T``: ``K^+`` the pseudo-inverse of the plane-strain stiffness (Poisson's
+    ratio ``nu``, unit Young's modulus) on its elastic modes, ``Z`` its three rigid-body modes;
+    ``c`` and ``r`` make each part's mean variance over ``boundary_dofs`` one. So the
+    displacement is a Gaussian field whose precision is the stiffness: (i) given the border, the
+    interior's mean is the elastic equilibrium field (:func:`elastic_extension`), the interior
+    strain comes from the physics; (ii) a border motion costs the elastic energy it puts into
+    the wall, so rough motion along the border (what noise in the tracked points' normals would
+    imply) is unlikely, and rigid motion is free.
+    """
+    K = stiffness_matrix(mesh, 1.0, nu).toarray()
+    lam, V = np.linalg.eigh(0.5 * (K + K.T))
+    Z, Ve, le = V[:, :3], V[:, 3:], lam[3:]
+    if not le[0] > 1e3 * max(abs(lam[2]), 1e-300):
+        raise ValueError("mesh: expected a stiffness with exactly three rigid-body modes (one connected body)")
+    B = np.asarray(boundary_dofs, int)
+    Ce = (Ve / le) @ Ve.T
+    Cr = Z @ Z.T
+    return Ce / float(np.mean(np.diag(Ce)[B])) + Cr / float(np.mean(np.diag(Cr)[B]))
+
+
+# ------------------------------------------------------------------------- strain helpers (own)
+def _element_of(mesh: TriMesh, points_m) -> np.ndarray:
+    """Element holding each point (the one where it lies most inside)."""
+    tri = mesh.nodes[mesh.elements]
+    v0 = tri[:, 0]
+    Tinv = np.linalg.inv(np.stack([tri[:, 1] - v0, tri[:, 2] - v0], axis=2))
+    lam12 = np.einsum("eij,pej->pei", Tinv, np.asarray(points_m, float)[:, None, :] - v0[None])
+    return np.argmax(np.minimum(1.0 - lam12.sum(axis=2), lam12.min(axis=2)), axis=1)
+
+
+_PAIRS = [(i, j) for i in range(4) for j in range(i + 1, 4)]
+
+
+def _gradient_rows(mesh: TriMesh, Ge: np.ndarray, elements) -> sp.csr_matrix:
+    """10 rows per listed element on the global dofs: its 4 gradient components, then their 6 pairwise sums."""
+    dofs = mesh.element_dofs
+    rows, cols, vals = [], [], []
+    for k, e in enumerate(elements):
+        comps = [Ge[e, i] for i in range(4)] + [Ge[e, i] + Ge[e, j] for i, j in _PAIRS]
+        for c, r in enumerate(comps):
+            rows.extend([10 * k + c] * 6)
+            cols.extend(dofs[e].tolist())
+            vals.extend(r.tolist())
+    return sp.csr_matrix((vals, (rows, cols)), shape=(10 * len(elements), mesh.n_dofs))
+
+
+def _covariance_from_rows(v: np.ndarray) -> np.ndarray:
+    """(F, n, 4, 4) covariances from (F, 10 n) variances of components and pairwise sums."""
+    F = v.shape[0]
+    v = v.reshape(F, -1, 10)
+    C = np.zeros(v.shape[:2] + (4, 4))
+    for i in range(4):
+        C[..., i, i] = v[..., i]
+    for k, (i, j) in enumerate(_PAIRS):
+        C[..., i, j] = C[..., j, i] = 0.5 * (v[..., 4 + k] - v[..., i] - v[..., j])
+    return C
+
+
+def _curve_rows(Ge, elem, a, groups, ndofs, dofs) -> np.ndarray:
+    """(len(groups), n_dofs): the mean over each group's points of ``a_p . (B_e(p) U)``."""
+    out = np.zeros((len(groups), ndofs))
+    per_point = np.einsum("pk,pkd->pd", a, Ge[elem])
+    for g, sel in enumerate(groups):
+        if sel.size:
+            np.add.at(out[g], dofs[elem[sel]].ravel(), (per_point[sel] / sel.size).ravel())
+    return out
+
+
+# ----------------------------------------------------------------------------------- the route
+def contour_strain(masks, pixel_size_m: float, frame_times_s, settings: ContourRouteSettings | None = None,
+                   progress=None) -> ContourStrain:
+    """The contours route: myocardium masks in, Green-Lagrange strain with sd and banded curves out.
+
+    Parameters
+    ----------
+    masks : (F + 1, H, W) bool array
+        Myocardium mask of the reference configuration (index 0) and of each frame (index f + 1).
+    pixel_size_m : float
+        Pixel size (m).
+    frame_times_s : (F,) array
+        Time (s) of each frame after the reference (t = 0), strictly increasing.
+    settings : ContourRouteSettings, optional
+    progress : callable or bool, optional
+        ``progress(message)`` called at each step; ``True`` prints.
+
+    Returns
+    -------
+    ContourStrain
+        The DENSE route's result type and JSON names (``route`` = ``"contours"``), strain at the
+        reference mask's pixels.
+    """
+    t0 = time.perf_counter()
+    cfg = ContourRouteSettings() if settings is None else settings
+    if not isinstance(cfg, ContourRouteSettings):
+        raise TypeError(f"settings: expected a ContourRouteSettings, got {type(cfg).__name__}")
+    say = (lambda msg: print(msg, flush=True)) if progress is True else (progress or (lambda msg: None))
+    m, s, times = _check_inputs(masks, pixel_size_m, frame_times_s)
+    mask = m[0]
+    rows, cols = np.nonzero(mask)
+    X = np.column_stack([cols, rows]).astype(float)
+    centre = mask_centre(mask) if cfg.centre is None else np.asarray(cfg.centre, float)
+    say("tracking the borders through the masks (bending energy, Eqs. 35-37)")
+    tracks = contour_landmark_tracks(m, cfg.landmark_spacing_px, cfg.min_landmarks)
+    F = len(times)
+    L = len(tracks.points)
+    s_n, s_t, floor_n = landmark_sd(tracks, cfg.normal_sd_px)
+    say(f"{L} landmarks ({int(np.sum(tracks.contour == 0))} endo, {int(np.sum(tracks.contour == 1))} epi); "
+        f"meshing the reference myocardium (gmsh, {cfg.element_px:g} px)")
+    mesh = reference_mesh(mask, s, "gmsh", cfg.element_px)
+    Lin, moved = observation_points(mesh, tracks.points * s)
+    D = point_observation_matrix(mesh, Lin)
+    H, y, R, bnodes = border_node_data(mesh, D, tracks.displacement[1:], s_n,
+                                       s_t if cfg.along_border == "tracked" else None, s)
+    bdofs = np.sort(np.concatenate([2 * bnodes, 2 * bnodes + 1]))
+    T = float(np.median(np.diff(times)))
+    alpha = NOMINAL["alpha"]
+    wall = float(mask.sum()) * s * s / np.mean([np.sum(np.linalg.norm(np.diff(np.vstack([c, c[:1]]), axis=0), axis=1))
+                                                for c in (tracks.borders[0].endo, tracks.borders[0].epi)]) / s
+    E = compliant_modulus(wall, F * T, alpha=alpha)
+    material = Material.uniform(mesh.n_elements, E, cfg.nu_plane_strain)
+    ground = NOMINAL["foundation"] * float(np.median(stiffness_matrix(mesh, material.E, material.nu).diagonal()))
+    penalty = penalty_stiffness(mesh.n_dofs, np.arange(mesh.n_dofs), ground)
+    q = cfg.process_fraction * floor_n * s if floor_n > 0 else cfg.process_fraction * cfg.normal_sd_px * s
+    # the initial state: at rest in the reference configuration, uncertain by the landmarks' first
+    # displacement (the first frame is after the reference); from the data, not from the nodal fit,
+    # whose tangential components along a smooth border are barely determined
+    u0_sd = max(float(np.sqrt(np.mean(tracks.displacement[1] ** 2))), q / s) * s
+    fl = INTERIOR_FREEDOM
+    model = NodalFitModel(mesh, material, np.zeros((F, mesh.n_dofs)), H, T, (), density=NOMINAL["density"],
+                          alpha=alpha, beta=NOMINAL["beta"], measurement_std=1.0, process_std=(fl * q, fl * q / T),
+                          initial_std=(fl * u0_sd, fl * u0_sd / T), penalty=penalty, R_frames=R)
+    say(f"mesh: {mesh.n_nodes} nodes, {mesh.n_elements} triangles, {len(bdofs)} border dofs observed; "
+        "elastic prior of the wall")
+    free0 = model.dofmap.free
+    XX = elastic_prior(mesh, cfg.nu_plane_strain, bdofs)[np.ix_(free0, free0)]
+    n = model.dofmap.n_free
+    model.Q[:n, :n] += q ** 2 * XX
+    model.Q[n:2 * n, n:2 * n] += (q / T) ** 2 * XX
+    model.P0[:n, :n] += u0_sd ** 2 * XX
+    model.P0[n:2 * n, n:2 * n] += (u0_sd / T) ** 2 * XX
+    say(f"smoothing {F} frames ({model.dim_state} states)" + (
+        "; the process noise level by the evidence (a smoother run per level tried)"
+        if cfg.process_noise == "estimate" else ""))
+    result = IteratedSmoother(covariance=False, process_noise=cfg.process_noise).run(model, y)
+    if cfg.process_noise == "estimate":
+        model = model.with_process_noise(result.process_noise_scale)
+    nr = model.n_restart
+    free = model.dofmap.free
+    U = np.zeros((F, mesh.n_dofs))
+    U[:, free] = result.states[:, :n]
+    P = len(X)
+    Xm = X * s
+    Xin, _ = observation_points(mesh, Xm)
+    Ge = element_gradient_operator(mesh)
+    elem = _element_of(mesh, Xin)
+    dofs = mesh.element_dofs
+    grad = np.einsum("pkd,fpd->fpk", Ge[elem], U[:, dofs[elem]]).reshape(F, P, 2, 2)
+    labels = segment_labels(X, centre, cfg.start_deg)
+    groups = [np.arange(P)] + [np.flatnonzero(labels == k) for k in range(N_SEGMENTS)]
+    a_cc, a_rr = linearised_rows(grad, X, centre)
+    curve_rows = np.concatenate([np.concatenate([_curve_rows(Ge, elem, a[t], groups, mesh.n_dofs, dofs)
+                                                 for a in (a_cc, a_rr)]) for t in range(F)])
+    say("covariance pass (linearised strain)")
+    lin = linearise(model, result.states)
+
+    def on_state(op):
+        op = sp.csr_matrix(op)[:, free]
+        return lin.output_in_xi(sp.hstack([op, sp.csr_matrix((op.shape[0], nr - n))], format="csr"))
+
+    used = np.unique(elem)
+    outputs = {"gradient": on_state(_gradient_rows(mesh, Ge, used)), "curves": on_state(curve_rows)}
+    sm = smooth(lin, y, outputs=outputs, covariance=True)
+    C = np.zeros((F, mesh.n_elements, 4, 4))
+    C[:, used] = _covariance_from_rows(sm.variances["gradient"])
+    ecc, err, ecr, sd_cc, sd_rr = strain_and_sd(grad, C[:, elem], X, centre)
+    k = 2 * (1 + N_SEGMENTS)
+    vc = sm.variances["curves"].reshape(F, F, k)[np.arange(F), np.arange(F)]
+    sd_curves = np.sqrt(np.maximum(vc, 0.0))
+    means = {"Ecc": ecc, "Err": err}
+    glob, segs = {}, {}
+    for q_i, qn in enumerate(("Ecc", "Err")):
+        m_all = np.stack([means[qn][:, g].mean(axis=1) if g.size else np.full(F, np.nan) for g in groups], axis=1)
+        sd_all = sd_curves[:, q_i * (1 + N_SEGMENTS):(q_i + 1) * (1 + N_SEGMENTS)]
+        for d, sl in ((glob, 0), (segs, slice(1, None))):
+            mu, sd = m_all[:, sl].T, sd_all[:, sl].T
+            d[qn], d[f"{qn}_sd"], d[f"{qn}_lo"], d[f"{qn}_hi"] = mu, sd, mu - Z95 * sd, mu + Z95 * sd
+    disp_px = (point_observation_matrix(mesh, Xin) @ U.T).T.reshape(F, P, 2) / s
+    seconds = time.perf_counter() - t0
+    info = {"n_landmarks": L, "n_endo": int(np.sum(tracks.contour == 0)), "n_epi": int(np.sum(tracks.contour == 1)),
+            "landmarks_moved_into_mesh": int(np.count_nonzero(moved)), "normal_noise_floor_px": floor_n,
+            "normal_sd_px_used": float(s_n.max()), "tangential_sd_px_rms": float(np.sqrt(np.mean(s_t ** 2))),
+            "process_std_px": q / s, "initial_std_px": u0_sd / s, "frame_interval_s": T, "E_Pa": E,
+            "alpha_per_s": alpha, "wall_thickness_px": wall / s, "n_nodes": mesh.n_nodes,
+            "n_elements": mesh.n_elements, "n_border_dofs": int(len(bdofs)), "dim_state": int(model.dim_state),
+            "mean_match_confidence": float(np.mean(tracks.step_confidence[1:])),
+            "process_noise_scale": float(result.process_noise_scale),
+            "nu_plane_strain_elements": cfg.nu_plane_strain,
+            "data": "myocardium masks only (no phase): noise-free in phase terms",
+            "landmarks": "marching-squares borders of masks[0], one per landmark_spacing_px, tracked by bending "
+                         "energy (Eqs. 35-37)",
+            "interior": "process and initial noise of precision the plane-strain stiffness (nu as set): the "
+                        "interior's mean is the elastic extension of the border",
+            "estimator": "IteratedSmoother (material fixed: one Kalman-RTS pass), then a covariance pass",
+            "strain": "Green-Lagrange of the linear triangles' element gradient",
+            "sd": "delta method at the posterior mean, full smoothed covariance of U"}
+    say(f"done in {seconds:.1f} s")
+    return ContourStrain(points=X, frame_times_s=times.copy(), centre=np.asarray(centre, float),
+                         start_deg=float(cfg.start_deg), labels=labels, Ecc=ecc, Err=err, Ecr=ecr, Ecc_sd=sd_cc,
+                         Err_sd=sd_rr, global_curves=glob, segment_curves=segs, displacement=disp_px,
+                         seconds=seconds, settings={**asdict(cfg), **info}, mesh=mesh, tracks=tracks,
+                         landmark_sd=np.stack([s_n, s_t], axis=-1), nodal_displacement=U / s)
+
+
+def contour_spline_strain(result: ContourStrain) -> SplineStrain:
+    """The yardstick through the same landmarks: :func:`sfem_filters.imaging.spline_strain.spline_strain`
+    of the route's tracked landmark displacements (per frame), at the same reference pixels, about
+    the same centre, with the landmarks' sd (the larger of their normal and tangential sd per
+    component, the spline's data being independent per component)."""
+    if not isinstance(result, ContourStrain):
+        raise TypeError(f"result: expected a ContourStrain, got {type(result).__name__}")
+    sd = np.repeat(result.landmark_sd.max(axis=-1)[..., None], 2, axis=-1)
+    return spline_strain(result.tracks.points, result.tracks.displacement[1:], result.points, sd_px=sd,
+                         centre=result.centre, start_deg=result.start_deg, frame_times_s=result.frame_times_s)

@@ -1,0 +1,227 @@
+"""The DENSE route's recovered gradient, its pixel variance, and the honest bands' two terms
+(maximum-likelihood noise scale, empirical-Bayes model discrepancy)."""
+import numpy as np
+import pytest
+import scipy.sparse as sp
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+pytest.importorskip("gmsh", reason="gmsh (the optional mesher, GPL-2.0-or-later) is not installed")
+
+from sfem_filters.cardiac.strain_route import (  # noqa: E402
+    StrainRouteSettings,
+    discrepancy_variance,
+    dense_strain,
+    gradient_operators,
+    noise_scale,
+    point_variance,
+    reference_mesh,
+)
+from sfem_filters.imaging.dense import LagrangianDisplacement, reference_points  # noqa: E402
+
+PX = 1.75e-3
+
+
+def _ring(n=24, r0=4.0, r1=8.5):
+    yy, xx = np.mgrid[0:n, 0:n]
+    r = np.hypot(xx - (n - 1) / 2, yy - (n - 1) / 2)
+    return (r >= r0) & (r <= r1)
+
+
+MASK = _ring()
+MESH = reference_mesh(MASK, PX, "gmsh", 2.0)
+POINTS = reference_points(MASK) * PX
+
+
+def _point_gradients(ops, weights, U):
+    return np.stack([weights @ (op @ U) for op in ops], axis=-1).reshape(-1, 2, 2)
+
+
+@settings(max_examples=20, deadline=None)
+@given(st.lists(st.floats(-0.5, 0.5), min_size=6, max_size=6), st.sampled_from(["recovered", "element"]))
+def test_both_gradients_reproduce_an_affine_displacement_exactly(coefs, kind):
+    """The patch test: an affine field's constant gradient at every point, whichever gradient."""
+    A = np.array(coefs[:4]).reshape(2, 2)
+    U = (MESH.nodes @ A.T + np.array(coefs[4:]) * PX).ravel()
+    ops, weights = gradient_operators(MESH, POINTS, kind)
+    assert np.allclose(_point_gradients(ops, weights, U), A, atol=1e-10)
+    assert np.allclose(np.asarray(weights.sum(axis=1)).ravel(), 1.0)
+
+
+def test_the_recovered_gradient_is_continuous_and_the_element_gradient_is_not():
+    """A quadratic field: the element gradient jumps across edges; the recovered one does not, and is closer."""
+    c = MESH.nodes.mean(axis=0)
+    d = (MESH.nodes - c) / PX
+    U = (np.column_stack([d[:, 0] ** 2, d[:, 0] * d[:, 1]]) * 1e-3 * PX).ravel()
+    x = (POINTS - c) / PX
+    exact = 1e-3 * np.stack([np.column_stack([2 * x[:, 0], 0 * x[:, 0]]), np.column_stack([x[:, 1], x[:, 0]])],
+                            axis=1)
+    errs = {}
+    for kind in ("recovered", "element"):
+        ops, weights = gradient_operators(MESH, POINTS, kind)
+        errs[kind] = np.sqrt(np.mean((_point_gradients(ops, weights, U) - exact) ** 2))
+    assert errs["recovered"] < 0.7 * errs["element"]
+
+
+def test_point_variance_is_exact_for_elements_and_an_upper_bound_for_recovered_gradients():
+    rng = np.random.default_rng(3)
+    n = MESH.n_dofs
+    L = rng.standard_normal((n, n)) / np.sqrt(n)
+    Cu = L @ L.T + 0.1 * np.eye(n)
+    a = rng.standard_normal((1, len(POINTS), 4))
+    for kind in ("element", "recovered"):
+        ops, weights = gradient_operators(MESH, POINTS, kind)
+        C_items = np.zeros((1, ops[0].shape[0], 4, 4))
+        O = [op.toarray() for op in ops]
+        for i in range(4):
+            for j in range(4):
+                C_items[0, :, i, j] = np.einsum("md,de,me->m", O[i], Cu, O[j])
+        approx = point_variance(weights, a, C_items)[0]
+        R = [(weights @ op).toarray() for op in ops]                       # (P, n) each
+        rows = sum(a[0, :, k][:, None] * R[k] for k in range(4))
+        exact = np.einsum("pd,de,pe->p", rows, Cu, rows)
+        if kind == "element":
+            assert np.allclose(approx, exact, rtol=1e-10)
+        else:
+            assert np.all(approx >= exact * (1 - 1e-10)) and np.any(approx > exact * 1.01)
+
+
+def _ar1(rng, F, rho, sd):
+    """Noise correlated over frames (AR(1), lag-1 correlation rho), as the phase texture is."""
+    e = np.empty(F)
+    e[0] = rng.standard_normal()
+    for t in range(1, F):
+        e[t] = rho * e[t - 1] + np.sqrt(1 - rho ** 2) * rng.standard_normal()
+    return sd * e
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(0, 10_000), st.floats(0.001, 0.05), st.floats(0.0, 0.8))
+def test_the_discrepancy_is_zero_when_the_estimates_agree_within_their_noise(seed, noise, rho):
+    """Only noise between estimate and reference, however correlated over frames: no discrepancy (in the
+    mean over draws; one draw's estimate is within a few standard errors of zero)."""
+    rng = np.random.default_rng(seed)
+    F = 60
+    m = 0.2 * np.sin(np.linspace(0, np.pi, F))
+    tau2 = []
+    for _ in range(20):
+        tau0_2, k2 = discrepancy_variance(_ar1(rng, F, rho, noise), _ar1(rng, F, rho, noise), m)
+        tau2.append(tau0_2 + k2 * np.mean(m ** 2))
+    # the cross moment of two independent noises: mean 0, sd about noise^2 sqrt((1 + rho^2) / (1 - rho^2) / F)
+    se = noise ** 2 * np.sqrt((1 + rho ** 2) / (1 - rho ** 2) / F)
+    assert np.mean(tau2) < 2 * se
+    assert discrepancy_variance(np.zeros(F), np.zeros(F), m) == (0.0, 0.0)
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(0, 10_000), st.floats(0.05, 0.5), st.booleans(), st.floats(0.0, 0.8))
+def test_a_smooth_bias_is_found_through_the_noise_with_its_profile(seed, kappa, proportional, rho):
+    """A bias proportional to the estimate (a flattening) or a constant offset, seen through noise."""
+    rng = np.random.default_rng(seed)
+    F, noise = 60, 0.005
+    m = 0.3 * np.sin(np.linspace(0, np.pi, F)) ** 2
+    bias = kappa * m if proportional else np.full(F, 0.1 * kappa)
+    tau0_2, k2 = discrepancy_variance(bias + _ar1(rng, F, rho, noise), bias + _ar1(rng, F, rho, noise), m)
+    tau2 = tau0_2 + k2 * m ** 2
+    slack = 4 * noise * np.sqrt(np.mean(bias ** 2)) + 4 * noise ** 2
+    assert abs(np.mean(tau2) - np.mean(bias ** 2)) < 0.1 * np.mean(bias ** 2) + slack
+    # the profile follows the bias: where the estimate is zero, so is a proportional bias's variance
+    if proportional:
+        assert tau0_2 < 0.1 * np.max(bias ** 2) + slack
+    else:
+        assert k2 * np.max(m ** 2) < 0.1 * np.max(bias ** 2) + slack
+
+
+def test_discrepancy_errors_name_the_argument():
+    with pytest.raises(ValueError, match="diff_b: expected shape"):
+        discrepancy_variance(np.zeros(5), np.zeros(4), np.zeros(5))
+    with pytest.raises(ValueError, match="at least 2 frames"):
+        discrepancy_variance(np.array([0.0, np.nan]), np.zeros(2), np.zeros(2))
+
+
+@settings(max_examples=20, deadline=None)
+@given(st.integers(0, 10_000), st.floats(0.1, 50.0))
+def test_the_ml_noise_scale_recovers_the_factor_the_model_missed(seed, c0):
+    rng = np.random.default_rng(seed)
+    F, m = 40, 6
+    nis = np.empty(F)
+    for t in range(F):
+        L = rng.standard_normal((m, m))
+        S = L @ L.T + m * np.eye(m)
+        e = np.linalg.cholesky(c0 * S) @ rng.standard_normal(m)
+        nis[t] = e @ np.linalg.solve(S, e)
+    c = noise_scale(nis, np.full(F, m))
+    assert abs(c / c0 - 1) < 4 * np.sqrt(2 / (F * m))                     # chi-square: sd of the mean NIS
+    with pytest.raises(ValueError, match="nis, n_obs"):
+        noise_scale(np.full(3, np.nan), np.zeros(3))
+
+
+def test_the_scaled_bands_of_a_gaussian_local_level_model_cover_at_their_nominal_rate():
+    """A random walk seen in white noise, filtered with both variances c0 = 9 times too small: the
+    filter's own 95% bands cover a third of the truth; scaled by the ML noise scale, 95%."""
+    rng = np.random.default_rng(7)
+    series, F, q, r, c0 = 200, 60, 0.1, 1.0, 9.0
+    inside_raw, inside_ml, n = 0, 0, 0
+    for _ in range(series):
+        x = np.cumsum(np.sqrt(c0 * q) * rng.standard_normal(F))
+        y = x + np.sqrt(c0 * r) * rng.standard_normal(F)
+        m, P, nis, est, var = 0.0, 1e6, [], [], []
+        for t in range(F):
+            P = P + q if t else P
+            S = P + r
+            e = y[t] - m
+            if t:
+                nis.append(e * e / S)
+            K = P / S
+            m, P = m + K * e, (1 - K) * P
+            est.append(m)
+            var.append(P)
+        c = noise_scale(np.array(nis), np.ones(len(nis)))
+        est, var = np.array(est)[5:], np.array(var)[5:]
+        inside_raw += np.sum(np.abs(est - x[5:]) <= 1.96 * np.sqrt(var))
+        inside_ml += np.sum(np.abs(est - x[5:]) <= 1.96 * np.sqrt(c * var))
+        n += est.size
+    assert inside_raw / n < 0.6
+    assert 0.93 <= inside_ml / n <= 0.97
+
+
+def _tracks(mask, frames=6, noise_px=0.05, seed=0):
+    X = reference_points(mask)
+    c = X.mean(axis=0)
+    d = X - c
+    r = np.linalg.norm(d, axis=1)
+    t = np.linspace(0.2, 1.0, frames)
+    disp = -(0.15 * t[:, None, None]) * (20.0 / r)[None, :, None] * (d / r[:, None])[None]
+    rng = np.random.default_rng(seed)
+    return LagrangianDisplacement(points=X, displacement=disp + noise_px * rng.standard_normal(disp.shape),
+                                  sd=np.full(disp.shape, noise_px), confidence=np.ones(disp.shape[:2]),
+                                  frame_times_s=0.0225 + 0.015 * np.arange(frames), n_untracked=0,
+                                  noise_sd=np.array([1.0, 1.0]))
+
+
+def test_dense_strain_keeps_the_smoothers_sd_beside_the_total_and_the_switches_work():
+    tracks = _tracks(MASK)
+    full = dense_strain(tracks, MASK, PX, StrainRouteSettings(element_px=2.0))
+    bare = dense_strain(tracks, MASK, PX, StrainRouteSettings(element_px=2.0, noise_scale=False, discrepancy=False))
+    for q in ("Ecc", "Err"):
+        assert np.all(getattr(full, f"{q}_sd") >= getattr(full, f"{q}_sd_model") - 1e-15)
+        assert np.all(full.segment_curves[f"{q}_sd"] >= full.segment_curves[f"{q}_sd_model"] - 1e-15)
+        assert np.array_equal(getattr(bare, f"{q}_sd"), getattr(bare, f"{q}_sd_model"))
+        assert np.allclose(getattr(full, q), getattr(bare, q))             # the bands change, the estimate not
+        c = full.settings["noise_scale_ml"]
+        assert np.allclose(full.segment_curves[f"{q}_sd_model"], np.sqrt(c) * bare.segment_curves[f"{q}_sd"])
+        lo, hi = full.band(q, "pixels")
+        assert np.allclose(hi - lo, 2 * 1.959963984540054 * getattr(full, f"{q}_sd"))
+    assert bare.settings["noise_scale_ml"] == 1.0
+    d = full.to_dict()
+    assert {"Ecc_sd_model", "Err_sd_model"} <= set(d["strain"])
+    with pytest.raises(ValueError, match="strain: expected one of"):
+        StrainRouteSettings(strain="quadratic")
+    with pytest.raises(TypeError, match="discrepancy: expected True or False"):
+        StrainRouteSettings(discrepancy="yes")
+
+
+def test_gradient_operators_reject_an_unknown_kind():
+    with pytest.raises(ValueError, match="kind: expected one of"):
+        gradient_operators(MESH, POINTS, "spline")
+    assert isinstance(gradient_operators(MESH, POINTS)[1], sp.csr_matrix)
