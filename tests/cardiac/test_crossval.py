@@ -183,7 +183,8 @@ def test_a_candidate_that_raises_the_cv_error_is_rejected(monkeypatch):
         cv = real(setup, variant, r, folds)
         return {**cv, "rmse_px": cv["rmse_px"] * (10.0 if variant.effects else 1.0)}
 
-    monkeypatch.setattr(closing, "round_cross_validation", worse_with_effects)
+    for part in (closing.rounds, closing.workers):      # where it is looked up
+        monkeypatch.setattr(part, "round_cross_validation", worse_with_effects)
     seq = annulus_sequence("active_polar", n_frames=8, seed=1)
     out = closing.closing_the_loop(seq, criterion="cv", folds=2, candidates=["active_polar"], parameterisation="none",
                                    max_rounds=1, max_iterations=3, corrections=False)

@@ -94,7 +94,8 @@ def test_bad_effect_names_and_landmark_counts_fail_before_any_fit(monkeypatch):
     seq = load_sequence(example_path())
     fits = []
     real_fit = closing._fit
-    monkeypatch.setattr(closing, "_fit", lambda *a, **k: fits.append(a[1]) or real_fit(*a, **k))
+    for part in (closing.workers, closing.rounds):      # where it is looked up
+        monkeypatch.setattr(part, "_fit", lambda *a, **k: fits.append(a[1]) or real_fit(*a, **k))
     for effects in ("active_polar,glue", ["glue"]):
         with pytest.raises(ValueError, match=r"effects: expected 'auto', 'none' or names from"):
             closing.closing_the_loop(seq, effects=effects)

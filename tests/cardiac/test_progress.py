@@ -42,9 +42,9 @@ def test_a_line_as_each_round_ends_and_the_report_unchanged(capsys, monkeypatch)
     fits. Without progress: no line, and the same report to the last figure."""
     seq = _sequence()
     real, names = closing.run, []
-    monkeypatch.setattr(closing, "run", lambda *a, **kw: (names.append(kw["name"]), real(*a, **kw))[1])
+    monkeypatch.setattr(closing.workers, "run", lambda *a, **kw: (names.append(kw["name"]), real(*a, **kw))[1])
     out = closing.closing_the_loop(seq, progress=True, **KW)
-    monkeypatch.setattr(closing, "run", real)
+    monkeypatch.setattr(closing.workers, "run", real)
     err = capsys.readouterr().err
     lines = [ln for ln in re.split(r"[\r\n]", err) if ln.startswith(("baseline (", "round "))
              and (": tried" in ln or "log p(y)" in ln)]

@@ -318,7 +318,7 @@ def test_variances_made_only_for_the_fits_kept_give_the_same_report(monkeypatch)
         made.append(covariance)
         return measured.run(*args, **options)
 
-    monkeypatch.setattr(closing, "run", full)
+    monkeypatch.setattr(closing.workers, "run", full)
     rich = closing.closing_the_loop(seq, **kw)
     assert False in made                                # the rounds did ask for lean fits
     assert len(rich.rounds) > 1 and "strain_polar_sd" in rich.extended.metrics
@@ -350,13 +350,13 @@ def test_with_covariance_completes_a_lean_fit_exactly():
 def test_a_pool_that_cannot_start_or_breaks_leaves_the_fits_to_this_process(monkeypatch):
     """No process semaphores, or a worker killed midway: a warning, and the fits not yet returned
     are made here, in order (an error of a fit itself is not caught: it is the fit's)."""
-    monkeypatch.setattr(closing, "_fit_job", lambda setup, v, opts, cv: (v, None))
+    monkeypatch.setattr(closing.workers, "_fit_job", lambda setup, v, opts, cv: (v, None))
 
     class NoPool:
         def __init__(self, *args, **kw):
             raise OSError("no semaphores")
 
-    monkeypatch.setattr(closing, "process_pool", NoPool)
+    monkeypatch.setattr(closing.workers, "process_pool", NoPool)
     with pytest.warns(RuntimeWarning, match="one after the other"):
         fits = closing._Fits(None, {}, 2, None, False)
     assert fits.pool is None and [r for r, _ in fits.run(["a", "b", "c"])] == ["a", "b", "c"]
@@ -376,7 +376,7 @@ def test_a_pool_that_cannot_start_or_breaks_leaves_the_fits_to_this_process(monk
         def shutdown(self, **kw):
             pass
 
-    monkeypatch.setattr(closing, "process_pool", Broken)
+    monkeypatch.setattr(closing.workers, "process_pool", Broken)
     fits = closing._Fits(None, {}, 2, None, False)
     with pytest.warns(RuntimeWarning, match="BrokenProcessPool"):
         assert [r for r, _ in fits.run(["a", "b", "c"])] == ["a", "b", "c"]
@@ -659,9 +659,10 @@ def _scripted_rounds(monkeypatch, evidence, scores, candidates=("active_polar", 
         return sorted(({"effect": n, "score": s.get(n, 0.0), "n_tests": 1, "lm": 0.0, "df": 1, "explained": 0.0}
                        for n, _ in pool), key=lambda d: -d["score"])
 
-    monkeypatch.setattr(closing, "_fit", fit)
+    for part in (closing.workers, closing.rounds):      # where it is looked up
+        monkeypatch.setattr(part, "_fit", fit)
     monkeypatch.setattr(closing.diagnostics, "rank_effects", rank)
-    monkeypatch.setattr(closing, "time_courses", lambda r: None)
+    monkeypatch.setattr(closing.rounds, "time_courses", lambda r: None)
     out = closing.closing_the_loop(seq, candidates=list(candidates), folds=9,
                                    **kw)                # 9 folds of 8 landmarks: no cross-validation
     return out, fitted
@@ -770,7 +771,8 @@ def test_the_material_map_is_a_correction_and_a_backward_step(annulus, monkeypat
     assert "material:basis" not in dict(closing.removals(closing.Variant(("active_polar",)), closing.Variant(), loads))
     assert "[material basis]" in v.label("penalty") and closing._variant(v.as_json()) == v
     calls = []
-    monkeypatch.setattr(closing, "run", lambda setup, effects, drive, **kw: calls.append(kw["parameterisation"]))
+    monkeypatch.setattr(closing.workers, "run",
+                        lambda setup, effects, drive, **kw: calls.append(kw["parameterisation"]))
     closing._fit(None, v, {"parameterisation": "region"})
     closing._fit(None, closing.Variant(), {"parameterisation": "region"})
     assert calls == ["basis", "region"]
