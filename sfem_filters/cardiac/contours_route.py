@@ -97,6 +97,8 @@ from ..imaging.tracking import BoundaryTracks, TrackingOptions, track_masks
 from .measured import NOMINAL
 from .strain_route import (Z95, DenseStrain, NodalFitModel, compliant_modulus, element_gradient_operator,
                            linearised_rows, observation_points, reference_mesh, strain_and_sd, temporal_noise_floor)
+# the DENSE route's rows of the element gradients and curves for the smoother's variances (the same maths here)
+from .strain_route import _covariance_from_rows, _curve_rows, _element_of, _gradient_rows
 
 __all__ = ["ContourRouteSettings", "ContourStrain", "contour_strain", "contour_landmark_tracks", "elastic_extension",
            "elastic_prior", "border_node_data", "landmark_sd", "contour_spline_strain", "QUANTISATION_SD_PX",
@@ -398,54 +400,6 @@ def elastic_prior(mesh: TriMesh, nu: float, boundary_dofs) -> np.ndarray:
     Ce = (Ve / le) @ Ve.T
     Cr = Z @ Z.T
     return Ce / float(np.mean(np.diag(Ce)[B])) + Cr / float(np.mean(np.diag(Cr)[B]))
-
-
-# ------------------------------------------------------------------------- strain helpers (own)
-def _element_of(mesh: TriMesh, points_m) -> np.ndarray:
-    """Element holding each point (the one where it lies most inside)."""
-    tri = mesh.nodes[mesh.elements]
-    v0 = tri[:, 0]
-    Tinv = np.linalg.inv(np.stack([tri[:, 1] - v0, tri[:, 2] - v0], axis=2))
-    lam12 = np.einsum("eij,pej->pei", Tinv, np.asarray(points_m, float)[:, None, :] - v0[None])
-    return np.argmax(np.minimum(1.0 - lam12.sum(axis=2), lam12.min(axis=2)), axis=1)
-
-
-_PAIRS = [(i, j) for i in range(4) for j in range(i + 1, 4)]
-
-
-def _gradient_rows(mesh: TriMesh, Ge: np.ndarray, elements) -> sp.csr_matrix:
-    """10 rows per listed element on the global dofs: its 4 gradient components, then their 6 pairwise sums."""
-    dofs = mesh.element_dofs
-    rows, cols, vals = [], [], []
-    for k, e in enumerate(elements):
-        comps = [Ge[e, i] for i in range(4)] + [Ge[e, i] + Ge[e, j] for i, j in _PAIRS]
-        for c, r in enumerate(comps):
-            rows.extend([10 * k + c] * 6)
-            cols.extend(dofs[e].tolist())
-            vals.extend(r.tolist())
-    return sp.csr_matrix((vals, (rows, cols)), shape=(10 * len(elements), mesh.n_dofs))
-
-
-def _covariance_from_rows(v: np.ndarray) -> np.ndarray:
-    """(F, n, 4, 4) covariances from (F, 10 n) variances of components and pairwise sums."""
-    F = v.shape[0]
-    v = v.reshape(F, -1, 10)
-    C = np.zeros(v.shape[:2] + (4, 4))
-    for i in range(4):
-        C[..., i, i] = v[..., i]
-    for k, (i, j) in enumerate(_PAIRS):
-        C[..., i, j] = C[..., j, i] = 0.5 * (v[..., 4 + k] - v[..., i] - v[..., j])
-    return C
-
-
-def _curve_rows(Ge, elem, a, groups, ndofs, dofs) -> np.ndarray:
-    """(len(groups), n_dofs): the mean over each group's points of ``a_p . (B_e(p) U)``."""
-    out = np.zeros((len(groups), ndofs))
-    per_point = np.einsum("pk,pkd->pd", a, Ge[elem])
-    for g, sel in enumerate(groups):
-        if sel.size:
-            np.add.at(out[g], dofs[elem[sel]].ravel(), (per_point[sel] / sel.size).ravel())
-    return out
 
 
 # ----------------------------------------------------------------------------------- the route
