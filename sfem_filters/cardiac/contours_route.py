@@ -76,6 +76,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import asdict, dataclass, field
+from typing import ClassVar
 
 import numpy as np
 import scipy.sparse as sp
@@ -208,11 +209,11 @@ class ContourStrain(DenseStrain):
     tracks: BoundaryTracks = field(repr=False)
     landmark_sd: np.ndarray = field(repr=False)
     nodal_displacement: np.ndarray = field(repr=False)
+    ROUTE: ClassVar[str] = "contours"
 
     def to_dict(self) -> dict:
         """The issue-42 JSON names (as the DENSE route), ``route`` = ``"contours"``, and the landmarks."""
         out = super().to_dict()
-        out["route"] = "contours"
         L = self.tracks.points
         out["landmarks"] = {"points": L.tolist(), "contour": self.tracks.contour.tolist(),
                             "n_endo": int(np.sum(self.tracks.contour == 0)),

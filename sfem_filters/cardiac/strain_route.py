@@ -109,6 +109,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import asdict, dataclass, field
+from typing import ClassVar
 
 import numpy as np
 import scipy.sparse as sp
@@ -126,8 +127,8 @@ from ..filtering.linearised import linearise
 from ..filtering.smoother import smooth
 from ..imaging.contours import mask_borders
 from ..imaging.dense import LagrangianDisplacement
-from ..imaging.strain import N_SEGMENTS, global_curve, green_strain, mask_centre, project_strain, \
-    radial_circumferential, segment_labels, strain_on_grid
+from ..imaging.strain import N_SEGMENTS, Z95, StrainEstimate, global_curve, green_strain, json_list, mask_centre, \
+    project_strain, radial_circumferential, segment_labels, strain_on_grid
 from ..model import SFEMModel
 from .effects import build_effects
 from .measured import EFFECT_STEP, NOMINAL
@@ -145,8 +146,6 @@ MESHES = ("gmsh", "pixels")
 INFORMATION_FLOOR = 1e-8
 #: Cycles the elastic relaxation across the wall takes with :func:`compliant_modulus`.
 RELAXATION_CYCLES = 10.0
-#: Two-sided 95% normal quantile.
-Z95 = 1.959963984540054
 #: Which displacement gradient the strain is computed from (``strain=``).
 STRAINS = ("recovered", "element")
 
@@ -231,75 +230,15 @@ class StrainRouteSettings:
 
 
 @dataclass(frozen=True, eq=False)
-class DenseStrain:
-    """Strain of every reference pixel and frame with its sd, and the global and segment curves.
+class DenseStrain(StrainEstimate):
+    """:class:`~sfem_filters.imaging.strain.StrainEstimate` of a finite-element route (``route`` =
+    ``"dense"``): the curves' bands ``+- 1.96 sd`` of the linearised posterior; ``seconds`` the
+    wall-clock time of :func:`dense_strain`; ``settings`` also what was derived from the data
+    (process noise, mesh size); and the mesh (m)."""
 
-    Names follow issue 42's JSON (``to_dict``). Strains are Green-Lagrange fractions; ``*_lo``
-    and ``*_hi`` the 95% band (``+- 1.96 sd`` of the linearised posterior).
+    ROUTE: ClassVar[str] = "dense"
 
-    Attributes
-    ----------
-    points : (P, 2) array
-        Reference pixel centres (pixels, x = column, y = row).
-    frame_times_s : (F,) array
-    centre : (2,) array
-        Centre (pixels) of the radial directions and segments.
-    start_deg : float
-    labels : (P,) int array
-        Segment of each point.
-    Ecc, Err, Ecr, Ecc_sd, Err_sd : (F, P) arrays
-    global_curves : dict
-        ``Ecc``, ``Err``, ``Ecc_sd``, ``Err_sd``, ``Ecc_lo``, ``Ecc_hi``, ``Err_lo``, ``Err_hi``, each (F,).
-    segment_curves : dict
-        The same names, each (6, F).
-    displacement : (F, P, 2) array
-        The estimated displacement at the points (pixels).
-    seconds : float
-        Wall-clock time of :func:`dense_strain`.
-    settings : dict
-        The settings used and what was derived from the data (process noise, mesh size).
-    mesh : TriMesh
-        The mesh (m).
-    """
-
-    points: np.ndarray
-    frame_times_s: np.ndarray
-    centre: np.ndarray
-    start_deg: float
-    labels: np.ndarray
-    Ecc: np.ndarray
-    Err: np.ndarray
-    Ecr: np.ndarray
-    Ecc_sd: np.ndarray
-    Err_sd: np.ndarray
-    global_curves: dict
-    segment_curves: dict
-    displacement: np.ndarray
-    seconds: float
-    settings: dict
     mesh: TriMesh = field(repr=False)
-
-    def band(self, quantity: str, which: str = "segments") -> tuple:
-        """``(lo, hi)`` of a 95% band: quantity ``"Ecc"`` or ``"Err"``; ``"segments"``, ``"global"`` or
-        ``"pixels"`` (``+- 1.96`` of the pixels' sd)."""
-        if which == "pixels":
-            v, sd = getattr(self, quantity), getattr(self, f"{quantity}_sd")
-            return v - Z95 * sd, v + Z95 * sd
-        d = self.segment_curves if which == "segments" else self.global_curves
-        return d[f"{quantity}_lo"], d[f"{quantity}_hi"]
-
-    def to_dict(self) -> dict:
-        """The issue-42 JSON names (lists, ``None`` for NaN)."""
-        def js(a):
-            a = np.asarray(a, float)
-            return np.where(np.isfinite(a), a.astype(object), None).tolist()
-        seg = {"start_deg": self.start_deg, **{k: js(v) for k, v in self.segment_curves.items()}}
-        return {"route": "dense", "points": js(self.points), "frame_times_s": js(self.frame_times_s),
-                "centre": js(self.centre),
-                "strain": {"Ecc": js(self.Ecc), "Err": js(self.Err), "Ecr": js(self.Ecr), "Ecc_sd": js(self.Ecc_sd),
-                           "Err_sd": js(self.Err_sd)},
-                "global": {k: js(v) for k, v in self.global_curves.items()}, "segments": seg,
-                "seconds": self.seconds, "settings": self.settings}
 
 
 @dataclass(frozen=True, eq=False)
@@ -319,8 +258,7 @@ class DenseRouteStrain(DenseStrain):
         """The issue-42 JSON names, plus ``strain.Ecc_sd_model`` and ``strain.Err_sd_model``."""
         out = super().to_dict()
         for q in ("Ecc", "Err"):
-            a = np.asarray(getattr(self, f"{q}_sd_model"), float)
-            out["strain"][f"{q}_sd_model"] = np.where(np.isfinite(a), a.astype(object), None).tolist()
+            out["strain"][f"{q}_sd_model"] = json_list(getattr(self, f"{q}_sd_model"))
         return out
 
 

@@ -34,7 +34,8 @@ from .confidence import (bending_energy, goodness_uniqueness, local_phase_cohere
 from .conventional import ConventionalStrain, conventional_analysis, conventional_from_displacement
 from .dense import (DenseCase, LagrangianDisplacement, add_complex_noise, make_dense_case, phase_to_displacement,
                     read_dense_dicom, read_dense_sim, reference_points, truth_at_points)
-from .strain import (StrainField, curve_peak, global_curve, green_strain, mask_centre, segment_curves, segment_labels,
+from .strain import (StrainEstimate, StrainField, curve_peak, global_curve, green_strain, mask_centre, segment_curves,
+                     segment_labels,
                      strain_on_grid)
 from .spline_strain import SplineStrain, spline_strain, tps_gradient_operators
 from .strain_report import peaks, spline_block, strain_csv, truth_block, with_peaks
@@ -54,4 +55,5 @@ __all__ = ["bending_energy", "segment_bending_energy", "goodness_uniqueness", "m
            "strain_on_grid", "green_strain", "mask_centre", "segment_labels", "global_curve", "segment_curves",
            "curve_peak", "ConventionalStrain", "conventional_analysis", "conventional_from_displacement",
            "peaks", "truth_block", "spline_block", "with_peaks", "strain_csv", "SplineStrain", "spline_strain",
+           "StrainEstimate",
            "tps_gradient_operators"]

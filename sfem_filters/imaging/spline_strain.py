@@ -34,78 +34,26 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 import scipy.linalg as sla
 
 from .._validate import as_float_array
-from .strain import N_SEGMENTS, green_strain, project_strain, radial_circumferential, segment_labels
+from .strain import N_SEGMENTS, Z95, StrainEstimate, green_strain, project_strain, radial_circumferential, \
+    segment_labels
 
 __all__ = ["SplineStrain", "spline_strain", "tps_gradient_operators"]
 
-#: Two-sided 95% normal quantile.
-Z95 = 1.959963984540054
 
 
 @dataclass(frozen=True, eq=False)
-class SplineStrain:
-    """Strain of the spline at every reference pixel and frame, with the issue-42 names.
+class SplineStrain(StrainEstimate):
+    """:class:`~sfem_filters.imaging.strain.StrainEstimate` of the thin-plate spline: strain of every
+    reference pixel and frame (NaN in a frame with fewer than 3 observed points), its sd by the delta
+    method when the data's sd was given (NaN otherwise), ``route`` = ``"spline"``."""
 
-    Attributes
-    ----------
-    points : (P, 2) array
-        Reference pixel centres (pixels).
-    frame_times_s : (F,) array
-        Frame times (s); NaN when not given.
-    centre : (2,) array
-        Centre (pixels) of the radial directions and segments.
-    start_deg : float
-    labels : (P,) int array
-    Ecc, Err, Ecr : (F, P) arrays
-        Green-Lagrange strain (fraction); NaN in a frame with fewer than 3 observed points.
-    Ecc_sd, Err_sd : (F, P) arrays
-        Delta-method sd when the data's sd was given, NaN otherwise (``None`` in the JSON).
-    global_curves, segment_curves : dict
-        ``Ecc``, ``Err``, ``*_sd``, ``*_lo``, ``*_hi``: (F,) and (6, F) arrays.
-    displacement : (F, P, 2) array
-        The spline's displacement at the reference pixels (pixels).
-    seconds : float
-    settings : dict
-    """
-
-    points: np.ndarray
-    frame_times_s: np.ndarray
-    centre: np.ndarray
-    start_deg: float
-    labels: np.ndarray
-    Ecc: np.ndarray
-    Err: np.ndarray
-    Ecr: np.ndarray
-    Ecc_sd: np.ndarray
-    Err_sd: np.ndarray
-    global_curves: dict
-    segment_curves: dict
-    displacement: np.ndarray
-    seconds: float
-    settings: dict
-
-    def band(self, quantity: str, which: str = "segments") -> tuple:
-        """``(lo, hi)`` of a curve's 95% band: quantity ``"Ecc"`` or ``"Err"``, ``"segments"`` or ``"global"``."""
-        d = self.segment_curves if which == "segments" else self.global_curves
-        return d[f"{quantity}_lo"], d[f"{quantity}_hi"]
-
-    def to_dict(self) -> dict:
-        """The issue-42 JSON names (lists, ``None`` for NaN), ``route`` = ``"spline"``."""
-        def js(a):
-            a = np.asarray(a, float)
-            return np.where(np.isfinite(a), a.astype(object), None).tolist()
-        seg = {"start_deg": self.start_deg, **{k: js(v) for k, v in self.segment_curves.items()}}
-        return {"route": "spline", "points": js(self.points), "frame_times_s": js(self.frame_times_s),
-                "centre": js(self.centre),
-                "strain": {"Ecc": js(self.Ecc), "Err": js(self.Err), "Ecr": js(self.Ecr), "Ecc_sd": js(self.Ecc_sd),
-                           "Err_sd": js(self.Err_sd)},
-                "global": {k: js(v) for k, v in self.global_curves.items()}, "segments": seg,
-                "seconds": self.seconds, "settings": self.settings}
+    ROUTE: ClassVar[str] = "spline"
 
 
 def _phi(r):

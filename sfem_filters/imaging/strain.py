@@ -24,6 +24,7 @@ axes, ``(-e_r,y, e_r,x)``; ``Err = e_r . E e_r``, ``Ecc = e_c . E e_c``, ``Ecr =
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 from scipy import ndimage
@@ -32,9 +33,11 @@ from .._validate import as_float_array, non_negative
 
 __all__ = ["displacement_gradient", "green_strain", "small_strain", "mask_centre", "radial_circumferential",
            "project_strain", "smooth_in_mask", "StrainField", "strain_on_grid", "segment_labels", "global_curve",
-           "segment_curves", "curve_peak", "N_SEGMENTS"]
+           "segment_curves", "curve_peak", "N_SEGMENTS", "StrainEstimate", "json_list", "Z95"]
 
 N_SEGMENTS = 6
+#: Two-sided 95% normal quantile.
+Z95 = 1.959963984540054
 
 
 def _grid(points) -> tuple:
@@ -287,3 +290,76 @@ def curve_peak(curve, kind: str) -> tuple:
         return np.nan, -1
     i = int(np.nanargmin(c) if kind == "min" else np.nanargmax(c))
     return float(c[i]), i
+
+
+@dataclass(frozen=True, eq=False)
+class StrainEstimate:
+    """Strain of every reference pixel and frame with its sd, and the global and segment curves:
+    what every strain route returns (issue 42's JSON names, :meth:`to_dict`). Strains are
+    Green-Lagrange fractions; the curves' ``*_lo`` and ``*_hi`` their 95% band.
+
+    Attributes
+    ----------
+    points : (P, 2) array
+        Reference pixel centres (pixels, x = column, y = row).
+    frame_times_s : (F,) array
+        Frame times (s); NaN when not given.
+    centre : (2,) array
+        Centre (pixels) of the radial directions and segments.
+    start_deg : float
+        Where segment 0 starts (degrees from +x towards +y).
+    labels : (P,) int array
+        Segment of each point.
+    Ecc, Err, Ecr, Ecc_sd, Err_sd : (F, P) arrays
+        Strain and sd (NaN where unknown, ``None`` in the JSON).
+    global_curves, segment_curves : dict
+        ``Ecc``, ``Err``, ``*_sd``, ``*_lo``, ``*_hi``: (F,) and (6, F) arrays.
+    displacement : (F, P, 2) array
+        The estimate's displacement at the points (pixels).
+    seconds : float
+        Wall-clock time of the route.
+    settings : dict
+        The settings used and what was derived from the data.
+    """
+
+    ROUTE: ClassVar[str] = ""
+
+    points: np.ndarray
+    frame_times_s: np.ndarray
+    centre: np.ndarray
+    start_deg: float
+    labels: np.ndarray
+    Ecc: np.ndarray
+    Err: np.ndarray
+    Ecr: np.ndarray
+    Ecc_sd: np.ndarray
+    Err_sd: np.ndarray
+    global_curves: dict
+    segment_curves: dict
+    displacement: np.ndarray
+    seconds: float
+    settings: dict
+
+    def band(self, quantity: str, which: str = "segments") -> tuple:
+        """``(lo, hi)`` of a 95% band: quantity ``"Ecc"`` or ``"Err"``; ``"segments"``, ``"global"`` or
+        ``"pixels"`` (``+- 1.96`` of the pixels' sd)."""
+        if which == "pixels":
+            v, sd = getattr(self, quantity), getattr(self, f"{quantity}_sd")
+            return v - Z95 * sd, v + Z95 * sd
+        d = self.segment_curves if which == "segments" else self.global_curves
+        return d[f"{quantity}_lo"], d[f"{quantity}_hi"]
+
+    def to_dict(self) -> dict:
+        """The issue-42 JSON names (lists, ``None`` for NaN), ``route`` the class's :attr:`ROUTE`."""
+        seg = {"start_deg": self.start_deg, **{k: json_list(v) for k, v in self.segment_curves.items()}}
+        return {"route": self.ROUTE, "points": json_list(self.points), "frame_times_s": json_list(self.frame_times_s),
+                "centre": json_list(self.centre),
+                "strain": {q: json_list(getattr(self, q)) for q in ("Ecc", "Err", "Ecr", "Ecc_sd", "Err_sd")},
+                "global": {k: json_list(v) for k, v in self.global_curves.items()}, "segments": seg,
+                "seconds": self.seconds, "settings": self.settings}
+
+
+def json_list(a) -> list:
+    """An array as nested lists for JSON, ``None`` where it is not finite."""
+    a = np.asarray(a, float)
+    return np.where(np.isfinite(a), a.astype(object), None).tolist()
