@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import warnings
+from pathlib import Path
 
 import matplotlib
 import numpy as np
@@ -87,9 +88,10 @@ def written(fn, obj, directory) -> dict:
     finally:
         plt.close = real
     assert len(paths) == len(captured)
-    for p in paths:
-        assert (directory / p.split("/")[-1]).stat().st_size > 10_000, p
-    return {p.split("/")[-1]: fig for p, fig in zip(paths, captured)}
+    names = [Path(p).name for p in paths]
+    for name in names:
+        assert (Path(directory) / name).stat().st_size > 10_000, name
+    return dict(zip(names, captured))
 
 
 @pytest.fixture(scope="module")

@@ -5,14 +5,13 @@ from __future__ import annotations
 import csv
 import json
 import warnings
-from pathlib import Path
 
 import matplotlib
 import numpy as np
 import pytest
 from strain_report_helpers import synthetic_report
 from test_cli_strain import CASE, short_case  # noqa: F401  (the 6-frame DENSE-Sim case folder fixture)
-from test_figures import check_figure, colourbars, data_axes
+from test_figures import check_figure, colourbars, data_axes, written
 
 matplotlib.use("Agg")
 from matplotlib import pyplot as plt  # noqa: E402
@@ -27,18 +26,7 @@ FIGURES = ["strain_segments.png", "strain_global.png", "strain_peaks_bullseye.pn
 
 def drawn(report, directory) -> dict:
     """``strain_figures(report, directory)`` with every warning an error: file name -> figure (kept open)."""
-    captured = []
-    real = plt.close
-    plt.close = lambda fig=None: captured.append(fig)
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("error")
-            paths = strain_figures(report, directory)
-    finally:
-        plt.close = real
-    assert all(isinstance(p, Path) and p.stat().st_size > 10_000 for p in paths)
-    assert len(paths) == len(captured)
-    return {p.name: fig for p, fig in zip(paths, captured)}
+    return written(strain_figures, report, directory)
 
 
 @pytest.fixture(scope="module")
