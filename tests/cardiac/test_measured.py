@@ -14,6 +14,7 @@ from sfem_filters._io import write_json
 from sfem_filters.cardiac import closing, measured
 from sfem_filters.cardiac.annulus import annulus_mask, annulus_sequence
 from sfem_filters.cardiac.effects import CATALOGUE, build_effects
+from sfem_filters.cardiac.measured import kinematics
 from sfem_filters.cardiac.myocardium import (
     contour_landmarks,
     lv_geometry,
@@ -976,24 +977,24 @@ def test_peak_frame_is_the_curves_maximum_and_not_a_one_frame_outlier(frames, wh
     """The systolic peak is the frame of the maximum of a wall-area curve symmetric about it and
     falling away from it, whatever one interior frame at least three frames away carries (an
     outlier of any size, or no data); no data anywhere gives frame 0."""
-    assert measured._peak_frame(np.full(frames, np.nan)) == 0
+    assert kinematics._peak_frame(np.full(frames, np.nan)) == 0
     t = np.arange(frames)
     c = 1 + int(round(where * (frames - 3)))                  # the maximum, an interior frame
     a = 1.0 + height * np.exp(-((t - c) / width) ** 2)
-    assert measured._peak_frame(a) == c == int(np.argmax(a))
+    assert kinematics._peak_frame(a) == c == int(np.argmax(a))
     far = [s for s in range(1, frames - 1) if abs(s - c) >= 3]
     if far:
         b = a.copy()
         b[far[int(at * (len(far) - 1))]] = np.nan if gap else a.max() + spike   # the raw largest, or no data
-        assert measured._peak_frame(b) == c
+        assert kinematics._peak_frame(b) == c
 
 
 def test_peak_frame_cases_that_pin_the_rule():
     """The documented edges of the rule: a missing maximum leaves one of its equal neighbours; a
     lopsided top gives the higher neighbour; an outlier beside ordinary frames is skipped, one in
     the first frame is not."""
-    assert measured._peak_frame([1.0, 2.0, np.nan, 2.0, 1.0]) == 1
-    assert measured._peak_frame([1.0, 2.0, 10.0, 9.0, 8.0, 1.0]) == 3
-    assert measured._peak_frame([1.0, 1.1, 1.2, 1.1, 1.0, 5.0, 1.0]) == 2
-    assert measured._peak_frame([5.0, 1.0, 1.1, 1.2, 1.1, 1.0]) == 0
-    assert measured._peak_frame([1.0]) == 0 and measured._peak_frame([np.nan, 1.0]) == 1
+    assert kinematics._peak_frame([1.0, 2.0, np.nan, 2.0, 1.0]) == 1
+    assert kinematics._peak_frame([1.0, 2.0, 10.0, 9.0, 8.0, 1.0]) == 3
+    assert kinematics._peak_frame([1.0, 1.1, 1.2, 1.1, 1.0, 5.0, 1.0]) == 2
+    assert kinematics._peak_frame([5.0, 1.0, 1.1, 1.2, 1.1, 1.0]) == 0
+    assert kinematics._peak_frame([1.0]) == 0 and kinematics._peak_frame([np.nan, 1.0]) == 1
