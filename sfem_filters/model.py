@@ -23,81 +23,19 @@ import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
 
-from ._validate import as_float_array, integer, non_negative, positive
+from ._validate import as_float_array, non_negative, positive
+from .fem import modal_stiffness
 from .fem.dofs import DofMap
-from .fem.elasticity import (element_stiffness, mass_matrix, plane_strain_matrix, plane_strain_matrix_dnu,
-                             stiffness_matrix)
+from .fem.elasticity import mass_matrix, stiffness_matrix
 from .fem.material import Material, Parameterisation
 from .fem.mesh import TriMesh, check_mesh
-from .fem.statespace import ModalSystem, StiffnessPlan, reference_sensitivity, stiffness_plan
-from .fem.strain import nodal_strain_operator
+from .fem.modal_stiffness import modal_stiffness_budget, modal_stiffness_pays, stiffness_directions, stiffness_plan
+from .fem.reference_zoh import reference_sensitivity, scatter_direction
+from .fem.restart_state import load_patterns, modal_coordinates, restart_outputs
+from .fem.statespace import ModalSystem
 from .filtering.linear import LinearObservation
 from .filtering.linearised import LinearisedModel, linearise_dense
 from .filtering.protocol import measurement_cov
-from .resources import available_memory
-
-#: Largest memory :meth:`SFEMModel.linearise` spends on modal stiffness derivatives (bytes):
-#: ``8 (k + groups) n^2`` while they are made (:func:`sfem_filters.fem.statespace.stiffness_plan`).
-#: ``None`` (the default): :func:`modal_stiffness_budget`, a share of the memory available.
-MODAL_STIFFNESS_BYTES: int | None = None
-
-#: The budget's floor (bytes), and the share of the memory available it takes where that is more.
-MODAL_STIFFNESS_FLOOR = 512 * 2 ** 20
-MODAL_STIFFNESS_SHARE = 0.25
-
-
-def modal_stiffness_budget() -> float:
-    """Bytes the modal stiffness derivatives may take while made: :data:`MODAL_STIFFNESS_BYTES`
-    where set, else a quarter of the memory available
-    (:func:`sfem_filters.resources.available_memory`) and at least 512 MiB.
-
-    A larger state needs them most (without them every frame's sensitivity is an O(n^3)
-    product), and they grow as n^2, so a fixed cap would refuse them exactly there.
-    """
-    if MODAL_STIFFNESS_BYTES is not None:
-        return float(MODAL_STIFFNESS_BYTES)
-    available = available_memory()
-    return float(MODAL_STIFFNESS_FLOOR if available is None else max(MODAL_STIFFNESS_FLOOR,
-                                                                      MODAL_STIFFNESS_SHARE * available))
-
-#: What a parameter costs a frame's sensitivity with modal stiffness derivatives, relative to
-#: what a dof costs it without: a pass over G's ``k N`` row per parameter (memory-bound) against
-#: a row of the ``n N`` matrix product per dof (BLAS). Measured on the shipped slice (n = 664,
-#: k = 23): about 0.29 ms a parameter against 0.075 ms a dof, so 4.
-PARAMETER_COST = 4.0
-
-
-def modal_stiffness_pays(plan: StiffnessPlan, frames: int, n: int, budget: float | None = None) -> bool:
-    """Whether modal stiffness derivatives made by ``plan`` pay for themselves over ``frames``
-    sensitivities of one material.
-
-    Without them a frame's sensitivity costs a product of ``n`` rows (one per dof, in units of a
-    row of an N x N product); with them it costs a pass over G, ``PARAMETER_COST k`` rows, after
-    ``plan.products`` rows made once. They are made when that costs less than half, and the
-    memory they take while made fits in :func:`modal_stiffness_budget`.
-
-    Parameters
-    ----------
-    plan : StiffnessPlan
-        :func:`sfem_filters.fem.statespace.stiffness_plan` of the parameter map.
-    frames : int
-        Sensitivities to be taken with this material (>= 1).
-    n : int
-        Free dofs (>= 1).
-    budget : float, optional
-        Bytes they may take while made (default :func:`modal_stiffness_budget`).
-
-    Returns
-    -------
-    bool
-    """
-    frames = integer("frames", frames, 1)
-    n = integer("n", n, 1)
-    k = plan.n_params
-    held = k + (len(plan.rows) if plan.by_group else 0)
-    if k == 0 or 8 * held * n * n > (modal_stiffness_budget() if budget is None else budget):
-        return False
-    return plan.products / frames + PARAMETER_COST * k < 0.5 * n
 
 __all__ = ["SFEMModel"]
 
@@ -190,8 +128,8 @@ class SFEMModel(LinearObservation):
                  measurement_std=1e-4, process_std=(5e-5, 5e-3), initial_std=(1e-4, 1e-3),
                  parameterisation: Parameterisation | None = None, prior_std=(0.3, 1.0),
                  material_process_std=(0.0, 0.0), penalty=None, thickness: float = 1.0,
-                 lumped_mass: bool = False, jacobian: str = "modal", effects=(),
-                 initial_displacement=None, process_load_std=None, prior_cov=None, velocity_operator=None, outputs=None):
+                 lumped_mass: bool = False, jacobian: str = "modal", effects=(), initial_displacement=None,
+                 process_load_std=None, prior_cov=None, velocity_operator=None, outputs=None):
         check_mesh("mesh", mesh)
         if not isinstance(material, Material):
             raise TypeError(f"material: expected a Material, got {type(material).__name__}")
@@ -292,8 +230,9 @@ class SFEMModel(LinearObservation):
         if parameterisation is not None:
             self.theta0 = parameterisation.theta_of(material)
             sE, snu = prior_std
+            n_nu = parameterisation.n_params - parameterisation.n_E
             p3 = np.concatenate([np.full(parameterisation.n_E, positive("prior_std[0]", sE)) ** 2,
-                                 np.full(parameterisation.n_params - parameterisation.n_E, positive("prior_std[1]", snu)) ** 2])
+                                 np.full(n_nu, positive("prior_std[1]", snu)) ** 2])
             mE, mnu = (non_negative(f"material_process_std[{i}]", v) for i, v in enumerate(material_process_std))
             q3 = np.concatenate([np.full(parameterisation.n_E, float(mE)) ** 2,
                                  np.full(parameterisation.n_params - parameterisation.n_E, float(mnu)) ** 2])
@@ -306,17 +245,7 @@ class SFEMModel(LinearObservation):
         if process_load_std is not None:
             # random loads (N per dof per frame) through the dynamics: smooth, elastically
             # correlated displacement noise B Sigma_w B^T (evaluated at the initial material)
-            sw = as_float_array("process_load_std", process_load_std)
-            if sw.ndim == 2:                   # correlated loads W xi, xi ~ N(0, I): Sigma_w = W W^T
-                if sw.shape[0] != n:
-                    raise ValueError(f"process_load_std: expected a (n_free, k) = ({n}, k) load matrix, "
-                                     f"got shape {sw.shape}")
-                W = sw
-            else:
-                sw = np.broadcast_to(sw, (n,))
-                if np.any(sw < 0):
-                    raise ValueError("process_load_std: expected standard deviations >= 0 N")
-                W = np.diag(sw)
+            W = load_patterns(process_load_std, n)
             BS = self.system(self.theta0 if parameterisation is not None else None).input_response(W)
             self.Q[: 2 * n, : 2 * n] += BS @ BS.T
         # Eq. (34): P0 = diag(P1, P3) with zero cross-covariance P2 (and effect states apart).
@@ -491,12 +420,6 @@ class SFEMModel(LinearObservation):
             self._cache.popitem(last=False)
         return entry
 
-    def _directions(self, mat: Material) -> np.ndarray:
-        """Element stiffness sensitivities: d/dlog E_e (= K_e) and d/dnu_e, (2 n_el, 6, 6)."""
-        Ke = element_stiffness(self.mesh, plane_strain_matrix(mat.E, mat.nu), self.thickness)
-        dKnu = element_stiffness(self.mesh, plane_strain_matrix_dnu(mat.E, mat.nu), self.thickness)
-        return np.concatenate([Ke, dKnu])
-
     def _split(self, z):
         """(z, x, eta, theta) views of a state."""
         z = np.asarray(z, float)
@@ -535,13 +458,13 @@ class SFEMModel(LinearObservation):
         """d(A(theta) x + B(theta) w)/d theta for given x (m, m/s) and load w (N)."""
         mat = self.parameterisation.material(theta)
         system, K, _ = self._entry(mat)
-        dirs = self._directions(mat)
+        dirs = stiffness_directions(self.mesh, mat, self.thickness)
         dofs = np.concatenate([self._directions_dofs, self._directions_dofs])
         J = self.parameterisation.element_jacobian(mat)          # d(log E_e, nu_e)/d theta
         if self.jacobian == "modal":
             return system.sensitivity(x, w, dirs, dofs, combine=J)
-        per_element = reference_sensitivity(self.M, K, self.alpha, self.beta, self.frame_interval,
-                                            x, w, [self._scatter(d, dd) for d, dd in zip(dirs, dofs)])
+        per_element = reference_sensitivity(self.M, K, self.alpha, self.beta, self.frame_interval, x, w,
+                                            [scatter_direction(d, dd, self.dim_x // 2) for d, dd in zip(dirs, dofs)])
         return np.asarray((J.T @ per_element.T).T)
 
     def transition_derivatives(self, z, t=None) -> np.ndarray:
@@ -567,18 +490,13 @@ class SFEMModel(LinearObservation):
                                                                         self._G[:, j]).T
         return out
 
-    def _scatter(self, Ke, dofs):
-        n = self.dim_x // 2
-        out = np.zeros((n, n))
-        ok = dofs >= 0
-        out[np.ix_(dofs[ok], dofs[ok])] = Ke[np.ix_(ok, ok)]
-        return out
-
     def _stiffness_budget(self) -> float:
-        """:func:`modal_stiffness_budget`, the automatic one read once per model: every
-        linearisation of a run takes the same route, whatever else the machine's memory does."""
-        if MODAL_STIFFNESS_BYTES is not None:
-            return float(MODAL_STIFFNESS_BYTES)
+        """:func:`~sfem_filters.fem.modal_stiffness.modal_stiffness_budget`, the automatic one read
+        once per model: every linearisation of a run takes the same route, whatever else the
+        machine's memory does (:data:`~sfem_filters.fem.modal_stiffness.MODAL_STIFFNESS_BYTES`, where
+        set, is read every time)."""
+        if modal_stiffness.MODAL_STIFFNESS_BYTES is not None:
+            return float(modal_stiffness.MODAL_STIFFNESS_BYTES)
         if getattr(self, "_modal_budget", None) is None:
             self._modal_budget = modal_stiffness_budget()
         return self._modal_budget
@@ -612,7 +530,7 @@ class SFEMModel(LinearObservation):
         M = np.zeros((T - 1, nr, p_out))
         if p_out:
             mat = self.parameterisation.material(theta)
-            dirs = self._directions(mat)
+            dirs = stiffness_directions(self.mesh, mat, self.thickness)
             dofs = np.concatenate([self._directions_dofs, self._directions_dofs])
             J = self.parameterisation.element_jacobian(mat)
             # one material for every frame: with few parameters, their modal stiffness derivatives
@@ -639,38 +557,7 @@ class SFEMModel(LinearObservation):
         if hit is not None:
             self._modal_cache.move_to_end(key)
             return hit
-        nr, nx, ne = self.n_restart, self.dim_x, self.dim_eta
-        n = nx // 2
-        V = np.zeros((nr, nr))
-        blocks = [slice(0, n), slice(n, nx), slice(nx, nr)]
-        Wb = [system.PhiTM, system.PhiTM, np.eye(ne)]
-        for k, sl in enumerate(blocks):
-            V[sl, sl] = system.Phi if k < 2 else np.eye(ne)
-
-        def congruence(C):
-            """W C W^T for W = diag(Phi^T M, Phi^T M, I), block by block, zero blocks skipped."""
-            out = np.zeros((nr, nr))
-            for i, si in enumerate(blocks):
-                for j, sj in enumerate(blocks):
-                    Cij = C[si, sj]
-                    if j < i or not Cij.size or not np.any(Cij):
-                        continue
-                    out[si, sj] = Wb[i] @ Cij @ Wb[j].T
-                    out[sj, si] = out[si, sj].T
-            return out
-
-        A = system.modal_transition()
-        if ne:
-            A = sp.bmat([[A, sp.csr_matrix(system.modal_input(self._G))],
-                         [None, sp.csr_matrix(self._eta_transition)]], format="csr")
-        c = np.zeros((self.n_frames - 1, nr))
-        for t in range(self.n_frames - 1):
-            c[t, :nx] = system.modal_input(self._w[t + 1])
-        Q, P0 = np.asarray(self.Q), np.asarray(self.P0)
-        x0 = np.asarray(self.x0, float)
-        out = {"V": V, "A": A, "c": c, "H": self._H[:, :nr] @ V, "Q": congruence(Q[:nr, :nr]),
-               "P0": congruence(P0[:nr, :nr]),
-               "xi0": np.concatenate([Wb[k] @ x0[sl] for k, sl in enumerate(blocks)]),
+        out = {**modal_coordinates(system, self._G, self._eta_transition, self._w, self._H, self.Q, self.P0, self.x0),
                "R": np.array([measurement_cov(self, t) for t in range(self.n_frames)])}
         self._modal_cache[key] = out
         if len(self._modal_cache) > 2:
@@ -681,21 +568,11 @@ class SFEMModel(LinearObservation):
         """Linear functions of the restart state whose uncertainty a smoother reports, (k, n_restart):
 
         ``displacement`` and ``velocity`` (the free dofs, m and m/s), ``strain``, the nodal strains
-        (e_xx, e_yy, gamma_xy) of every node, row ``3 i + c`` (:func:`nodal_strain_operator`), and
-        the constructor's ``outputs``.
+        (e_xx, e_yy, gamma_xy) of every node, row ``3 i + c``
+        (:func:`~sfem_filters.fem.strain.nodal_strain_operator`), and the constructor's ``outputs``
+        (:func:`~sfem_filters.fem.restart_state.restart_outputs`).
         """
-        n, nr = self.dim_x // 2, self.n_restart
-        eye = sp.identity(n, format="csr")
-
-        def on_displacement(op):
-            op = op[:, self.dofmap.free]
-            return sp.hstack([op, sp.csr_matrix((op.shape[0], nr - n))], format="csr")
-
-        out = {"displacement": sp.hstack([eye, sp.csr_matrix((n, nr - n))], format="csr"),
-               "velocity": sp.hstack([sp.csr_matrix((n, n)), eye, sp.csr_matrix((n, nr - 2 * n))], format="csr"),
-               "strain": on_displacement(nodal_strain_operator(self.mesh))}
-        out.update({k: on_displacement(v) for k, v in self._outputs.items()})
-        return out
+        return restart_outputs(self.mesh, self.dofmap, self.n_restart, self._outputs)
 
     def F_jacobian(self, z, t) -> np.ndarray:
         """F_t = [[A, B G, M_t], [0, I, 0], [0, 0, I]] (Eq. 31), the exact Jacobian of :meth:`fx`."""

@@ -24,7 +24,11 @@ Modules: :mod:`~sfem_filters.fem.mesh` (triangle meshes),
 (pressure, prescribed stress, penalty springs), :mod:`~sfem_filters.fem.dofs` (numbering,
 fixed and free dofs), :mod:`~sfem_filters.fem.material` (material and its parameterisations
 theta), :mod:`~sfem_filters.fem.statespace` (state-space form, exact discretisation, exact
-sensitivity M_t), :mod:`~sfem_filters.fem.observation` (observation operators),
+sensitivity M_t; with :mod:`~sfem_filters.fem.reference_zoh`, the paper's dense route,
+:mod:`~sfem_filters.fem.modal_exp`, the modal oscillators' exponentials,
+:mod:`~sfem_filters.fem.modal_stiffness`, planning the modal stiffness derivatives, and
+:mod:`~sfem_filters.fem.restart_state`, the outputs and modal coordinates of the kinematic state),
+:mod:`~sfem_filters.fem.observation` (observation operators),
 :mod:`~sfem_filters.fem.strain` (element and nodal strains).
 """
 from .dofs import DofMap, node_dofs

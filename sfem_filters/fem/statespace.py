@@ -13,274 +13,26 @@ Two routes give the same numbers:
   Daleckii-Krein form of the exponential's Frechet derivative, evaluated with stable divided
   differences. Nothing here knows about filters or materials: sensitivities are taken with
   respect to element-level stiffness directions.
+
+The dense route is :mod:`~sfem_filters.fem.reference_zoh`, the modal oscillators' closed forms
+and the divided differences of exp are :mod:`~sfem_filters.fem.modal_exp`, and the planning of
+modal stiffness derivatives is :mod:`~sfem_filters.fem.modal_stiffness`; their public names are
+importable from here too.
 """
 from __future__ import annotations
-
-from dataclasses import dataclass
 
 import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
-from scipy.linalg import expm, expm_frechet
+from scipy.linalg import expm
 
 from .._validate import non_negative, positive
+from .modal_exp import divided_difference_exp, divided_difference_exp_real, modal_exponentials
+from .modal_stiffness import StiffnessPlan, stiffness_plan
+from .reference_zoh import continuous_matrices, discretize_zoh, reference_sensitivity
 
-
-def continuous_matrices(M, K, C):
-    """Continuous-time matrices A_c and B_c of Eqs. (9)-(11).
-
-    Parameters
-    ----------
-    M, K, C : (n, n) arrays
-        Mass (kg), stiffness (N/m) and damping (N s/m) over the free dofs.
-
-    Returns
-    -------
-    A_c : (2n, 2n) array
-        ``[[0, I], [-M^-1 K, -M^-1 C]]`` (1/s and 1/s^2 blocks).
-    B_c : (2n, n) array
-        ``[[0], [M^-1]]`` (1/kg).
-    """
-    M, K, C = (np.asarray(a.toarray() if hasattr(a, "toarray") else a, float) for a in (M, K, C))
-    n = M.shape[0]
-    cho = sla.cho_factor(M)
-    A_c = np.zeros((2 * n, 2 * n))
-    A_c[:n, n:] = np.eye(n)
-    A_c[n:, :n] = -sla.cho_solve(cho, K)
-    A_c[n:, n:] = -sla.cho_solve(cho, C)
-    B_c = np.zeros((2 * n, n))
-    B_c[n:] = sla.cho_solve(cho, np.eye(n))
-    return A_c, B_c
-
-
-def discretize_zoh(A_c, B_c, T: float):
-    """Exact zero-order-hold discretisation, Eqs. (14)-(16), with one block exponential.
-
-    ``expm([[A_c, B_c], [0, 0]] T) = [[A, B], [0, I]]`` gives ``A = e^{A_c T}`` and
-    ``B = int_0^T e^{A_c s} ds B_c`` without inverting A_c.
-
-    Parameters
-    ----------
-    T : float
-        Frame interval in seconds.
-    """
-    T = positive("T", T, "s")
-    n, m = B_c.shape
-    G = np.zeros((n + m, n + m))
-    G[:n, :n] = A_c * T
-    G[:n, n:] = B_c * T
-    E = expm(G)
-    return E[:n, :n], E[:n, n:]
-
-
-def reference_sensitivity(M, K, alpha: float, beta: float, T: float, x, w, dK_list):
-    """d(A x + B w)/d p_j for stiffness perturbations ``dK_j = dK/dp_j`` (Eq. 33), via expm_frechet.
-
-    The input is folded into the exponential, ``A x + B w = [I 0] expm(X) [x; 1]`` with
-    ``X = [[A_c, B_c w], [0, 0]] T``, so each column is one Frechet derivative of a
-    (2n+1)-square exponential. Slow (one ``expm_frechet`` per parameter); exact in exact
-    arithmetic, but in floating point it loses digits when ``||A_c T||`` is large (about 1e-7
-    relative error at 5e4, heavily damped stiff modes), where the modal route stays accurate.
-    The reference for :meth:`ModalSystem.sensitivity` in moderate regimes.
-
-    Parameters
-    ----------
-    M, K : (n, n) arrays
-        Mass (kg) and stiffness (N/m) over the free dofs; damping is ``alpha M + beta K``.
-    alpha, beta : float
-        Rayleigh coefficients in 1/s and s.
-    T : float
-        Frame interval in s.
-    x : (2n,) array
-        State [U (m); U' (m/s)] at the start of the interval.
-    w : (n,) array
-        Load (N) held over the interval.
-    dK_list : sequence of (n, n) arrays
-        Stiffness derivatives (N/m per unit parameter).
-
-    Returns
-    -------
-    (2n, len(dK_list)) array
-    """
-    M = np.asarray(M.toarray() if hasattr(M, "toarray") else M, float)
-    K = np.asarray(K.toarray() if hasattr(K, "toarray") else K, float)
-    n = M.shape[0]
-    A_c, B_c = continuous_matrices(M, K, alpha * M + beta * K)
-    # Balance positions (m) against velocities (m/s): with S = diag(w_s I, I, 1) the matrix
-    # S X S^-1 has norm ~ w_max T instead of w_max^2 T, and L(X, E) = S^-1 L(SXS^-1, SES^-1) S.
-    ws = np.sqrt(max(np.abs(np.diag(A_c[n:, :n])).max(), 1e-300))
-    sc = np.concatenate([np.full(n, ws), np.ones(n), [1.0]])
-    X = np.zeros((2 * n + 1, 2 * n + 1))
-    X[:2 * n, :2 * n] = A_c * T
-    X[:2 * n, 2 * n] = (B_c @ np.asarray(w, float)) * T
-    Xs = sc[:, None] * X / sc[None, :]
-    v = np.append(np.asarray(x, float), 1.0) * sc
-    cho = sla.cho_factor(M)
-    out = np.zeros((2 * n, len(dK_list)))
-    for j, dK in enumerate(dK_list):
-        dK = np.asarray(dK.toarray() if hasattr(dK, "toarray") else dK, float)
-        E = np.zeros_like(X)
-        MdK = sla.cho_solve(cho, dK)
-        E[n:2 * n, :n] = -MdK * T
-        E[n:2 * n, n:2 * n] = -beta * MdK * T
-        Es = sc[:, None] * E / sc[None, :]
-        out[:, j] = (expm_frechet(Xs, Es, compute_expm=False) @ v)[:2 * n] / sc[:2 * n]
-    return out
-
-
-def divided_difference_exp(a, b):
-    """``(e^a - e^b) / (a - b)``, with the limit ``e^a`` at ``a = b``, stable for complex a, b.
-
-    Broadcasts ``a`` against ``b``. Distant arguments use the direct quotient (exponentials
-    computed once per argument); close ones (``|a - b| < 1``) use ``e^{(a+b)/2} sinh(d)/d``
-    with ``d = (a - b)/2`` and a Taylor term for tiny d, so there is no cancellation.
-    """
-    a = np.asarray(a, complex)
-    b = np.asarray(b, complex)
-    diff = a - b
-    close = np.abs(diff) < 1.0
-    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        out = (np.exp(a) - np.exp(b)) / diff       # replaced below where the arguments are close
-    if np.any(close):
-        aa, bb = np.broadcast_to(a, diff.shape)[close], np.broadcast_to(b, diff.shape)[close]
-        d = (aa - bb) / 2.0
-        tiny = np.abs(d) < 1e-8            # sinh(d)/d = 1 + d^2/6 + ..., also for subnormal d
-        d_safe = np.where(tiny, 1.0, d)
-        sinhc = np.where(tiny, 1.0 + d * d / 6.0, np.sinh(d_safe) / d_safe)
-        out = np.array(out, copy=True) if out.ndim else np.array(out)
-        out[close] = np.exp((aa + bb) / 2.0) * sinhc
-    return out
-
-
-def _divided_difference_exp_real(a, b, out=None):
-    """``(e^a_i - e^b_j) / (a_i - b_j)`` for real vectors a, b, shape (len(a), len(b)).
-
-    Written as ``e^max(a_i, b_j) (1 - e^-delta) / delta`` with ``delta = |a_i - b_j|`` and
-    ``expm1``: accurate to a few ulp at every distance (the limit ``e^a`` at ``a = b``), with one
-    exponential per argument and no complex arithmetic. For arguments <= ~709 (no overflow of
-    e^a), as for the eigenvalues of a stable system times T.
-    """
-    a = np.asarray(a, float)
-    b = np.asarray(b, float)
-    nd = np.subtract.outer(a, b, out=out)
-    np.abs(nd, out=nd)
-    np.negative(nd, out=nd)                                  # -delta <= 0
-    g = np.expm1(nd)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        g /= nd                                              # (1 - e^-delta) / delta; 0/0 at delta = 0
-    np.copyto(g, 1.0, where=nd == 0.0)
-    g *= np.maximum.outer(np.exp(a), np.exp(b), out=nd)
-    return g
-
-
-def modal_exponentials(w2, c, T: float):
-    """Exact per-mode transition and held-input response of ``q'' + c q' + w^2 q = f``.
-
-    Parameters
-    ----------
-    w2 : (N,) array
-        Squared natural frequencies in 1/s^2 (> 0).
-    c : (N,) array
-        Modal damping in 1/s.
-    T : float
-        Interval in s.
-
-    Returns
-    -------
-    E : (N, 2, 2) array
-        ``e^{S T}`` with ``S = [[0, 1], [-w^2, -c]]``.
-    g : (N, 2) array
-        ``int_0^T e^{S s} ds e_2``, the response to a unit modal force held over T.
-
-    Notes
-    -----
-    With ``sigma = c/2``, ``d = sqrt(sigma^2 - w^2)`` (complex when underdamped) and the
-    exponents ``mu1 = d - sigma = -w^2 / (sigma + d)`` (computed without cancellation) and
-    ``mu2 = -(sigma + d)``, ``e^{S t} = (e^{mu1 t}(S - mu2 I) - e^{mu2 t}(S - mu1 I)) / (2 d)``.
-    Modes with ``|d T| < 1`` (close to critical damping, where that quotient cancels) are
-    exponentiated by scipy's ``expm`` instead.
-    """
-    w2 = np.asarray(w2, float)
-    c = np.asarray(c, float)
-    sig = c / 2.0
-    d = np.sqrt((sig ** 2 - w2).astype(complex))
-    mu1 = -w2 / (sig + d)
-    mu2 = -(sig + d)
-    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-        e1, e2 = np.exp(mu1 * T), np.exp(mu2 * T)
-        two_d = 2.0 * d
-        E = np.empty((len(w2), 2, 2))
-        E[:, 0, 0] = ((e1 * (-mu2) - e2 * (-mu1)) / two_d).real
-        E[:, 0, 1] = ((e1 - e2) / two_d).real
-        E[:, 1, 0] = (-w2 * (e1 - e2) / two_d).real
-        E[:, 1, 1] = ((e1 * mu1 - e2 * mu2) / two_d).real
-        # int_0^T e^{mu s} ds = T * expm1(mu T) / (mu T), stable for small mu T
-        g = np.empty((len(w2), 2))
-        g[:, 0] = ((_phi1(mu1, T) - _phi1(mu2, T)) / two_d).real
-        g[:, 1] = E[:, 0, 1]
-    near = np.abs(d * T) < 1.0
-    if near.any():
-        k = np.flatnonzero(near)
-        S = np.zeros((len(k), 3, 3))
-        S[:, 0, 1] = T
-        S[:, 1, 0] = -w2[k] * T
-        S[:, 1, 1] = -c[k] * T
-        S[:, 1, 2] = T
-        ES = expm(S)
-        E[k] = ES[:, :2, :2]
-        g[k] = ES[:, :2, 2]
-    return E, g
-
-
-def _phi1(mu, T):
-    """int_0^T e^{mu s} ds for complex mu, without cancellation near mu = 0."""
-    z = mu * T
-    small = np.abs(z) < 1e-5
-    zs = np.where(small, 1.0, z)
-    return T * np.where(small, 1.0 + z / 2.0 + z * z / 6.0, np.expm1(zs) / zs)
-
-
-@dataclass(frozen=True, eq=False)
-class StiffnessPlan:
-    """How :meth:`ModalSystem.modal_stiffness_derivatives` makes ``G`` (:func:`stiffness_plan`)."""
-
-    n_directions: int               # P, rows of combine
-    n_params: int                   # k, columns of combine
-    by_param: sp.csc_matrix         # combine, by column
-    rows: np.ndarray                # (groups, k) the distinct rows of combine
-    group: np.ndarray               # (P,) the group of each direction
-    by_group: bool                  # made group by group (else parameter by parameter)
-    products: int                   # dofs its projections touch, plus groups * k if grouped:
-                                    # its cost in units of one row of an N x N product
-
-
-def stiffness_plan(combine, dofs) -> StiffnessPlan:
-    """Plan the modal stiffness derivatives of a parameter map: per parameter or per group.
-
-    Directions with the same row of ``combine`` (a region's elements, say) act together, so one
-    projection per such group over the dofs it touches, then ``G_k = sum_g combine[g, k] G_g``,
-    is cheaper than one projection per parameter when the parameters reach many groups each (the
-    orthonormal contrasts of a regional map reach every region). The cheaper is chosen.
-
-    Parameters
-    ----------
-    combine : (P, k) array or sparse matrix
-        The chain rule from the P element directions to the k parameters.
-    dofs : (P, 6) int array
-        Free dofs of each direction's element (-1: fixed).
-    """
-    C = sp.csr_matrix(combine)
-    dofs = np.asarray(dofs)
-    if dofs.ndim != 2 or dofs.shape != (C.shape[0], 6):
-        raise ValueError(f"dofs: expected shape ({C.shape[0]}, 6), one row per row of combine, got {dofs.shape}")
-    k = C.shape[1]
-    rows, group = np.unique(C.toarray(), axis=0, return_inverse=True)
-    group = np.asarray(group).ravel()
-    Cc = C.tocsc()
-    per_param = sum(np.unique(dofs[Cc.indices[Cc.indptr[j]:Cc.indptr[j + 1]]]).size for j in range(k))
-    per_group = sum(np.unique(dofs[group == g]).size for g in range(len(rows))) + len(rows) * k
-    by_group = per_group < per_param
-    return StiffnessPlan(C.shape[0], k, Cc, rows, group, by_group, per_group if by_group else per_param)
+__all__ = ["ModalSystem", "StiffnessPlan", "stiffness_plan", "continuous_matrices", "discretize_zoh",
+           "reference_sensitivity", "modal_exponentials", "divided_difference_exp"]
 
 
 class ModalSystem:
@@ -587,7 +339,7 @@ class ModalSystem:
         D the divided difference of exp. Two structures make it cheap:
 
         * overdamped modes have real eigenvalues, so between two of them everything is real
-          (:func:`_divided_difference_exp_real`, no complex arithmetic);
+          (:func:`~sfem_filters.fem.modal_exp.divided_difference_exp_real`, no complex arithmetic);
         * the eigenvalues, eigenvectors and coefficients of an underdamped mode come in
           conjugate pairs, so its second row term is the conjugate of the first and
           ``h[i, j] = 2 Re(first term)``: half the divided differences.
@@ -647,7 +399,7 @@ class ModalSystem:
             real = (lam[:, 0].imag == 0) & (lam[:, 1].imag == 0)
             R, C = np.flatnonzero(real), np.flatnonzero(~real)
             lamT = lam[R].real * T
-            dd = {"RR": [_divided_difference_exp_real(lamT[:, ra], lamT[:, b]) for ra in range(2) for b in range(2)]}
+            dd = {"RR": [divided_difference_exp_real(lamT[:, ra], lamT[:, b]) for ra in range(2) for b in range(2)]}
             if C.size:
                 dd["RC"] = [divided_difference_exp(lam[R, ra, None] * T, lam[None, C, b] * T) for ra in range(2)
                             for b in range(2)]

@@ -33,9 +33,12 @@ Chapelle's reduced-order UKF, simplex sigma points on the parameters), :mod:`~sf
 :mod:`~sfem_filters.filtering.linearised` and :mod:`~sfem_filters.filtering.smoother` (the model
 linearised about a trajectory, and its RTS smoother: smoothed means from the filter's gains alone,
 smoothed covariances from every frame's prior covariance or from checkpoints where those do not
-fit the memory), :mod:`~sfem_filters.filtering.iterated`
+fit the memory; its forward pass, :mod:`~sfem_filters.filtering.forward`, and what a run keeps in
+memory, :mod:`~sfem_filters.filtering.memory`), :mod:`~sfem_filters.filtering.iterated`
 (the iterated smoother: Gauss-Newton on the MAP of one cycle, stopped by the step of the
-physical material in its posterior sd, :func:`step_in_sd`),
+physical material in its posterior sd, :func:`step_in_sd`; its MAP cost,
+:mod:`~sfem_filters.filtering.map_cost`, its damped loop, :mod:`~sfem_filters.filtering.gauss_newton`,
+and its result and Laplace posterior, :mod:`~sfem_filters.filtering.laplace`),
 :mod:`~sfem_filters.filtering.curvature` (the profile cost of the material, its exact gradient and
 its exact Hessian by differences: how far Gauss-Newton's curvature is from the truth),
 :mod:`~sfem_filters.filtering.marginal` (the exact marginal posterior of a few parameters),

@@ -30,11 +30,13 @@ but its last. Smoothed covariances need the prior covariance of every frame (n^2
 frame); where those do not fit the memory, only every k-th is kept and the backward pass
 recomputes the frames between, a segment at a time (checkpointing, :func:`covariance_interval`),
 with the same numbers.
+
+The forward pass is :mod:`~sfem_filters.filtering.forward` (:func:`kalman_forward`), and what a
+run keeps and whether it fits the memory is :mod:`~sfem_filters.filtering.memory`
+(:func:`check_memory`, :func:`covariance_interval`); their names are importable from here too.
 """
 from __future__ import annotations
 
-import math
-import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -42,135 +44,19 @@ import scipy.linalg as sla
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
-from .._validate import integer
-from ..resources import available_memory
-from .base import DenseEngine
+from .forward import STORE, ForwardPass, LinearisedEngine, kalman_forward
 from .linearised import LinearisedModel
-from .structured import joseph_update
+from .memory import (MEMORY_ADVICE, PEAK_FACTOR, WORKING, InsufficientMemory, available_memory, check_memory,
+                     covariance_interval, stored_bytes)
 
 __all__ = ["STORE", "LinearisedEngine", "ForwardPass", "SmoothedPass", "kalman_forward", "smooth_backward", "smooth",
            "rts_reference", "available_memory", "check_memory", "covariance_interval", "stored_bytes", "WORKING",
-           "InsufficientMemory", "MEMORY_ADVICE"]
-
-LOG_2PI = float(np.log(2.0 * np.pi))
-
+           "InsufficientMemory", "MEMORY_ADVICE", "PEAK_FACTOR"]
 
 #: The covariance backward pass keeps ``Lambda`` as a factor ``W W^T`` (n x r) while its rank r,
 #: the rows observed after the frame, stays below this share of n; then the dense n x n recursion.
 #: With r < n the factor's products (O(c n r) per block of c output columns) are the cheaper.
 FACTOR_RANK = 1.0
-
-#: What a forward pass keeps for the backward pass (:func:`kalman_forward`'s ``store``).
-STORE = ("covariance", "mean", "none")
-
-
-def _store_mode(store) -> str:
-    """``store`` as one of :data:`STORE` (``True``: ``"covariance"``, ``False``: ``"none"``)."""
-    if isinstance(store, (bool, np.bool_)):
-        return "covariance" if store else "none"
-    if store not in STORE:
-        raise ValueError(f"store: expected one of {STORE} (or True / False), got {store!r}")
-    return store
-
-
-class LinearisedEngine(DenseEngine):
-    """The Kalman filter of a :class:`LinearisedModel` in its coordinates ``[xi; theta]``.
-
-    Records, per frame, what the backward pass needs. ``store="covariance"`` (or ``True``): the
-    prior mean and covariance, and the observed rows, innovation, Cholesky factor of S and gain of
-    the update (n^2 floats a frame, what smoothed covariances need); with ``every`` k > 1 the
-    prior mean and covariance of every k-th frame only (checkpoints, from which the backward pass
-    recomputes the frames between: :func:`smooth_backward`). ``"mean"``: the update's rows,
-    innovation, factor and gain only, and the initial mean and covariance (n m floats a frame,
-    what smoothed means need). ``"none"`` (``False``): nothing.
-    """
-
-    def __init__(self, lin: LinearisedModel, theta_mean, theta_cov, store=True, every: int = 1):
-        self.lin, self.ljung, self.store = lin, None, _store_mode(store)
-        self.every = integer("every", every, 1)
-        self.nr, self.p = lin.n_restart, lin.n_params
-        self.priors: dict = {}          # frame -> (prior mean, prior covariance)
-        # frame -> what a safeguard's repair there changed: (mean, covariance) after it for the
-        # checkpoints' replay, its change of the covariance for the means' forward recursion
-        self.repaired: dict = {}
-        self.observations = None        # what the backward pass replays between checkpoints
-        self.updates: dict = {}
-        self.log_likelihood = 0.0
-        x0 = np.concatenate([lin.xi0, np.asarray(theta_mean, float)])
-        P0 = sla.block_diag(lin.P0, np.asarray(theta_cov, float))
-        self.reset(x0, P0)
-        self.initial = (self._x.copy(), self._P.copy()) if self.store == "mean" else None
-        if self.store == "covariance":
-            self.priors[0] = (self._x.copy(), self._P.copy())
-
-    def predict(self, t):
-        lin, nr = self.lin, self.nr
-        A, M = lin.A_at(t), lin.M[t]
-        P = self._P
-        Prr, Prt, Ptt = P[:nr, :nr], P[:nr, nr:], P[nr:, nr:]
-        AP = np.asarray(A @ Prr)
-        APA = np.asarray(A @ AP.T)
-        new = np.empty_like(P)
-        rr = 0.5 * (APA + APA.T)
-        if self.p:
-            APrt = np.asarray(A @ Prt)
-            MPtt = M @ Ptt
-            Z = (APrt + 0.5 * MPtt) @ M.T
-            rr += Z + Z.T
-            cross = APrt + MPtt
-            new[:nr, nr:] = cross
-            new[nr:, :nr] = cross.T
-            new[nr:, nr:] = Ptt
-        new[:nr, :nr] = rr + lin.Q
-        x = self._x
-        xr = np.asarray(A @ x[:nr]).ravel() + lin.c[t]
-        if self.p:
-            xr += M @ (x[nr:] - lin.theta_bar)
-        self._x = np.concatenate([xr, x[nr:]])
-        self._set_P(new)
-        if self.store == "covariance" and (t + 1) % self.every == 0:
-            self.priors[t + 1] = (self._x.copy(), self._P.copy())
-
-    def update(self, y, t, mask):
-        lin, nr = self.lin, self.nr
-        H = lin.H[mask]
-        R = lin.R[t][np.ix_(mask, mask)]
-        PHt = self._P[:, :nr] @ H.T
-        S = H @ PHt[:nr] + R
-        cho = sla.cho_factor(S, lower=True)
-        K = sla.cho_solve(cho, PHt.T).T
-        e = y[mask] - H @ self._x[:nr]
-        self._x = self._x + K @ e
-        self._set_P(joseph_update(self._P, K, PHt, S))
-        quad = float(e @ sla.cho_solve(cho, e))
-        logdet = 2.0 * float(np.sum(np.log(np.diag(cho[0]))))
-        self.log_likelihood -= 0.5 * (quad + logdet + len(e) * LOG_2PI)
-        self.updates[t] = (mask, e, cho, K, quad) if self.store != "none" else (mask, None, None, None, quad)
-        return e, S
-
-
-@dataclass(eq=False)
-class ForwardPass:
-    """The Kalman filter's run over the frames (coordinates of the linearised model: ``[xi; theta]``)."""
-
-    engine: LinearisedEngine       # with the priors, gains and factors the backward pass needs
-    filtered: np.ndarray           # (n_frames, n) filtered means
-    innovation: np.ndarray         # (n_frames, m), NaN where not observed
-    S: np.ndarray                  # (n_frames, m, m), NaN rows/cols where not observed
-    nis: np.ndarray                # (n_frames,), NaN where nothing observed
-    n_obs: np.ndarray              # (n_frames,)
-
-    @property
-    def log_likelihood(self) -> float:
-        """log p(y) of the linearised model (prediction-error decomposition)."""
-        return self.engine.log_likelihood
-
-    @property
-    def fit(self) -> float:
-        """``1/2 sum_t e_t^T S_t^-1 e_t``: for a linear-Gaussian model the minimum over the
-        trajectory of the negative log joint density without its constant terms (completing the
-        square), i.e. the profile MAP cost less the parameters' prior term."""
-        return 0.5 * float(np.nansum(self.nis))
 
 
 @dataclass(eq=False)
@@ -188,188 +74,6 @@ class SmoothedPass:
             raise AttributeError(name)
         return getattr(self.forward, name)
 
-
-#: Head-room of a smoothing run over what :func:`check_memory` counts (the stored prior
-#: covariances and :data:`WORKING` n x n matrices): the model's dense operators, the interpreter
-#: and its libraries come on top (the resident peaks of the whole runs on the docs' validation pages are 1.8-2.3 times
-#: what their last, covariance pass keeps).
-PEAK_FACTOR = 3.0
-
-
-#: What to do when a smoothing run does not fit the memory.
-MEMORY_ADVICE = ("reduce the state (fewer nodes, for example every other pixel of the tissue; fewer material "
-                 "parameters) or the frames, or run where more memory is free")
-
-
-class InsufficientMemory(MemoryError):
-    """:func:`check_memory`'s refusal of a run whose stored covariances cannot fit (its message
-    gives the sizes and :data:`MEMORY_ADVICE`)."""
-
-
-#: n x n matrices a pass holds besides the stored ones: the filter's covariance and its next, the
-#: backward pass's information matrix, and the temporaries of a step.
-WORKING = 6
-
-
-def stored_bytes(n: int, frames: int, every: int = 1, observed: int = 0) -> float:
-    """Bytes a pass keeps for its backward pass (8-byte floats).
-
-    Parameters
-    ----------
-    n : int
-        State dimension.
-    frames : int
-        Frames of the pass (:func:`kalman_forward` keeps one prior covariance per frame).
-    every : int or None
-        A covariance pass keeping the prior covariance of one frame in ``every`` and recomputing
-        up to ``every - 1`` more at a time in the backward pass (:func:`smooth_backward`); None:
-        a pass for means, which keeps no covariance.
-    observed : int
-        Observed rows over all frames (the gains kept, n floats each, by either kind of pass).
-
-    Returns
-    -------
-    float
-        Bytes; a safeguard's repair between checkpoints keeps one n x n matrix more (rare, not
-        counted).
-    """
-    gains = 8.0 * float(observed) * n
-    if every is None or frames <= 0:
-        return gains
-    return gains + 8.0 * float(n) ** 2 * (-(-frames // every) + min(every, frames) - 1)
-
-
-def covariance_interval(n: int, frames: int, available: float | None = None, observed: int = 0) -> int:
-    """Frames between the prior covariances a covariance pass keeps (:func:`smooth`'s ``every``).
-
-    1 (every frame, no recomputation) where :data:`PEAK_FACTOR` times what that pass holds
-    (:func:`stored_bytes` and :data:`WORKING` n x n matrices) fits the available memory, or
-    where the system does not say; otherwise ``ceil(sqrt(frames))``, which keeps about
-    ``2 sqrt(frames) n^2`` floats instead of ``frames n^2`` (checkpointing, Griewank & Walther
-    2008, ch. 12) for one forward pass more, with the same numbers.
-
-    Parameters
-    ----------
-    n, frames, observed :
-        As for :func:`stored_bytes`.
-    available : float, optional
-        Bytes available (default :func:`~sfem_filters.resources.available_memory`).
-
-    Returns
-    -------
-    int, >= 1
-    """
-    available = available_memory() if available is None else float(available)
-    working = 8.0 * WORKING * float(n) ** 2
-    if available is None or frames <= 1 or PEAK_FACTOR * (stored_bytes(n, frames, 1, observed) + working) <= available:
-        return 1
-    return math.isqrt(frames - 1) + 1
-
-
-def _size(nbytes: float) -> str:
-    """Bytes as GB, or MB below one GB."""
-    return f"{nbytes * 1e-9:.1f} GB" if nbytes >= 1e9 else f"{nbytes * 1e-6:.0f} MB"
-
-
-def check_memory(n: int, frames: int, available: float | None = None, covariance: bool = True,
-                 observed: int = 0) -> None:
-    """Refuse a run whose passes cannot fit the memory, warn where the run's peak may not.
-
-    Every pass holds :data:`WORKING` n x n matrices and the gains of the observed rows; a
-    covariance pass also keeps the prior covariances its backward pass needs, every frame's or,
-    where those do not fit, checkpoints (:func:`covariance_interval`, :func:`stored_bytes`).
-    More than the available memory is a :class:`MemoryError` that says how much and what to
-    reduce, instead of the operating system killing the process midway; more than a
-    :data:`PEAK_FACTOR` share of it is a ``RuntimeWarning``.
-
-    Parameters
-    ----------
-    n : int
-        State dimension (kinematics, effect states and parameters).
-    frames : int
-        Frames of the pass.
-    available : float, optional
-        Bytes available (default :func:`~sfem_filters.resources.available_memory`; nothing is checked where unknown).
-    covariance : bool
-        Whether the run makes a covariance pass (smoothed variances of the kinematics).
-    observed : int
-        Observed rows over all frames (non-missing values of the observations).
-    """
-    available = available_memory() if available is None else float(available)
-    if available is None:
-        return
-    working = 8.0 * WORKING * float(n) ** 2
-    if covariance:
-        every = covariance_interval(n, frames, available, observed)
-        stored = stored_bytes(n, frames, every, observed)
-        kept = (f"a {n} x {n} covariance for each of {frames} frames" if every == 1 else
-                f"a {n} x {n} covariance for one frame in {every} of {frames}, recomputing the others")
-    else:
-        stored, kept = stored_bytes(n, frames, None, observed), "no covariance of any frame (means only)"
-    need = stored + working
-    what = (f"the smoother keeps {kept} and gains ({_size(stored)}) and works in {WORKING} {n} x {n} matrices "
-            f"({_size(working)}; about {_size(PEAK_FACTOR * need)} at the run's peak)")
-    if need > available:
-        raise InsufficientMemory(f"model: {what}, more than the {_size(available)} available; {MEMORY_ADVICE}")
-    if PEAK_FACTOR * need > available:
-        warnings.warn(f"{what}, while {_size(available)} are available: the run may run out of memory; "
-                      f"{MEMORY_ADVICE}", RuntimeWarning, stacklevel=3)
-
-
-def kalman_forward(lin: LinearisedModel, observations, theta_mean=None, theta_cov=None, *, safeguards=None,
-                   check_every_frame: bool = True, monitor_nis: bool = False, label: int = 0,
-                   store=True, every: int = 1) -> ForwardPass:
-    """The forward (filter) half of :func:`smooth`.
-
-    ``safeguards`` checks (and repairs) P after every frame when ``check_every_frame``, else only
-    after the last one (a Cholesky factor costs n^3/3, more than the rest of a frame's work here);
-    finiteness and positive variances are checked every frame either way. ``monitor_nis`` also
-    watches the NIS for divergence. ``store`` (:data:`STORE`): what is kept for a backward pass,
-    ``"covariance"`` (``True``, the default) the prior covariance of every frame, n^2 floats a
-    frame, for smoothed covariances; ``"mean"`` the gains and innovations only, n m floats a frame,
-    for smoothed means; ``"none"`` (``False``) nothing (the filter's own results only). ``every``
-    (with ``"covariance"``): keep the prior covariance of every ``every``-th frame only, and let
-    the backward pass recompute the others from them, a segment at a time (checkpointing:
-    ``(frames / every + every) n^2`` floats instead of ``frames n^2``, for one forward pass more;
-    :func:`covariance_interval`).
-    """
-    y = np.asarray(observations, float)
-    eng = LinearisedEngine(lin, lin.theta0 if theta_mean is None else theta_mean,
-                           lin.P_theta0 if theta_cov is None else theta_cov, store=store, every=every)
-    if eng.store == "covariance" and eng.every > 1:
-        eng.observations = y
-    T, m = lin.n_frames, lin.dim_obs
-    filtered = np.empty((T, lin.dim_state))
-    innov = np.full((T, m), np.nan)
-    S_all = np.full((T, m, m), np.nan)
-    nis = np.full(T, np.nan)
-    n_obs = np.zeros(T, int)
-    run: list = []
-    for t in range(T):
-        if t > 0:
-            eng.predict(t - 1)
-        mask = ~np.isnan(y[t])
-        if mask.any():
-            e, S = eng.update(y[t], t, mask)
-            innov[t, mask] = e
-            S_all[t][np.ix_(mask, mask)] = S
-            nis[t] = eng.updates[t][4]
-            n_obs[t] = int(mask.sum())
-        if not np.all(np.isfinite(eng.x)) or not np.all(np.isfinite(eng.P)) or np.any(np.diag(eng.P) <= 0):
-            raise FloatingPointError(f"the smoother's forward pass lost its covariance (non-finite or a variance "
-                                     f"<= 0) at pass {label}, frame {t}")
-        if safeguards is not None and (check_every_frame or t == T - 1):
-            before = eng.P
-            safeguards.check_covariance(eng, label, t)
-            if eng.P is not before:                                # repaired: what the backward pass must know
-                if eng.store == "mean":
-                    eng.repaired[t] = eng.P - before
-                elif eng.observations is not None:
-                    eng.repaired[t] = (eng.x.copy(), eng.P.copy())  # the replay between checkpoints resumes here
-        if safeguards is not None and monitor_nis:
-            safeguards.check_nis(run, label, t, nis[t], n_obs[t])
-        filtered[t] = eng.x
-    return ForwardPass(engine=eng, filtered=filtered, innovation=innov, S=S_all, nis=nis, n_obs=n_obs)
 
 
 def _transpose_step(A, M, lt, nr):

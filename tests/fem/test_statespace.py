@@ -16,6 +16,7 @@ from scipy.integrate import solve_ivp
 
 from sfem_filters import fem
 from sfem_filters.fem.material import Material
+from sfem_filters.fem.modal_exp import divided_difference_exp_real, modal_exponentials
 from sfem_filters.fem.statespace import (
     ModalSystem,
     continuous_matrices,
@@ -218,7 +219,6 @@ def test_modal_exponentials_closed_form_against_expm(w, zeta, T):
     from undamped through critical to heavily overdamped modes."""
     from scipy.linalg import expm
 
-    from sfem_filters.fem.statespace import modal_exponentials
     c = 2 * zeta * w
     E, g = modal_exponentials(np.array([w * w]), np.array([c]), T)
     X = np.array([[0, 1, 0], [-w * w, -c, 1], [0, 0, 0]]) * T
@@ -278,11 +278,10 @@ def test_modal_sensitivity_in_the_stiff_regime_against_complex_step():
 def test_real_divided_difference_equals_the_complex_one(seed):
     """The real-argument divided differences (overdamped modes) equal the general complex ones
     to round-off: equal, nearly equal, close and far arguments, down to underflowing exponentials."""
-    from sfem_filters.fem.statespace import _divided_difference_exp_real
     rng = np.random.default_rng(seed)
     a = -np.concatenate([rng.uniform(0, 30, 20), 10.0 ** rng.uniform(-3, 5, 20), [0.0, 5.0, 800.0]])
     b = np.concatenate([a[:10], a[:10] * (1 + 1e-13), a[:10] + 0.3, -rng.uniform(0, 40, 10)])
-    got = _divided_difference_exp_real(a, b)
+    got = divided_difference_exp_real(a, b)
     ref = divided_difference_exp(a[:, None], b[None, :]).real
     assert np.all(np.abs(got - ref) <= 1e-14 * np.abs(ref) + 1e-300)
 

@@ -9,6 +9,7 @@ from helpers import bias_model
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+import sfem_filters.fem.modal_stiffness as modal_stiffness_module
 import sfem_filters.model as model_module
 from sfem_filters import fem
 from sfem_filters.benchmark.pinned import benchmark_model, pinned_benchmark
@@ -31,6 +32,7 @@ from sfem_filters.filtering import (
     with_covariance,
 )
 from sfem_filters.filtering.iterated import open_loop, step_in_sd
+from sfem_filters.filtering import memory as memory_module
 from sfem_filters.filtering import smoother as smoother_module
 from sfem_filters.filtering.smoother import (
     PEAK_FACTOR,
@@ -543,13 +545,13 @@ def test_a_run_too_large_for_the_memory_is_refused_before_any_pass(pinned, monke
     with pytest.raises(MemoryError, match=r"1\.2 GB available"):
         check_memory(10_000, T, available=1.2e9)
     if os.path.exists("/proc/meminfo"):
-        assert smoother_module.available_memory() > 0
+        assert memory_module.available_memory() > 0
     m = benchmark_model(pinned, "joint_ekf", parameterisation=Parameterisation.per_region(pinned.middle))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         lean = IteratedSmoother(max_iterations=1, covariance=False).run(m, pinned.observations)
     need = stored_bytes(m.dim_state, m.n_frames, covariance_interval(m.dim_state, m.n_frames, 0.0))   # checkpoints
-    monkeypatch.setattr(smoother_module, "available_memory", lambda: 0.9 * need)
+    monkeypatch.setattr(memory_module, "available_memory", lambda: 0.9 * need)
     with pytest.raises(MemoryError, match="model: the smoother keeps"):     # its covariance pass, made later
         with_covariance(m, pinned.observations, lean)
     passes = []
@@ -585,7 +587,7 @@ def test_smoother_row_of_the_comparison_keeps_table_1(pinned):
 @pytest.mark.parametrize("parameterisation", ["regions", "elements"])
 def test_linearisation_with_and_without_modal_stiffness_derivatives(pinned, monkeypatch, parameterisation):
     """``SFEMModel.linearise`` makes the modal stiffness derivatives once when they pay
-    (:func:`sfem_filters.model.modal_stiffness_pays`): its M_t are those of the direct
+    (:func:`sfem_filters.fem.modal_stiffness.modal_stiffness_pays`): its M_t are those of the direct
     sensitivity at every frame, to round-off, and the choice follows the cost and the memory cap."""
     param = (Parameterisation.per_region(pinned.middle) if parameterisation == "regions"
              else Parameterisation.per_element(pinned.mesh.n_elements))
@@ -598,7 +600,7 @@ def test_linearisation_with_and_without_modal_stiffness_derivatives(pinned, monk
                         lambda self, *a: made.append(1) or real(self, *a))
     fast = m.linearise(z)
     assert bool(made) == (parameterisation == "regions")      # every element's own parameter: no
-    monkeypatch.setattr(model_module, "MODAL_STIFFNESS_BYTES", 0)
+    monkeypatch.setattr(modal_stiffness_module, "MODAL_STIFFNESS_BYTES", 0)
     m._modal_cache.clear()
     made.clear()
     direct = m.linearise(z)
@@ -614,40 +616,40 @@ def test_modal_stiffness_pays_by_cost_and_memory():
     P, n = 60, 400
     dofs = rng.integers(0, n, (P, 6))
     few = fem.stiffness_plan(np.eye(4)[np.arange(P) % 4] @ rng.standard_normal((4, 3)), dofs)   # 3 parameters
-    assert model_module.modal_stiffness_pays(few, 30, n)
-    assert not model_module.modal_stiffness_pays(few, 1, 20)             # nothing to save over one frame
+    assert modal_stiffness_module.modal_stiffness_pays(few, 30, n)
+    assert not modal_stiffness_module.modal_stiffness_pays(few, 1, 20)             # nothing to save over one frame
     many = fem.stiffness_plan(np.eye(P), dofs)                                # a parameter per direction
-    assert not model_module.modal_stiffness_pays(many, 30, n)
+    assert not modal_stiffness_module.modal_stiffness_pays(many, 30, n)
     cap = 8 * (3 + 4) * n * n                                             # (k + groups) n^2 floats while made
     for limit, expected in ((cap, True), (cap - 1, False)):
-        model_module.MODAL_STIFFNESS_BYTES, saved = limit, model_module.MODAL_STIFFNESS_BYTES
+        modal_stiffness_module.MODAL_STIFFNESS_BYTES, saved = limit, modal_stiffness_module.MODAL_STIFFNESS_BYTES
         try:
-            assert model_module.modal_stiffness_pays(few, 30, n) == expected
+            assert modal_stiffness_module.modal_stiffness_pays(few, 30, n) == expected
         finally:
-            model_module.MODAL_STIFFNESS_BYTES = saved
+            modal_stiffness_module.MODAL_STIFFNESS_BYTES = saved
     with pytest.raises(ValueError, match="frames: expected an integer >= 1"):
-        model_module.modal_stiffness_pays(few, 0, n)
+        modal_stiffness_module.modal_stiffness_pays(few, 0, n)
     with pytest.raises(ValueError, match="n: expected an integer >= 1"):
-        model_module.modal_stiffness_pays(few, 30, 0.5)
+        modal_stiffness_module.modal_stiffness_pays(few, 30, 0.5)
 
 
 def test_modal_stiffness_budget_grows_with_the_memory_available(monkeypatch):
     """Unset, the budget is a quarter of the memory available and at least its floor, so a
     larger state, which needs them most, gets them where the machine holds them; set, it is the
     setting."""
-    floor = model_module.MODAL_STIFFNESS_FLOOR
-    monkeypatch.setattr(model_module, "MODAL_STIFFNESS_BYTES", None)
+    floor = modal_stiffness_module.MODAL_STIFFNESS_FLOOR
+    monkeypatch.setattr(modal_stiffness_module, "MODAL_STIFFNESS_BYTES", None)
     for available, budget in ((16e9, 4e9), (1e9, floor), (None, floor)):
-        monkeypatch.setattr(model_module, "available_memory", lambda: available)
-        assert model_module.modal_stiffness_budget() == budget
+        monkeypatch.setattr(modal_stiffness_module, "available_memory", lambda: available)
+        assert modal_stiffness_module.modal_stiffness_budget() == budget
     rng = np.random.default_rng(0)
     P, n = 60, 4000
     few = fem.stiffness_plan(np.eye(4)[np.arange(P) % 4] @ rng.standard_normal((4, 3)), rng.integers(0, n, (P, 6)))
     made = 8 * (3 + 4) * n * n                                 # 896 MB while made: above the floor
     assert made > floor
-    monkeypatch.setattr(model_module, "available_memory", lambda: 4 * made)
-    assert model_module.modal_stiffness_pays(few, 30, n)
-    monkeypatch.setattr(model_module, "available_memory", lambda: 4 * made - 8)
-    assert not model_module.modal_stiffness_pays(few, 30, n)
-    monkeypatch.setattr(model_module, "MODAL_STIFFNESS_BYTES", made)
-    assert model_module.modal_stiffness_pays(few, 30, n)
+    monkeypatch.setattr(modal_stiffness_module, "available_memory", lambda: 4 * made)
+    assert modal_stiffness_module.modal_stiffness_pays(few, 30, n)
+    monkeypatch.setattr(modal_stiffness_module, "available_memory", lambda: 4 * made - 8)
+    assert not modal_stiffness_module.modal_stiffness_pays(few, 30, n)
+    monkeypatch.setattr(modal_stiffness_module, "MODAL_STIFFNESS_BYTES", made)
+    assert modal_stiffness_module.modal_stiffness_pays(few, 30, n)
