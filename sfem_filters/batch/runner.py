@@ -18,8 +18,6 @@ import time
 import traceback as tb
 from dataclasses import dataclass, field
 
-import dask
-from dask.distributed import Client, LocalCluster, as_completed
 from tqdm.auto import tqdm
 
 from .jobs import Job, run_job
@@ -111,7 +109,18 @@ LOCAL_CONFIG = {"distributed.worker.profile.enabled": False,
                 "distributed.scheduler.worker-saturation": 1.0}
 
 
+def _distributed():
+    """``dask`` and ``dask.distributed``, imported when a batch first needs a scheduler: they take
+    about 0.8 s to import (``python -X importtime``), which a serial batch, ``import sfem_filters``
+    and every ``sfem-filters ... --help`` do not need (a third-party import, not a sibling's)."""
+    import dask
+    import dask.distributed
+    return dask, dask.distributed
+
+
 def _client(scheduler: str, workers):
+    dask, distributed = _distributed()
+    Client, LocalCluster = distributed.Client, distributed.LocalCluster
     if scheduler == "local":
         n = workers or os.cpu_count() or 1
         with dask.config.set(LOCAL_CONFIG):
@@ -176,7 +185,7 @@ def run_batch(jobs, directory, *, scheduler: str = "local", workers=None, progre
             try:
                 futures = {client.submit(run_job, j, key=f"sfem-{j.name}-{store.fingerprint(j)[:16]}", pure=False): j
                            for j in pending}
-                for fut in as_completed(futures):
+                for fut in _distributed()[1].as_completed(futures):
                     job = futures[fut]
                     if fut.status == "finished":
                         finished(job, fut.result(), worker=_worker_of(client, fut))

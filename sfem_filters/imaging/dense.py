@@ -1,11 +1,12 @@
-"""DENSE images in: readers, complex noise, and phase to Lagrangian displacement.
+"""DENSE images in: complex noise and phase to Lagrangian displacement (readers re-exported).
 
 DENSE (displacement encoding with stimulated echoes) stores, for each encoding direction
 ``d_j`` (a unit vector in image axes, x = column, y = row), a phase ``phi_j = 2 pi ke d_j . u``
 (rad), ``ke`` the encoding frequency (cycles per unit length) and ``u`` the displacement of the
-tissue now at the pixel from its position at the encoding time (an Eulerian field). This module
-reads DENSE-Sim case folders (Barbaroux et al., JCMR 2025) and DICOM phase and magnitude
-series into a :class:`DenseCase`, adds complex Gaussian noise exactly as
+tissue now at the pixel from its position at the encoding time (an Eulerian field). The readers
+of DENSE-Sim case folders (Barbaroux et al., JCMR 2025) and DICOM phase and magnitude series into a
+:class:`DenseCase` are in :mod:`sfem_filters.imaging.dense_io` (re-exported here). This module adds
+complex Gaussian noise exactly as
 ``shared/specs/strain-ground-truth.md`` pins it (:func:`add_complex_noise`), and turns the
 phase into Lagrangian displacements of every reference myocardial pixel
 (:func:`phase_to_displacement`): spatial unwrapping inside each frame's mask, the 2 pi offset of
@@ -31,285 +32,23 @@ in cycles/m inside (cycles/mm where a file or argument says so); times in s.
 """
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
 
 import numpy as np
-import yaml
 from scipy import ndimage
 from skimage.restoration import unwrap_phase
 
 from .._validate import as_float_array, as_mask, integer, positive
+from .dense_io import (DICOM_SUBFOLDERS, PHASE_TOLERANCE, DenseCase, dense_masks, dense_series_kind, make_dense_case,
+                       read_dense_dicom, read_dense_dicom_folder, read_dense_sim)
 
-__all__ = ["DenseCase", "make_dense_case", "read_dense_sim", "read_dense_dicom", "add_complex_noise",
+__all__ = ["DenseCase", "make_dense_case", "read_dense_sim", "read_dense_dicom", "read_dense_dicom_folder",
+           "dense_masks", "dense_series_kind", "DICOM_SUBFOLDERS", "add_complex_noise",
            "LagrangianDisplacement", "unwrap_frames", "carry_offsets", "eulerian_displacement", "extend_field",
            "invert_eulerian", "estimate_noise_sd", "phase_quality", "phase_to_displacement", "reference_points",
-           "truth_at_points", "PHASE_TOLERANCE"]
-
-PHASE_TOLERANCE = 1e-4
-"""rad: how far beyond +-pi a stored phase may lie (float rounding of a wrapped phase)."""
+           "tracks_on_pixel_grid", "truth_at_points", "PHASE_TOLERANCE"]
 
 _CHI2_1_MEDIAN = 0.45493642311957283     # median of a chi-square variable with one degree of freedom
-
-
-@dataclass(frozen=True, eq=False)
-class DenseCase:
-    """A validated DENSE slice through the cycle (images indexed row = y, column = x).
-
-    Attributes
-    ----------
-    phases : (2, F, H, W) array
-        Wrapped phase (rad, in [-pi, pi]) of each encoding at each frame.
-    magnitude : (F, H, W) array
-        Image magnitude (arbitrary units, >= 0).
-    masks : (F + 1, H, W) bool array
-        Myocardium masks: index 0 the reference (encoding time t = 0), index f + 1 frame f.
-    pixel_size_m : float
-        Pixel size (m, square pixels).
-    ke_per_m : float
-        Encoding frequency (cycles/m).
-    frame_times_s : (F,) array
-        Time of each frame after the encoding (s).
-    directions : (2, 2) array
-        Row j is the unit vector (x, y) in image axes of encoding j.
-    truth_ecc, truth_err : (F, H, W) arrays or None
-        Ground-truth Green-Lagrange strain of each reference pixel (fraction), NaN elsewhere.
-    provenance : str
-        Where the case came from.
-    """
-
-    phases: np.ndarray
-    magnitude: np.ndarray
-    masks: np.ndarray
-    pixel_size_m: float
-    ke_per_m: float
-    frame_times_s: np.ndarray
-    directions: np.ndarray
-    truth_ecc: np.ndarray | None = None
-    truth_err: np.ndarray | None = None
-    provenance: str = ""
-
-    @property
-    def n_frames(self) -> int:
-        return self.phases.shape[1]
-
-    @property
-    def shape(self) -> tuple:
-        return self.phases.shape[2:]
-
-    @property
-    def pixel_size_mm(self) -> float:
-        """Pixel size (mm)."""
-        return self.pixel_size_m * 1e3
-
-    @property
-    def reference_mask(self) -> np.ndarray:
-        """(H, W) bool: the reference myocardium (encoding time)."""
-        return self.masks[0]
-
-    @property
-    def frame_masks(self) -> np.ndarray:
-        """(F, H, W) bool: the myocardium of each frame."""
-        return self.masks[1:]
-
-    @property
-    def has_truth(self) -> bool:
-        return self.truth_ecc is not None and self.truth_err is not None
-
-
-def make_dense_case(phases, magnitude, masks, pixel_size_mm, ke_cycles_per_mm, frame_times_s, directions=None,
-                    truth_ecc=None, truth_err=None, provenance: str = "") -> DenseCase:
-    """Check arrays into a :class:`DenseCase`; errors name the argument and the expectation.
-
-    Parameters
-    ----------
-    phases : (2, F, H, W) array
-        Wrapped phase (rad) of the two encodings; values within +-pi (+ :data:`PHASE_TOLERANCE`).
-    magnitude : (F, H, W) array
-        Magnitude images (>= 0).
-    masks : (F + 1, H, W) bool array
-        Index 0 the reference myocardium, index f + 1 frame f; none may be empty.
-    pixel_size_mm : float
-        Pixel size (mm).
-    ke_cycles_per_mm : float
-        Encoding frequency (cycles/mm, > 0).
-    frame_times_s : (F,) array
-        Frame times after the encoding (s), increasing.
-    directions : (2, 2) array, optional
-        Encoding directions (rows, unit vectors (x, y) in image axes); default the identity
-        (encoding 0 along x = columns, encoding 1 along y = rows).
-    truth_ecc, truth_err : (F, H, W) arrays, optional
-        Ground-truth strain (fraction), NaN outside the reference mask.
-    """
-    if ke_cycles_per_mm is None:
-        raise ValueError("ke_cycles_per_mm: expected the DENSE encoding frequency in cycles/mm, got None")
-    ke = positive("ke_cycles_per_mm", ke_cycles_per_mm, "cycles/mm")
-    px = positive("pixel_size_mm", pixel_size_mm, "mm")
-    phases = as_float_array("phases", phases, shape=(2, None, None, None))
-    bad = np.abs(phases) > np.pi + PHASE_TOLERANCE
-    if bad.any():
-        raise ValueError(f"phases: expected wrapped phases in [-pi, pi] rad, got {int(bad.sum())} values outside "
-                         f"(largest |phase| {float(np.abs(phases).max()):.4g} rad); convert stored values to radians")
-    F, H, W = phases.shape[1:]
-    magnitude = as_float_array("magnitude", magnitude, shape=(F, H, W))
-    if np.any(magnitude < 0):
-        raise ValueError("magnitude: expected non-negative magnitudes, got negative values")
-    masks = as_mask("masks", masks, ndim=3, shape=(F + 1, H, W))
-    if not masks[0].any():
-        raise ValueError("masks: expected the reference mask (index 0) to hold myocardium, got no tissue pixel")
-    empty = np.flatnonzero(~masks[1:].any(axis=(1, 2)))
-    if empty.size:
-        raise ValueError(f"masks: expected myocardium in every frame's mask, got none in frame(s) {empty.tolist()}")
-    times = as_float_array("frame_times_s", frame_times_s, shape=(F,))
-    if F > 1 and np.any(np.diff(times) <= 0):
-        raise ValueError("frame_times_s: expected increasing frame times (s)")
-    d = np.eye(2) if directions is None else as_float_array("directions", directions, shape=(2, 2))
-    if not np.allclose(np.linalg.norm(d, axis=1), 1.0, atol=1e-6) or abs(np.linalg.det(d)) < 1e-3:
-        raise ValueError(f"directions: expected two independent unit vectors (x, y) as rows, got {d.tolist()}")
-    truths = []
-    for name, t in (("truth_ecc", truth_ecc), ("truth_err", truth_err)):
-        truths.append(None if t is None else as_float_array(name, t, shape=(F, H, W), allow_nan=True))
-    return DenseCase(phases=phases, magnitude=magnitude, masks=masks, pixel_size_m=px * 1e-3, ke_per_m=ke * 1e3,
-                     frame_times_s=times, directions=d, truth_ecc=truths[0], truth_err=truths[1],
-                     provenance=provenance)
-
-
-def _load(folder: str, name: str, required: bool = True):
-    p = os.path.join(folder, name)
-    if not os.path.isfile(p):
-        if required:
-            raise FileNotFoundError(f"path: expected {name} in the DENSE-Sim case folder {folder!r}, not found")
-        return None
-    return np.load(p, allow_pickle=False)
-
-
-def read_dense_sim(path) -> DenseCase:
-    """Read a DENSE-Sim case folder exactly as the simulator publishes it.
-
-    Files: ``phase_x.npy``, ``phase_y.npy`` (F, H, W) wrapped phase (rad) of the x (column) and
-    y (row) encodings; ``magnitude.npy``; ``LV_mask_time_lowres.npy`` (F + 1, H, W), index 0 the
-    reference; optional ``GT_Ecc.npy``, ``GT_Err.npy``; ``config.yaml`` (``sim_params``: ``FOV``
-    in mm, first two entries; ``N_im``; ``ke`` in cycles/mm; ``tt`` in ms, frame f at
-    ``tt[f + 1]``). Pixel size = FOV / N_im.
-
-    Parameters
-    ----------
-    path : str or path-like
-        The case folder.
-    """
-    folder = os.fspath(path)
-    if not os.path.isdir(folder):
-        raise FileNotFoundError(f"path: expected a DENSE-Sim case folder, got {folder!r} (not a directory)")
-    cfg_path = os.path.join(folder, "config.yaml")
-    if not os.path.isfile(cfg_path):
-        raise FileNotFoundError(f"path: expected config.yaml in the DENSE-Sim case folder {folder!r}, not found")
-    with open(cfg_path) as fh:
-        cfg = yaml.safe_load(fh)
-    sim = cfg.get("sim_params", cfg) if isinstance(cfg, dict) else None
-    if not isinstance(sim, dict):
-        raise ValueError(f"config.yaml: expected a mapping with sim_params, got {type(cfg).__name__}")
-    for key in ("FOV", "N_im", "ke", "tt"):
-        if key not in sim:
-            raise ValueError(f"config.yaml: expected the key sim_params.{key}, not found in {cfg_path!r}")
-    fov = np.asarray(sim["FOV"], float)[:2]
-    n_im = integer("config.yaml N_im", sim["N_im"], 1)
-    if not np.isclose(fov[0], fov[1]):
-        raise ValueError(f"config.yaml FOV: expected a square field of view (mm), got {fov.tolist()}")
-    px_mm = positive("config.yaml FOV", fov[0], "mm") / n_im
-    if sim["ke"] is None:
-        raise ValueError("config.yaml ke: expected the encoding frequency in cycles/mm, got None")
-    px, py = _load(folder, "phase_x.npy"), _load(folder, "phase_y.npy")
-    if px.shape != py.shape:
-        raise ValueError(f"phase_y.npy: expected the shape of phase_x.npy {px.shape}, got {py.shape}")
-    F = px.shape[0]
-    tt = np.asarray(sim["tt"], float)
-    if tt.size < F + 1:
-        raise ValueError(f"config.yaml tt: expected at least F + 1 = {F + 1} times (ms), got {tt.size}")
-    return make_dense_case(phases=np.stack([px, py]), magnitude=_load(folder, "magnitude.npy"),
-                           masks=_load(folder, "LV_mask_time_lowres.npy"), pixel_size_mm=px_mm,
-                           ke_cycles_per_mm=sim["ke"], frame_times_s=tt[1:F + 1] * 1e-3,
-                           truth_ecc=_load(folder, "GT_Ecc.npy", False), truth_err=_load(folder, "GT_Err.npy", False),
-                           provenance=f"DENSE-Sim case {folder}")
-
-
-def _read_dicom_frames(directory: str, name: str):
-    import pydicom                                          # the optional [dicom] extra
-    from pydicom.pixels import apply_modality_lut
-    directory = os.fspath(directory)
-    if not os.path.isdir(directory):
-        raise FileNotFoundError(f"{name}: expected a directory of DICOM files, got {directory!r}")
-    frames = []
-    for entry in sorted(os.listdir(directory)):
-        p = os.path.join(directory, entry)
-        if not os.path.isfile(p):
-            continue
-        try:
-            ds = pydicom.dcmread(p)
-            img = apply_modality_lut(ds.pixel_array, ds).astype(float)
-        except Exception:                          # not a DICOM image (DICOMDIR, notes): skip
-            continue
-        frames.append((float(getattr(ds, "TriggerTime", np.nan)), int(getattr(ds, "InstanceNumber", 0)), ds, img))
-    if not frames:
-        raise FileNotFoundError(f"{name}: expected DICOM image files in {directory!r}, found none")
-    frames.sort(key=lambda f: (np.nan_to_num(f[0], nan=np.inf), f[1]))
-    shapes = {f[3].shape for f in frames}
-    if len(shapes) != 1:
-        raise ValueError(f"{name}: expected frames of one size, got sizes {sorted(shapes)}")
-    return np.stack([f[3] for f in frames]), np.array([f[0] for f in frames]), frames[0][2]
-
-
-def read_dense_dicom(phase_dirs, magnitude_dir, masks, ke_cycles_per_mm, directions=((1.0, 0.0), (0.0, 1.0)),
-                     phase_range=None) -> DenseCase:
-    """Read DENSE phase and magnitude DICOM series (one slice, one file per frame).
-
-    Frames are ordered by TriggerTime (ms; then InstanceNumber) and their times taken from it;
-    the pixel size from PixelSpacing (mm). Stored values pass through the modality rescale
-    (RescaleSlope, RescaleIntercept).
-
-    Parameters
-    ----------
-    phase_dirs : sequence of two directories
-        The phase series of the two encodings.
-    magnitude_dir : directory
-        The magnitude series.
-    masks : (F + 1, H, W) bool array
-        Myocardium masks, index 0 the reference (DICOM carries none).
-    ke_cycles_per_mm : float
-        Encoding frequency (cycles/mm).
-    directions : (2, 2) array
-        Row j: the unit vector (x = column, y = row) along which encoding j encodes.
-    phase_range : (lo, hi), optional
-        Rescaled values that map linearly to (-pi, pi); ``None``: the values are radians.
-    """
-    if ke_cycles_per_mm is None:
-        raise ValueError("ke_cycles_per_mm: expected the DENSE encoding frequency in cycles/mm, got None")
-    if len(phase_dirs) != 2:
-        raise ValueError(f"phase_dirs: expected two phase series (one per encoding), got {len(phase_dirs)}")
-    series = [_read_dicom_frames(d, f"phase_dirs[{j}]") for j, d in enumerate(phase_dirs)]
-    mag, times, ds0 = _read_dicom_frames(magnitude_dir, "magnitude_dir")
-    phases = []
-    for j, (img, _, _) in enumerate(series):
-        if img.shape != mag.shape:
-            raise ValueError(f"phase_dirs[{j}]: expected the magnitude's shape {mag.shape}, got {img.shape}")
-        if phase_range is not None:
-            lo, hi = (float(v) for v in phase_range)
-            if not hi > lo:
-                raise ValueError(f"phase_range: expected lo < hi, got {phase_range!r}")
-            img = -np.pi + 2 * np.pi * (img - lo) / (hi - lo)
-        elif np.abs(img).max() > np.pi + PHASE_TOLERANCE:
-            raise ValueError(f"phase_dirs[{j}]: expected phases in radians within +-pi, got values up to "
-                             f"{float(np.abs(img).max()):.4g}; give phase_range, e.g. (-4096, 4096)")
-        phases.append(img)
-    if not hasattr(ds0, "PixelSpacing"):
-        raise ValueError("magnitude_dir: expected PixelSpacing (mm) in the DICOM files, not found")
-    ps = [float(v) for v in ds0.PixelSpacing]
-    if not np.isclose(ps[0], ps[1], rtol=1e-3):
-        raise ValueError(f"PixelSpacing: expected square pixels, got {ps} mm")
-    if not np.all(np.isfinite(times)):
-        raise ValueError("magnitude_dir: expected TriggerTime (ms) in every DICOM file, not found")
-    return make_dense_case(phases=np.stack(phases), magnitude=mag, masks=masks, pixel_size_mm=ps[0],
-                           ke_cycles_per_mm=ke_cycles_per_mm, frame_times_s=times * 1e-3, directions=directions,
-                           provenance=f"DENSE DICOM {list(map(os.fspath, phase_dirs))}, {os.fspath(magnitude_dir)}")
 
 
 # ------------------------------------------------------------------------------------------- noise
@@ -701,6 +440,115 @@ def reference_points(mask) -> np.ndarray:
     """(P, 2) pixel centres (x = column, y = row) of a mask's pixels, in row-major order."""
     rows, cols = np.nonzero(np.asarray(mask, bool))
     return np.column_stack([cols, rows]).astype(float)
+
+
+def tracks_on_pixel_grid(points, displacement, frame_times_s, sd, confidence=None,
+                         reference_mask=None) -> tuple:
+    """Tracks of points on the pixel grid as the DENSE route takes them, with their reference mask.
+
+    The DENSE route (:func:`sfem_filters.cardiac.dense_strain`) and the conventional analysis
+    (finite differences on the reference pixel grid) take the reference myocardium's pixels, in
+    row-major order, as the tracked points. So the points must be pixel centres (whole numbers,
+    within 1e-6 px), distinct and >= 0; they are put in row-major order (the data with them).
+    The mask is ``reference_mask`` when given (its tissue pixels must be exactly the points),
+    else the points' pixels in an image with two background pixels beyond the largest point in
+    each axis.
+
+    Parameters
+    ----------
+    points : (P, 2) array
+        Reference positions (pixels, x = column, y = row).
+    displacement : (F, P, 2) array
+        Lagrangian displacement (pixels); NaN where a point was not tracked.
+    frame_times_s : (F,) array
+        Frame times (s), increasing.
+    sd : float, (P,), (F, P) or (F, P, 2) array
+        Noise sd of each displacement component (pixels, > 0); the shapes without the last
+        axis give both components the same sd.
+    confidence : float, (P,) or (F, P) array, optional
+        Confidence in [0, 1] of each datum; default 1.
+    reference_mask : (H, W) bool array, optional
+
+    Returns
+    -------
+    (LagrangianDisplacement, (H, W) bool array)
+        The tracks (``noise_sd`` NaN: no image noise behind them) and the reference mask.
+
+    >>> import numpy as np
+    >>> pts = np.array([[2.0, 1.0], [0.0, 0.0], [1.0, 1.0]])          # (x, y), not in row-major order
+    >>> t, mask = tracks_on_pixel_grid(pts, np.zeros((3, 3, 2)), [0.0, 0.1, 0.2], sd=0.1)
+    >>> t.points.tolist(), mask.astype(int).tolist()[:3]
+    ([[0.0, 0.0], [1.0, 1.0], [2.0, 1.0]], [[1, 0, 0, 0, 0], [0, 1, 1, 0, 0], [0, 0, 0, 0, 0]])
+    """
+    X = as_float_array("points", points, shape=(None, 2))
+    P = len(X)
+    if P == 0:
+        raise ValueError("points: expected at least one point, got none")
+    d = as_float_array("displacement", displacement, shape=(None, P, 2), allow_nan=True)
+    F = d.shape[0]
+    times = as_float_array("frame_times_s", frame_times_s, shape=(F,))
+    if F > 1 and np.any(np.diff(times) <= 0):
+        raise ValueError(f"frame_times_s: expected increasing frame times (s), got {times.tolist()}")
+    off = float(np.max(np.abs(X - np.round(X))))
+    if off > 1e-6:
+        raise ValueError(f"points: expected pixel centres (whole numbers of pixels, x = column, y = row), as the DENSE "
+                         f"route and the finite differences need, got points up to {off:.3g} px off the pixel grid")
+    ij = np.round(X).astype(int)
+    if ij.min() < 0:
+        raise ValueError(f"points: expected pixel positions >= 0, got {int(ij.min())}")
+    order = np.lexsort((ij[:, 0], ij[:, 1]))                       # row-major: by row (y), then column (x)
+    ij, d = ij[order], d[:, order]
+    dup = np.flatnonzero(np.all(np.diff(ij, axis=0) == 0, axis=1))
+    if dup.size:
+        raise ValueError(f"points: expected distinct pixels, got {dup.size} repeated (first at x, y = "
+                         f"{ij[dup[0]].tolist()})")
+    if reference_mask is None:
+        mask = np.zeros((ij[:, 1].max() + 3, ij[:, 0].max() + 3), bool)
+    else:
+        mask = as_mask("reference_mask", reference_mask, 2)
+        inside = (ij[:, 1] < mask.shape[0]) & (ij[:, 0] < mask.shape[1])
+        on = np.zeros(P, bool)
+        on[inside] = mask[ij[inside, 1], ij[inside, 0]]
+        if not on.all() or mask.sum() != P:
+            raise ValueError(f"reference_mask: expected its tissue pixels to be exactly the points (the DENSE route "
+                             f"observes every reference pixel), got {int((~on).sum())} of {P} points off its tissue "
+                             f"and {int(mask.sum())} tissue pixels")
+        mask = np.zeros(mask.shape, bool)
+    mask[ij[:, 1], ij[:, 0]] = True
+    s = np.asarray(sd, float)
+    if s.ndim == 1:
+        s = s[order][None, :, None]
+    elif s.ndim == 2:
+        s = s[:, order][..., None]
+    elif s.ndim == 3:
+        s = s[:, order]
+    try:
+        s = np.array(np.broadcast_to(s, (F, P, 2)), float)
+    except ValueError:
+        raise ValueError(f"sd: expected a number, (P,), (F, P) or (F, P, 2) with F = {F}, P = {P}, got shape "
+                         f"{np.shape(sd)}") from None
+    tracked = np.isfinite(d).all(axis=2)
+    if np.any(~(s[tracked] > 0)):
+        raise ValueError("sd: expected positive noise sd (pixels) of every tracked datum")
+    c = np.ones(P) if confidence is None else np.asarray(confidence, float)
+    if c.ndim == 1:
+        c = c[order]
+    elif c.ndim == 2:
+        c = c[:, order]
+    try:
+        c = np.array(np.broadcast_to(c, (F, P)), float)
+    except ValueError:
+        raise ValueError(f"confidence: expected a number, (P,) or (F, P) with F = {F}, P = {P}, got shape "
+                         f"{np.shape(confidence)}") from None
+    if np.any((c < 0) | (c > 1)):
+        raise ValueError("confidence: expected values in [0, 1]")
+    s[~tracked] = np.nan
+    c[~tracked] = np.nan
+    d = np.where(tracked[..., None], d, np.nan)
+    tracks = LagrangianDisplacement(points=ij.astype(float), displacement=d, sd=s, confidence=c,
+                                    frame_times_s=times, n_untracked=int((~tracked).sum()),
+                                    noise_sd=np.full(2, np.nan))
+    return tracks, mask
 
 
 def truth_at_points(case: DenseCase) -> tuple:

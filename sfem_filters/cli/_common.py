@@ -1,0 +1,130 @@
+"""What the verbs of the command line share: the argument types (an error says what was expected,
+never argparse's "invalid <function name> value"), the options of several verbs, the progress
+switch, the command line's own one-line messages and the JSON files it writes."""
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+
+from .._io import write_json
+from ..cardiac.effects import CATALOGUE
+
+
+def _integer(text: str, expected: str) -> int:
+    """``int(text)``, or an argparse error saying what was expected (never argparse's
+    "invalid <function name> value", which names our internals)."""
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}") from None
+
+
+def _seeds(text: str) -> list:
+    expected = "seeds like 0 or 0,1,2 or 0-4 (non-negative integers)"
+    out = []
+    for part in text.split(","):
+        part = part.strip()
+        if "-" in part[1:]:
+            a, b = part.split("-", 1)
+            out.extend(range(_integer(a, expected), _integer(b, expected) + 1))
+        else:
+            out.append(_integer(part, expected))
+    if not out or min(out) < 0:
+        raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}")
+    return out
+
+
+def _number(text: str, ok, expected: str) -> float:
+    """``float(text)`` if it is finite and ``ok(value)``, else an argparse error saying what was expected."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not math.isfinite(value) or not ok(value):
+        raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}")
+    return value
+
+
+def _positive_float(text: str) -> float:
+    return _number(text, lambda v: v > 0, "a positive number")
+
+
+def _finite_float(text: str) -> float:
+    return _number(text, lambda v: True, "a finite number")
+
+
+def _non_negative_float(text: str) -> float:
+    return _number(text, lambda v: v >= 0, "a number >= 0")
+
+
+def _non_negative_int(text: str) -> int:
+    v = _integer(text, "an integer >= 0")
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}")
+    return v
+
+
+def _positive_int(text: str) -> int:
+    v = _integer(text, "an integer >= 1")
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {text!r}")
+    return v
+
+
+def _landmarks(text: str) -> int:
+    v = _integer(text, "an integer >= 3 (landmarks per contour)")
+    if v < 3:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 3 (landmarks per contour), got {text!r}")
+    return v
+
+
+def _folds(text: str) -> int:
+    v = _integer(text, "an integer >= 2")
+    if v < 2:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 2, got {text!r}")
+    return v
+
+
+def _names(text: str) -> list:
+    """A comma list of catalogue effects."""
+    names = [n.strip() for n in text.split(",") if n.strip()]
+    unknown = [n for n in names if n not in CATALOGUE]
+    if not names or unknown:
+        raise argparse.ArgumentTypeError(f"expected a comma list of effects from {sorted(CATALOGUE)}, got {text!r}")
+    return names
+
+
+def _batch_options(p, unit: str, workers_help: str = "") -> None:
+    p.add_argument("--scheduler", metavar="local|serial|ADDRESS",
+                   help=f"run the {unit}s as a batch: 'local' (default with more than one {unit}: a Dask LocalCluster, "
+                        "one worker process per core, one thread each), 'serial' (this process) or the address of a "
+                        "running Dask scheduler, e.g. tcp://host:8786 (a cluster, or SLURM through dask-jobqueue)")
+    p.add_argument("--workers", type=_positive_int,
+                   help="worker processes of --scheduler local (default: one per core)" + workers_help)
+    p.add_argument("--batch-dir", metavar="DIR",
+                   help="result folder of a batch: a JSON per job and table.csv; jobs with a result there for the "
+                        "same configuration are skipped, so a rerun resumes (default "
+                        "out/batch/<command>-<config hash>)")
+
+
+def _progress_options(p, what: str) -> None:
+    """``--quiet`` and ``--no-progress`` of a verb that shows progress on stderr (``what``)."""
+    p.add_argument("-q", "--quiet", action="store_true",
+                   help=f"for scripts: no progress on stderr ({what}); the results, errors and warnings are still "
+                        "printed. Implies --no-progress")
+    p.add_argument("--no-progress", action="store_true", help="no progress on stderr: the same as --quiet")
+
+
+def _progress(args) -> bool:
+    """Whether the verb shows its progress on stderr: not with ``--quiet`` nor ``--no-progress``."""
+    return not (getattr(args, "quiet", False) or getattr(args, "no_progress", False))
+
+
+def _message(command: str, kind: str, text: str) -> None:
+    """One line of the command line's own on stderr: ``sfem-filters COMMAND: KIND: TEXT``."""
+    print(f"sfem-filters {command}: {kind}: {text}", file=sys.stderr)
+
+
+def _write_json(path, payload):
+    print(f"wrote {write_json(path, payload)}", file=sys.stderr)

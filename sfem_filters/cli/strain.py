@@ -1,0 +1,163 @@
+"""``sfem-filters strain``: DENSE images (or tracked pixels) -> Green-Lagrange strain of every reference
+pixel with its sd and 95% bands, beside the conventional analysis and the thin-plate spline. What
+PATH is and how it is read: :mod:`sfem_filters.cli.strain_input`."""
+from __future__ import annotations
+
+import sys
+import time
+
+import numpy as np
+
+from ..cardiac import StrainRouteSettings, dense_strain
+from ..cardiac.contours_route import ContourRouteSettings, contour_spline_strain, contour_strain
+from ..imaging import conventional_from_displacement, mask_centre, truth_at_points
+from ..imaging.spline_strain import spline_strain
+from ..imaging.strain_report import spline_block, strain_csv, truth_block, with_peaks
+from ..plotting.strain import strain_figures
+from ._common import _finite_float, _message, _non_negative_float, _non_negative_int, _positive_float, \
+    _progress, _progress_options, _write_json
+from .strain_input import _strain_input
+
+
+def add_parser(sub) -> None:
+    """The ``strain`` subcommand and its options, on the subparsers ``sub``."""
+    s = sub.add_parser("strain", help="DENSE images (or tracked pixels) -> Green-Lagrange strain of every reference "
+                                      "pixel, with sd and 95%% bands, beside the conventional analysis",
+                       description="Phase to Lagrangian displacement of every reference myocardial pixel, the "
+                                   "finite-element smoother on a mesh chosen apart from the pixels, Green-Lagrange "
+                                   "strain (radial and circumferential about the reference myocardium's centre of "
+                                   "mass) with its sd, global and six-segment curves with 95% bands; the "
+                                   "conventional analysis (finite differences) and the thin-plate spline through "
+                                   "the same observed points in the same run. JSON keys: points, frame_times_s, "
+                                   "strain, global, segments, conventional, spline, truth (when the case has one), "
+                                   "peaks, seconds, route, settings "
+                                   "(the docs' validation page 'Strain against DENSE-Sim's ground truth' scores it). "
+                                   "PATH is a DENSE-Sim case folder, a folder of DENSE DICOM files (give --ke and "
+                                   "--masks) or a sequence .npz of points on the pixel grid (the how-to page "
+                                   "'Formats and readers' has the layouts).")
+    s.add_argument("path", help="a DENSE-Sim case folder (phase_x.npy, phase_y.npy, magnitude.npy, "
+                                "LV_mask_time_lowres.npy, config.yaml); or a folder of DENSE DICOM files, one file "
+                                "per frame, its series told apart by ImageComments as scanners export them ('DENSE "
+                                "x-enc pha ...', 'DENSE y-enc pha ...', 'DENSE overall mag ...'), else in the "
+                                "sub-folders phase_x, phase_y and magnitude (needs --ke and --masks); or a sequence "
+                                ".npz whose points are reference pixel centres (pixel_spacing and frame_interval or "
+                                "frame_times_s required; its tracks are the data, the conventional analysis is their "
+                                "finite differences)")
+    s.add_argument("--json", required=True, metavar="OUT", help="write the strain report (JSON) to OUT")
+    s.add_argument("--route", choices=("dense", "contours"), default="dense",
+                   help="dense (default): from the DENSE phase; contours: from the masks alone (tracked "
+                        "endo- and epicardial borders, the interior from the physics; no phase)")
+    s.add_argument("--segment-start", type=_finite_float, default=0.0, metavar="DEG",
+                   help="start of segment 0: degrees about the centre from the image's +x axis towards +y "
+                        "(default 0; the anterior RV insertion when you know it)")
+    s.add_argument("--conventional-sigma", type=_non_negative_float, default=1.0, metavar="PX",
+                   help="Gaussian smoothing (pixels, inside the mask) of the conventional analysis beside ours "
+                        "(default 1; 0 none)")
+    s.add_argument("--ke", type=_positive_float, metavar="CYCLES_PER_MM",
+                   help="DICOM folders (required there): the DENSE encoding frequency in cycles/mm (e.g. 0.1)")
+    s.add_argument("--masks", metavar="FILE.npy",
+                   help="DICOM folders (required there): the myocardium mask(s), boolean or 0/1, rows = y, columns = "
+                        "x: (H, W) the reference (also used as every frame's mask; a warning says so), (F, H, W) "
+                        "each frame's (the reference taken as frame 0's) or (F + 1, H, W) the reference then each "
+                        "frame's")
+    s.add_argument("--directions", type=_finite_float, nargs=4, metavar=("X0", "Y0", "X1", "Y1"),
+                   help="DICOM folders: the unit vectors (x = column, y = row) of the x-enc and y-enc encodings "
+                        "(default 1 0 0 1: along the columns and the rows)")
+    s.add_argument("--phase-range", type=_finite_float, nargs=2, metavar=("LO", "HI"),
+                   help="DICOM folders: the rescaled phase values (after RescaleSlope and RescaleIntercept) that map "
+                        "to -pi and +pi, e.g. -4096 4094 for 12-bit phase with slope 2 and intercept -4096 "
+                        "(default: the rescaled values are radians)")
+    s.add_argument("--snr", type=_positive_float, metavar="SNR",
+                   help="add complex Gaussian noise first (SNR = mean myocardial magnitude / noise sd), as the "
+                        "validation does; default none (images only: a sequence has no images)")
+    s.add_argument("--seed", type=_non_negative_int, default=0, help="seed of --snr's noise (default 0)")
+    s.add_argument("--csv", metavar="PATH",
+                   help="also write the report as one tidy CSV table (one row per method, region = pixel, global "
+                        "or segment, frame and component; PATH ending .gz is compressed); see the how-to page "
+                        "'Command-line recipes'")
+    s.add_argument("--figures", metavar="DIR",
+                   help="write the figures (PNG) into DIR: segment and global curves with 95%% bands against "
+                        "the conventional analysis, the spline (and the ground truth when the case has one), "
+                        "rings of peak strain and time to peak")
+    _progress_options(s, "a line per step of the route")
+
+
+def cmd_strain(args) -> int:
+    say = (lambda m: _message("strain", "progress", m)) if _progress(args) else (lambda m: None)
+    t0 = time.perf_counter()
+    src = _strain_input(args, say)
+    case, tracks = src["case"], src["tracks"]
+    if args.route == "contours":       # the masks alone (no phase): tracked borders, interior from the physics
+        if src["masks"] is None:
+            raise ValueError("--route contours: expected the myocardium masks of the reference and of every frame; the "
+                             "sequence file has no reference_mask and frame_masks (use --route dense)")
+        ours = contour_strain(src["masks"], src["pixel_size_m"], src["frame_times_s"],
+                              ContourRouteSettings(start_deg=args.segment_start), progress=say)
+    else:
+        ours = dense_strain(tracks, src["reference_mask"], src["pixel_size_m"],
+                            StrainRouteSettings(start_deg=args.segment_start), progress=say)
+    centre = ours.centre if ours.centre is not None else mask_centre(src["reference_mask"])
+    conv = conventional_from_displacement(tracks, centre, sigma=args.conventional_sigma, start_deg=args.segment_start)
+    out = ours.to_dict()
+    if args.route == "contours":
+        say("thin-plate spline through the same tracked contour landmarks")
+        out["spline"] = spline_block(contour_spline_strain(ours), "the tracked contour landmarks (the points the "
+                                     "contours route observes, their full tracked displacement), each component "
+                                     "with the larger of the landmark's normal and tangential sd")
+
+    def js(a):
+        a = np.asarray(a, float)
+        return np.where(np.isfinite(a), a.astype(object), None).tolist()
+    out["conventional"] = {
+        "what": src["conventional"],
+        "smoothing_sigma_px": args.conventional_sigma,
+        "strain": {k: js(getattr(conv.strain, k)) for k in ("Ecc", "Err", "Ecr")},
+        "global": {"Ecc": js(conv.global_Ecc), "Err": js(conv.global_Err)},
+        "segments": {"start_deg": conv.start_deg, "Ecc": js(conv.segments_Ecc), "Err": js(conv.segments_Err)}}
+    out["settings"] = {**out["settings"], "input": src["input"], "noise_snr": args.snr,
+                       "noise_seed": args.seed if args.snr else None,
+                       "untracked_point_frames": int(tracks.n_untracked)}
+    if "spline" not in out:
+        out["spline"] = _dense_spline(tracks, ours.centre, args.segment_start, say)
+    out["seconds"] = time.perf_counter() - t0
+    g = ours.global_curves
+    peak_cc, peak_rr = int(np.nanargmin(g["Ecc"])), int(np.nanargmax(g["Err"]))
+    print(f"{len(ours.points)} reference pixels x {len(ours.frame_times_s)} frames; global peak Ecc "
+          f"{100 * g['Ecc'][peak_cc]:.2f}% (95% {100 * g['Ecc_lo'][peak_cc]:.2f} to {100 * g['Ecc_hi'][peak_cc]:.2f}) "
+          f"at {ours.frame_times_s[peak_cc]:.3f} s, Err {100 * g['Err'][peak_rr]:.2f}% "
+          f"(95% {100 * g['Err_lo'][peak_rr]:.2f} to {100 * g['Err_hi'][peak_rr]:.2f}) at "
+          f"{ours.frame_times_s[peak_rr]:.3f} s; conventional (sigma {args.conventional_sigma:g} px) "
+          f"{100 * np.nanmin(conv.global_Ecc):.2f}% / {100 * np.nanmax(conv.global_Err):.2f}%; {out['seconds']:.0f} s")
+    out = _strain_extras(case, out, say)
+    _write_json(args.json, out)
+    if args.csv:
+        say(f"writing the CSV table {args.csv}")
+        print(f"wrote {strain_csv(out, args.csv)}", file=sys.stderr)
+    if args.figures:
+        say(f"drawing the figures into {args.figures}")
+        for p in strain_figures(out, args.figures):
+            print(f"wrote {p}", file=sys.stderr)
+        if "material" not in out:
+            say("no stiffness figure: the route holds the material fixed (its settings say so), so there is no "
+                "stiffness per segment with an sd to draw")
+    return 0
+
+
+def _dense_spline(tracks, centre, start_deg: float, say) -> dict:
+    """The yardstick of the DENSE route: the thin-plate spline through the same observed points (every
+    tracked reference pixel, with the tracks' sd), its strain at the reference pixels, as the ``spline`` block."""
+    say("thin-plate spline through the same observed points (the tracked reference pixels)")
+    s = spline_strain(tracks.points, tracks.displacement, tracks.points, sd_px=tracks.sd, centre=centre,
+                      start_deg=start_deg, frame_times_s=tracks.frame_times_s)
+    return spline_block(s, "the tracked reference pixels (every datum the dense route observes), with their sd")
+
+
+def _strain_extras(case, out: dict, say) -> dict:
+    """The strain report with the case's ground truth as a ``truth`` block (when it has one) and the
+    peaks and times to peak of every method's curves (``peaks`` in each block)."""
+    if case is not None and case.has_truth and out.get("centre") is not None:
+        say("ground truth of the case at the reference pixels")
+        te, tr = truth_at_points(case)
+        out["truth"] = truth_block(te, tr, out["points"], out["centre"], out["segments"]["start_deg"],
+                                   source="DENSE-Sim GT_Ecc, GT_Err")
+    return with_peaks(out)

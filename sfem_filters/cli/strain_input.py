@@ -1,0 +1,151 @@
+"""What ``sfem-filters strain`` reads from PATH: a DENSE-Sim case folder, a folder of DENSE DICOM files
+or a sequence ``.npz`` of points on the pixel grid, each turned into Lagrangian tracks (pixels), the
+reference mask, the pixel size and the frame times; an error names the command's argument."""
+from __future__ import annotations
+
+import os
+import re
+
+import numpy as np
+
+from ..cardiac import load_sequence
+from ..cardiac.strain_route import temporal_noise_floor
+from ..imaging import (add_complex_noise, phase_to_displacement, read_dense_dicom_folder, read_dense_sim,
+                       tracks_on_pixel_grid)
+
+
+_IMAGE_ONLY = (("ke", "--ke"), ("masks", "--masks"), ("directions", "--directions"), ("phase_range", "--phase-range"))
+_DICOM_ARGUMENTS = {"ke_cycles_per_mm": "--ke", "masks": "--masks", "directions": "--directions",
+                    "phase_range": "--phase-range"}
+_CASE_FILES = "config.yaml, phase_x.npy, phase_y.npy, magnitude.npy and LV_mask_time_lowres.npy"
+
+
+def _strain_input(args, say) -> dict:
+    """What ``strain`` reads from PATH: a DENSE-Sim case folder, a DENSE DICOM folder or a sequence ``.npz``.
+
+    Returns a dict: ``case`` (the :class:`~sfem_filters.imaging.DenseCase`, ``None`` for a
+    sequence), ``tracks`` (Lagrangian, pixels), ``reference_mask``, ``masks`` ((F + 1, H, W) for
+    the contours route, or ``None``), ``pixel_size_m``, ``frame_times_s``, ``conventional`` (what
+    the conventional analysis is) and ``input`` (the settings block that says what was read)."""
+    path = args.path
+    if os.path.isfile(path):
+        return _sequence_input(args, say)
+    if not os.path.isdir(path):
+        raise ValueError(f"path: expected a DENSE-Sim case folder, a folder of DENSE DICOM files or a sequence .npz, "
+                         f"got {path!r} (no such file or folder)")
+    say(f"reading {path}")
+    if os.path.isfile(os.path.join(path, "config.yaml")):
+        given = [flag for name, flag in _IMAGE_ONLY if getattr(args, name) is not None]
+        if given:
+            raise ValueError(f"{given[0]}: is for DICOM folders; a DENSE-Sim case folder carries its own ke "
+                             f"(config.yaml), masks and directions")
+        case = read_dense_sim(path)
+        info = {"kind": "DENSE-Sim case folder", "path": path}
+    elif _has_dicom_file(path):
+        case, info = _dicom_case(args, path)
+    else:
+        raise ValueError(f"path: expected a DENSE-Sim case folder with {_CASE_FILES}, a folder of DENSE DICOM files or "
+                         f"a sequence .npz, got {path!r}")
+    if args.snr is not None:
+        say(f"adding complex noise at SNR {args.snr:g} (seed {args.seed})")
+        case = add_complex_noise(case, args.snr, args.seed)
+    say("phase to Lagrangian displacement")
+    tracks = phase_to_displacement(case)
+    return {"case": case, "tracks": tracks, "reference_mask": case.reference_mask, "masks": case.masks,
+            "pixel_size_m": case.pixel_size_m, "frame_times_s": case.frame_times_s, "input": info,
+            "conventional": "finite-difference Green-Lagrange strain on the reference pixel grid of the Lagrangian "
+                            "tracks from the unwrapped phase (the same tracks the DENSE route observes)"}
+
+
+def _has_dicom_file(folder: str) -> bool:
+    """Whether a file under ``folder`` carries the DICOM preamble (``DICM`` at byte 128)."""
+    for root, _, files in os.walk(folder):
+        for name in files:
+            try:
+                with open(os.path.join(root, name), "rb") as fh:
+                    fh.seek(128)
+                    if fh.read(4) == b"DICM":
+                        return True
+            except OSError:
+                continue
+    return False
+
+
+def _dicom_case(args, path: str) -> tuple:
+    """The :class:`~sfem_filters.imaging.DenseCase` of a DENSE DICOM folder; errors name the CLI arguments."""
+    if args.ke is None:
+        raise ValueError("--ke: expected the DENSE encoding frequency in cycles/mm for a DICOM folder (DICOM has no "
+                         "standard tag for it), e.g. --ke 0.1")
+    if args.masks is None:
+        raise ValueError("--masks: expected a .npy file of the myocardium mask(s) for a DICOM folder (DICOM carries "
+                         "none): (H, W) the reference, (F, H, W) each frame's or (F + 1, H, W) the reference then "
+                         "each frame's")
+    if not os.path.isfile(args.masks):
+        raise ValueError(f"--masks: expected a .npy file of myocardium masks, got {args.masks!r} (no such file)")
+    try:
+        masks = np.load(args.masks, allow_pickle=False)
+    except (OSError, ValueError, EOFError) as exc:
+        raise ValueError(f"--masks: expected a .npy file of boolean (or 0/1) masks, could not read {args.masks!r} "
+                         f"({exc})") from None
+    if not isinstance(masks, np.ndarray):
+        masks.close()
+        raise ValueError(f"--masks: expected a .npy file (one array), got an .npz archive {args.masks!r}")
+    directions = None if args.directions is None else np.reshape(args.directions, (2, 2))
+    try:
+        case = read_dense_dicom_folder(path, masks, args.ke, directions=directions, phase_range=args.phase_range)
+    except ValueError as exc:       # the library names its parameters; say the command's arguments
+        text = re.sub(r"^(masks|directions):", lambda m: _DICOM_ARGUMENTS[m.group(1)] + ":", str(exc))
+        raise ValueError(re.sub(r"\b(ke_cycles_per_mm|phase_range)\b", lambda m: _DICOM_ARGUMENTS[m.group(1)],
+                                text)) from None
+    info = {"kind": "DENSE DICOM folder", "path": path, "provenance": case.provenance, "ke_cycles_per_mm": args.ke,
+            "masks": args.masks, "directions": case.directions.tolist(),
+            "phase_range": None if args.phase_range is None else list(args.phase_range)}
+    return case, info
+
+
+def _sequence_input(args, say) -> dict:
+    """A sequence ``.npz`` as the strain routes take it: its points on the pixel grid, its tracks the data."""
+    given = [flag for name, flag in _IMAGE_ONLY + (("snr", "--snr"),) if getattr(args, name) is not None]
+    if given:
+        raise ValueError(f"{given[0]}: is for DENSE images (a DENSE-Sim case or a DICOM folder); {args.path!r} is a "
+                         f"sequence file, whose tracks are the data")
+    say(f"reading the sequence {args.path}")
+    seq = load_sequence(args.path)
+    if seq.units != "px":
+        raise ValueError(f"{args.path}: units: expected 'px' (points as reference pixel centres, as the strain routes "
+                         f"need), got {seq.units!r}")
+    if seq.pixel_spacing is None:
+        raise ValueError(f"{args.path}: missing pixel_spacing (m): the strain routes need the pixel size; save the "
+                         f"sequence with pixel_spacing")
+    F = seq.n_frames
+    if "frame_times_s" in seq.extra:
+        times = np.asarray(seq.extra["frame_times_s"], float)
+        if times.shape != (F,):
+            raise ValueError(f"{args.path}: frame_times_s: expected {F} frame times (s), got shape {times.shape}")
+        time_source = "frame_times_s"
+    elif seq.frame_interval is not None:
+        times = np.arange(F) * seq.frame_interval
+        time_source = "frame_interval: frame f at f * frame_interval"
+    else:
+        raise ValueError(f"{args.path}: missing frame_interval (s) (or frame_times_s, (F,) s): the strain routes need "
+                         f"the frame times")
+    if seq.sigma is not None:
+        sd, sd_source = seq.sigma, "sigma (both components)"
+    else:
+        sd = temporal_noise_floor(seq.displacement)
+        sd_source = f"no sigma in the file: the tracks' temporal noise floor, {sd:.4g} px, for every datum"
+    try:
+        tracks, mask = tracks_on_pixel_grid(seq.points, seq.displacement, times, sd, seq.confidence,
+                                            seq.reference_mask)
+    except ValueError as exc:
+        raise ValueError(f"{args.path}: {exc}") from None
+    masks = None
+    if seq.reference_mask is not None and seq.frame_masks is not None:
+        masks = np.concatenate([mask[None], seq.frame_masks])
+    info = {"kind": "sequence file", "path": args.path, "provenance": seq.provenance, "frame_times": time_source,
+            "sd": sd_source, "reference_mask": "reference_mask" if seq.reference_mask is not None else
+            "the points' pixels", "points_reordered": bool(not np.array_equal(tracks.points, seq.points))}
+    return {"case": None, "tracks": tracks, "reference_mask": mask, "masks": masks,
+            "pixel_size_m": seq.pixel_spacing, "frame_times_s": times, "input": info,
+            "conventional": "finite-difference Green-Lagrange strain of the sequence's tracks on the reference pixel "
+                            "grid (no images: the tracks are the data)"}
