@@ -9,6 +9,7 @@ for the image front end. Sequences are in pixels, as measured ones are.
 from __future__ import annotations
 
 import numpy as np
+import scipy.sparse as sp
 from matplotlib.path import Path
 
 from ..fem.dofs import node_dofs
@@ -31,7 +32,8 @@ def annulus_mask(r_inner: float = 8.0, r_outer: float = 12.0, size: int = 32) ->
 def annulus_sequence(effect=None, amplitude=(0.15, -0.3), seed: int = 0, n_frames: int = 24,
                      noise_px: float = 0.05, landmark_step_px: float = 0.15, landmarks: int = 8,
                      frame_interval: float = 0.03, pixel_spacing: float = 1e-3, return_truth: bool = False,
-                     beta: float | None = None, material=None, drive: str = "penalty", peak_pressure: float = 2e3):
+                     beta: float | None = None, material=None, drive: str = "penalty", peak_pressure: float = 2e3,
+                     truth_element_px: float | None = None):
     """A sequence drawn from the filter's own generative model on a synthetic annulus.
 
     Every pixel of :func:`annulus_mask` is a point. The motion follows exactly the model that
@@ -55,6 +57,13 @@ def annulus_sequence(effect=None, amplitude=(0.15, -0.3), seed: int = 0, n_frame
     (whose random spring loads act through the nominal material's dynamics), so that a model
     estimating the material is right about everything else.
 
+    ``truth_element_px`` (pixels) draws the motion on a mesh chosen apart from the pixels instead
+    (:func:`sfem_filters.cardiac.myocardium.polar_mesh` with edges of about that size, finer than
+    any estimator's), sampled at the pixel centres through its shape functions, the springs pulling
+    at the landmarks through them too: then every estimator's mesh, the node-per-pixel one
+    included, pays its own discretisation error (no inverse crime in favour of the generator's
+    mesh). The default ``None`` draws on the node-per-pixel mesh, as every frozen result so far.
+
     Returns a :class:`sfem_filters.cardiac.sequence.Sequence` in pixels; with ``return_truth`` also a
     dict of the noise-free ``displacement`` (F, P, 2) px and ``velocity`` (F, P, 2) px/s.
     """
@@ -72,7 +81,13 @@ def annulus_sequence(effect=None, amplitude=(0.15, -0.3), seed: int = 0, n_frame
     extra = {"pressure": peak_pressure * bell} if drive == "pressure" else {}
     stub = make_sequence(pts, np.zeros((n_frames, len(pts), 2)), frame_interval=frame_interval,
                          pixel_spacing=pixel_spacing, reference_mask=mask, **extra)
-    setup = measured.prepare(stub, landmarks)
+    if truth_element_px is None:
+        setup = measured.prepare(stub, landmarks)
+    else:
+        if not (np.isfinite(truth_element_px) and truth_element_px > 0):
+            raise ValueError(f"truth_element_px: expected a positive element size in pixels or None, "
+                             f"got {truth_element_px!r}")
+        setup = measured.prepare(stub, landmarks, mesh="polar", element_px=float(truth_element_px))
     setup.noise_px = noise_px
     opts = {"landmark_step_px": landmark_step_px, "beta": beta}
     model, _ = measured.build_model(setup, (), drive, "none", **opts)
@@ -95,7 +110,11 @@ def annulus_sequence(effect=None, amplitude=(0.15, -0.3), seed: int = 0, n_frame
     k = measured.NOMINAL["penalty"] * np.median(stiffness_matrix(
         setup.mesh, measured.NOMINAL["E"] * np.ones(setup.mesh.n_elements),
         measured.NOMINAL["nu"] * np.ones(setup.mesh.n_elements)).diagonal())
-    lm_dofs = node_dofs(setup.landmarks)
+    # the springs' pull at the landmarks: on their nodes, or through the shape functions (D^T k b)
+    spread = (sp.csr_matrix((np.ones(2 * len(setup.landmarks)), (node_dofs(setup.landmarks),
+                                                                   np.arange(2 * len(setup.landmarks)))),
+                            shape=(n_dofs, 2 * len(setup.landmarks)))
+              if setup.interpolation is None else measured.point_rows(setup, setup.landmarks).T.tocsr())
     x = model.x0[:nx].copy()
     disp = np.empty((n_frames, len(pts), 2))
     true_u = np.empty_like(disp)
@@ -103,19 +122,20 @@ def annulus_sequence(effect=None, amplitude=(0.15, -0.3), seed: int = 0, n_frame
     for t in range(n_frames):
         if t > 0:
             if drive == "penalty":
-                w = np.zeros(n_dofs)
-                w[lm_dofs] = k * disp[t - 1][setup.landmarks].reshape(-1) * s      # measured, previous frame
+                w = spread @ (k * disp[t - 1][setup.landmarks].reshape(-1) * s)    # measured, previous frame
             else:
                 w = model.loads[t].copy()
             w = w + G @ a[t]
             x = system.step(x, model.dofmap.restrict(w)) + L @ rng.standard_normal(nx)
-        U = model.displacements(x).reshape(-1, 2) / s
+        U = measured.at_points(setup, model.displacements(x).reshape(-1, 2)) / s
         true_u[t] = U
-        true_v[t] = model.velocities(x).reshape(-1, 2) / s
+        true_v[t] = measured.at_points(setup, model.velocities(x).reshape(-1, 2)) / s
         disp[t] = U + rng.standard_normal(U.shape) * noise_px / np.sqrt(2.0)
     seq = make_sequence(pts, disp, frame_interval=frame_interval, pixel_spacing=pixel_spacing,
                         reference_mask=mask, provenance=f"sfem_filters annulus_sequence(effect={effect!r}, "
-                                                        f"drive={drive!r}, seed={seed})", **extra)
+                                                        f"drive={drive!r}, seed={seed}"
+                                                        + (f", truth_element_px={truth_element_px!r})"
+                                                           if truth_element_px is not None else ")"), **extra)
     return (seq, {"displacement": true_u, "velocity": true_v}) if return_truth else seq
 
 
