@@ -31,7 +31,9 @@ the spline of its residual, and intervals for a difference of held-out errors),
 :mod:`~sfem_filters.cardiac.crossval` (cross-validation over the observed points),
 :mod:`~sfem_filters.cardiac.frontend` (images to a sequence, fusion),
 :mod:`~sfem_filters.cardiac.annulus` (synthetic sequences with a known answer),
-:mod:`~sfem_filters.cardiac.strain_route` (DENSE displacements to Green strain with its sd and banded curves),
+:mod:`~sfem_filters.cardiac.strain_route` (DENSE displacements to Green strain with its sd and banded curves;
+its mesh and model in :mod:`~sfem_filters.cardiac.dense_model`, its gradients and bands in
+:mod:`~sfem_filters.cardiac.strain_bands`),
 :mod:`~sfem_filters.cardiac.contours_route` (the same from myocardium masks alone: tracked borders, elastic interior).
 """
 from .annulus import annulus_mask, annulus_sequence, deformed_masks
@@ -74,6 +76,7 @@ from .myocardium import (
                        lv_geometry,
                        mesh_from_mask,
                        mesh_from_points,
+                       NotStarShapedError,
                        polar_mesh,
                        tissue_mesh,
 )
@@ -90,7 +93,7 @@ from .contours_route import ContourRouteSettings, ContourStrain, contour_spline_
 from .strain_route import DenseStrain, StrainRouteSettings, dense_strain
 
 __all__ = ["Sequence", "make_sequence", "load_sequence", "save_sequence", "example_path", "moved_on_lattice", "LVGeometry",
-           "lv_geometry", "mesh_from_points", "tissue_mesh", "polar_mesh", "mesh_from_mask", "contour_landmarks", "Effect", "CATALOGUE",
+           "lv_geometry", "mesh_from_points", "tissue_mesh", "polar_mesh", "NotStarShapedError", "mesh_from_mask", "contour_landmarks", "Effect", "CATALOGUE",
            "build_effects", "NOMINAL", "PARAMETERISATIONS", "DRIVES", "OBSERVE", "MESHES", "Setup", "Run", "prepare",
            "build_model", "run", "evaluate", "noise_floor", "strain_maps", "measured_wall_kinematics",
            "LoopResult", "Round", "Variant", "Search", "SEARCHES", "closing_the_loop", "candidate_loads", "format_report", "log_evidence",

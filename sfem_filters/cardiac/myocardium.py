@@ -363,6 +363,11 @@ def _winding(contour_xy, centre) -> tuple:
     return net, float(-step[step * np.sign(net) < 0].sum() * np.sign(net))
 
 
+class NotStarShapedError(ValueError):
+    """A contour that is not star-shaped about the cavity centre, which :func:`polar_mesh` cannot mesh
+    (a ray from the centre would cross it more than once): mesh through the points instead."""
+
+
 def polar_mesh(endo_xy, epi_xy, centre, size: float, margin: float = 0.0) -> TriMesh:
     """A structured mesh of the wall between two contours seen from the cavity centre.
 
@@ -391,9 +396,11 @@ def polar_mesh(endo_xy, epi_xy, centre, size: float, margin: float = 0.0) -> Tri
 
     Raises
     ------
+    NotStarShapedError
+        (a ValueError) Contours that are not star-shaped about the centre (a ray would cross one
+        twice), or a wall of non-positive thickness in some direction.
     ValueError
-        Contours that are not star-shaped about the centre (a ray would cross one twice), or a
-        wall of non-positive thickness in some direction.
+        A non-positive ``size``, a negative ``margin``, a contour of fewer than 3 points.
     """
     size = positive("size", size, "m")
     margin = float(as_float_array("margin", margin, shape=()))
@@ -407,7 +414,7 @@ def polar_mesh(endo_xy, epi_xy, centre, size: float, margin: float = 0.0) -> Tri
             raise ValueError(f"{name}: expected a closed contour of at least 3 points, got {len(xy)}")
         net, back = _winding(xy, c)
         if abs(abs(net) - 2 * np.pi) > 1e-6 or back > 0.2:
-            raise ValueError(f"{name}: expected a contour star-shaped about the cavity centre (winding once "
+            raise NotStarShapedError(f"{name}: expected a contour star-shaped about the cavity centre (winding once "
                              f"around it), got a net turn of {np.degrees(net):.0f} degrees with {np.degrees(back):.0f} "
                              "degrees backwards; use a mesh through the points instead")
         loops[name] = xy
@@ -415,7 +422,8 @@ def polar_mesh(endo_xy, epi_xy, centre, size: float, margin: float = 0.0) -> Tri
     r_in = radius_by_angle(loops["endo_xy"], c, probe) - margin
     r_out = radius_by_angle(loops["epi_xy"], c, probe) + margin
     if np.any(r_out - r_in <= 0) or np.any(r_in <= 0):
-        raise ValueError("epi_xy: expected the epicardium outside the endocardium in every direction from the centre")
+        raise NotStarShapedError("epi_xy: expected the epicardium outside the endocardium in every direction from "
+                                 "the centre")
     n = max(12, int(round(np.pi * np.mean(r_in + r_out) / size)))
     layers = max(2, int(round(np.mean(r_out - r_in) / size)))
     theta = 2 * np.pi * np.arange(n) / n

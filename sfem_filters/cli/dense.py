@@ -7,9 +7,10 @@ import sys
 
 from .. import batch
 from ..cardiac import closing, sequence     # closing.closing_the_loop, sequence.load_sequence: looked up when run
-from ..cardiac.closing import CRITERIA, LAPLACE, SEARCHES, SELECTIONS, not_converged_note
+from ..cardiac.closing import CRITERIA, LAPLACE, SEARCHES, SELECTIONS, STIFF_SPRINGS, not_converged_note
 from ..cardiac.effects import CATALOGUE, EXPLICIT_ONLY
 from ..cardiac.measured import DRIVES, ELEMENT_PX, ESTIMATORS, MESHES, OBSERVE, PARAMETERISATIONS
+from ..cardiac.myocardium import NotStarShapedError
 from ..export import export_dense
 from ..filtering.iterated import NOISE_LEVELS
 from ..plotting.measured import dense_figures
@@ -87,14 +88,15 @@ def add_parser(sub) -> None:
                    help="fixed: the measurement noise at the data's noise floor (default); estimate: every fit "
                         "chooses its level by type-II maximum likelihood (about 3-5 fits each; smoother and the "
                         "evidence criterion only)")
-    d.add_argument("--search", choices=tuple(SEARCHES), default="fast",
-                   help="fast (default): every fit of a round started from the current model's mode "
-                        "(--warm-start) and screened with 3 iterations, only the one kept fitted to the end "
-                        "(--screen-iterations 3), at most 40 iterations; coarse: the same on a mesh of the wall "
-                        "apart from the points (--mesh polar), faster, another discretisation; full: every fit to "
-                        "the end from the prior (--no-warm-start --screen-iterations 0, 20 iterations). The options "
-                        "below override the search's values; the docs' validation page 'Closing the loop: fast and "
-                        "full search' measures what each finds and costs")
+    d.add_argument("--search", choices=tuple(SEARCHES), default="coarse",
+                   help="coarse (default): on a mesh of the wall apart from the points (--mesh polar, 2-pixel "
+                        "edges; the points' own mesh where the wall is not star-shaped about its centre), every fit "
+                        "of a round started from the current model's mode (--warm-start) and screened with 3 "
+                        "iterations, only the one kept fitted to the end (--screen-iterations 3), at most 40 "
+                        "iterations; fast: the same on the node-per-point mesh, a few times slower; full: every fit "
+                        "to the end from the prior on the node-per-point mesh (--no-warm-start --screen-iterations "
+                        "0, 20 iterations). The options below override the search's values; the docs' validation "
+                        "page 'Closing the loop: fast and full search' measures what each finds and costs")
     d.add_argument("--mesh", choices=MESHES, default=None,
                    help="delaunay: Delaunay triangles, whose diagonal in each full pixel cell Qhull picks by the "
                         "coordinates (--search fast, full); radial: every diagonal towards the cavity "
@@ -110,6 +112,11 @@ def add_parser(sub) -> None:
     d.add_argument("--screen-iterations", type=_non_negative_int, default=None, metavar="N",
                    help="screen every fit of a round with at most N Gauss-Newton iterations and fit only the one "
                         "that would be kept to the end (--search fast: 3; 0: every fit to the end, --search full)")
+    d.add_argument("--stiff-springs", choices=STIFF_SPRINGS, default="contour",
+                   help="which drives the rounds' correction springs:x10 (springs ten times stiffer) is offered to: "
+                        "contour (default), only springs spread along the whole contour (--drive contour); any, "
+                        "the isolated landmarks' springs of --drive penalty too, which pull tents in the wall (what "
+                        "the rounds did before; the docs' validation page 'Stiff springs only along the contours')")
     d.add_argument("--angle-origin", type=_finite_float, default=0.0, metavar="DEG",
                    help="where landmark 0, sector 0 of the regional map and segment 0 start: the angle about the "
                         "cavity centre in degrees from the image's +x axis towards +y (down), for example the "
@@ -137,7 +144,9 @@ def cmd_dense(args) -> int:
                   # from "first" to "best", and a result of the one must not be reused for the other
                   selection=args.selection, max_tries=args.max_tries,
                   # likewise: the backward steps are new, and a result without them is not one with them
-                  prune=not args.no_prune)
+                  prune=not args.no_prune,
+                  # likewise: springs:x10 is no longer offered to landmark springs by default
+                  stiff_springs=args.stiff_springs)
     if args.laplace != "gauss-newton":      # only when asked: batch fingerprints of earlier results stay valid
         config["laplace"] = args.laplace
     if args.measurement_noise != "fixed":   # likewise
@@ -169,7 +178,16 @@ def cmd_dense(args) -> int:
     path = args.path[0]
     seq = sequence.load_sequence(sequence.example_path(download=args.download) if path == "example" else path)
     # --workers changes how fast, not what: it is not part of the configuration (nor a batch fingerprint)
-    out = closing.closing_the_loop(seq, progress=_progress(args), workers=args.workers, **config)
+    try:
+        out = closing.closing_the_loop(seq, progress=_progress(args), workers=args.workers, **config)
+    except NotStarShapedError as exc:
+        if args.mesh is not None:           # asked for by name: the error stands
+            raise
+        # the search's polar mesh cannot follow this wall: the mesh through the points instead
+        print(f"sfem-filters dense: warning: --search {args.search}: {exc}; meshing through the points "
+              f"(--mesh delaunay) instead", file=sys.stderr)
+        config = {k: v for k, v in config.items() if k not in ("mesh", "element_px")}
+        out = closing.closing_the_loop(seq, progress=_progress(args), workers=args.workers, **config)
     print(closing.format_report(out))
     note = not_converged_note(out.as_json())
     if note:

@@ -11,7 +11,8 @@ import scipy.sparse as sp
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from sfem_filters.cardiac import annulus_sequence, closing_the_loop, lv_geometry, polar_mesh, prepare
+from sfem_filters.cardiac import (NotStarShapedError, annulus_sequence, closing_the_loop, lv_geometry, polar_mesh,
+                                   prepare)
 from sfem_filters.cardiac.measured import at_points, build_model, point_rows
 from sfem_filters.fem.observation import interpolation_matrix
 from sfem_filters.geometry import triangle_double_areas
@@ -146,13 +147,13 @@ def test_the_command_line_searches_and_each_option_overrides_its_search(monkeypa
     assert not {"mesh", "element_px", "warm_start", "screen_iterations"} & set(seen)
     assert seen["max_iterations"] == 20
     with pytest.raises(SystemExit):
-        main(["dense", "example", "--no-progress"])                   # the default search: fast
+        main(["dense", "example", "--search", "fast", "--no-progress"])
     fast = SEARCHES["fast"]
     assert "mesh" not in seen and fast.mesh == "delaunay"            # the node-per-point mesh
     assert (seen["warm_start"], seen["screen_iterations"]) == (True, fast.screen_iterations)
     assert seen["max_iterations"] == fast.max_iterations("penalty") == 40
     with pytest.raises(SystemExit):
-        main(["dense", "example", "--search", "coarse", "--no-progress"])
+        main(["dense", "example", "--no-progress"])                   # the default search: coarse
     coarse = SEARCHES["coarse"]
     assert (seen["mesh"], seen["element_px"], seen["warm_start"], seen["screen_iterations"]) == \
         (coarse.mesh, coarse.element_px, True, coarse.screen_iterations)
@@ -163,3 +164,39 @@ def test_the_command_line_searches_and_each_option_overrides_its_search(monkeypa
     with pytest.raises(SystemExit):
         main(["dense", "example", "--search", "full", "--mesh", "polar", "--element-px", "3", "--no-progress"])
     assert seen["mesh"] == "polar" and seen["element_px"] == 3.0 and "warm_start" not in seen
+
+
+def test_polar_mesh_says_not_star_shaped_with_its_own_error():
+    t = np.linspace(0, 2 * np.pi, 200, endpoint=False)
+    r = 15.0 + 9.0 * np.sin(3 * t)
+    wiggly = np.column_stack([r * np.cos(t) + 12 * np.cos(9 * t), r * np.sin(t) + 12 * np.sin(9 * t)])
+    with pytest.raises(NotStarShapedError, match="star-shaped"):
+        polar_mesh(_circle(3.0), wiggly, (0.0, 0.0), size=2.0)
+    assert issubclass(NotStarShapedError, ValueError)
+
+
+@pytest.mark.needs_data("subject_a")
+def test_a_search_on_a_polar_mesh_falls_back_to_the_points_mesh_where_the_wall_is_not_star_shaped(
+        monkeypatch, capsys):
+    """The search's polar mesh cannot follow a wall that is not star-shaped about its centre: the
+    command says so in one line and meshes through the points; asked for by name, the error stands."""
+    from sfem_filters.cardiac import closing
+    from sfem_filters.cli import main
+    calls = []
+
+    def fake(seq, **config):
+        calls.append(config)
+        if config.get("mesh") == "polar":
+            raise NotStarShapedError("epi_xy: expected a contour star-shaped about the cavity centre")
+        raise SystemExit(0)
+
+    monkeypatch.setattr(closing, "closing_the_loop", fake)
+    with pytest.raises(SystemExit):
+        main(["dense", "example", "--search", "coarse", "--no-progress"])
+    assert [c.get("mesh") for c in calls] == ["polar", None] and "element_px" not in calls[1]
+    assert {k: v for k, v in calls[0].items() if k not in ("mesh", "element_px")} == calls[1]
+    err = capsys.readouterr().err
+    assert "warning: --search coarse: epi_xy" in err and "--mesh delaunay" in err
+    calls.clear()
+    assert main(["dense", "example", "--search", "coarse", "--mesh", "polar", "--no-progress"]) != 0
+    assert len(calls) == 1 and "star-shaped" in capsys.readouterr().err

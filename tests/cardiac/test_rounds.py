@@ -236,7 +236,13 @@ def test_the_command_line_passes_the_selection_and_rejects_an_unknown_one(capsys
     with pytest.raises(SystemExit):                     # the defaults, passed explicitly
         main(["dense", "example", "--no-progress"])
     assert seen["selection"] == "best" and seen["max_tries"] == 3 and seen["prune"] is True
-    assert "mesh" not in seen and defaults["mesh"].default == "delaunay"
+    # the command's default search meshes the wall apart from the points; the library's default is a node per point
+    assert seen["mesh"] == "polar" and defaults["mesh"].default == "delaunay"
+    assert seen["stiff_springs"] == defaults["stiff_springs"].default == "contour"
+    seen.clear()
+    with pytest.raises(SystemExit):
+        main(["dense", "example", "--stiff-springs", "any", "--no-progress"])
+    assert seen["stiff_springs"] == "any"
     seen.clear()
     with pytest.raises(SystemExit):                     # --mesh radial reaches prepare through the loop
         main(["dense", "example", "--mesh", "radial", "--no-progress"])
@@ -663,9 +669,29 @@ def _scripted_rounds(monkeypatch, evidence, scores, candidates=("active_polar", 
         monkeypatch.setattr(part, "_fit", fit)
     monkeypatch.setattr(closing.diagnostics, "rank_effects", rank)
     monkeypatch.setattr(closing.rounds, "time_courses", lambda r: None)
+    # the scripts' detours go through springs:x10 on the landmark springs (drive penalty): offered with "any"
     out = closing.closing_the_loop(seq, candidates=list(candidates), folds=9,
-                                   **kw)                # 9 folds of 8 landmarks: no cross-validation
+                                   **{"stiff_springs": "any", **kw})  # 9 folds of 8 landmarks: no cross-validation
     return out, fitted
+
+
+def test_stiff_springs_are_offered_only_along_the_contours_by_default():
+    """``springs:x10`` is a correction of springs spread along the whole contour (``drive="contour"``),
+    not of the isolated landmarks' springs (``drive="penalty"``, where stiff springs pull tents),
+    unless ``stiff_springs="any"``; the penalty drive's way to stiff springs is ``drive:contour``
+    first. An unknown value is an error naming the argument."""
+    metrics = {"lag1_z": 0.0, "nis_z": 0.0}
+    cur = lambda drive: SimpleNamespace(variant=closing.Variant(drive=drive),   # noqa: E731
+                                        run=SimpleNamespace(metrics=metrics))
+    assert "springs:x10" not in dict(closing._corrections(cur("penalty"), "region"))
+    assert "drive:contour" in dict(closing._corrections(cur("penalty"), "region"))
+    found = dict(closing._corrections(cur("contour"), "region"))
+    assert found["springs:x10"] == closing.Variant(drive="contour", spring_scale=10.0)
+    assert "springs:x10" in dict(closing._corrections(cur("penalty"), "region", "any"))
+    for drive in ("pressure", "none"):
+        assert "springs:x10" not in dict(closing._corrections(cur(drive), "region", "any"))
+    with pytest.raises(ValueError, match="stiff_springs"):
+        closing.closing_the_loop(annulus_sequence(None, n_frames=4, seed=0), "none", stiff_springs="landmarks")
 
 
 def _greedy_trap():

@@ -50,7 +50,7 @@ from ..measured import run
 from . import criteria, moves, progress, records, report, rounds, workers
 from .criteria import log_evidence, round_cross_validation, time_courses, versus_spline
 from .moves import (_SPAN_TOL, CHECK_Z, DRIVE_CORRECTIONS, MATERIAL_CORRECTIONS, NOISE_FACTOR, SPRING_FACTOR,
-                    _corrections, _key, candidate_loads, removals, spans)
+                    STIFF_SPRINGS, _corrections, _key, candidate_loads, removals, spans)
 from .progress import RoundsInterrupted, _duration, _gain_text, _Progress, progress_line
 from .records import (_ROUND_KEYS, CRITERIA, DEFAULT_CANDIDATES, LAPLACE, SEARCHES, SELECTIONS, LoopResult, Round,
                       Search, Variant, _ranking_json)
@@ -62,4 +62,4 @@ from .workers import _fit, _Fits, _fit_job, fit_workers
 __all__ = ["LoopResult", "Round", "Variant", "closing_the_loop", "candidate_loads", "spans", "log_evidence",
            "format_report", "removals", "fit_workers", "usable_cores", "versus_spline", "SELECTIONS",
            "DRIVE_CORRECTIONS", "time_courses", "CRITERIA", "round_cross_validation", "DEFAULT_CANDIDATES", "LAPLACE",
-           "length_display", "not_converged_note", "progress_line", "RoundsInterrupted"]
+           "length_display", "not_converged_note", "progress_line", "RoundsInterrupted", "STIFF_SPRINGS"]

@@ -8,7 +8,7 @@ from ..effects import build_effects
 from ..measured import NOMINAL, Setup
 from .records import DEFAULT_CANDIDATES, Round, Variant
 
-__all__ = ["candidate_loads", "spans", "removals", "DRIVE_CORRECTIONS"]
+__all__ = ["candidate_loads", "spans", "removals", "DRIVE_CORRECTIONS", "STIFF_SPRINGS"]
 
 _SPAN_TOL = 1e-6
 
@@ -42,12 +42,18 @@ MATERIAL_CORRECTIONS = {"region": "basis", "element": "basis"}
 #: much larger (``noise:x2``); a backward step (:func:`removals`) divides by the same factor.
 SPRING_FACTOR, NOISE_FACTOR = 10.0, 2.0
 
+#: Which drives the correction ``springs:x10`` is offered to (``stiff_springs=``,
+#: ``--stiff-springs``): ``"contour"``, springs spread along the whole contour only (the default);
+#: ``"any"``, the isolated landmarks' springs (``drive="penalty"``) too.
+SPRING_DRIVES = {"contour": ("contour",), "any": ("penalty", "contour")}
+STIFF_SPRINGS = tuple(SPRING_DRIVES)
+
 #: |z| of the innovations' checks (NIS, lag-1 whiteness; each ~N(0, 1) for a consistent model)
 #: beyond which the residual points to a correction of the model's noise or dynamics.
 CHECK_Z = 3.0
 
 
-def _corrections(cur: Round, material: str | None = None) -> list:
+def _corrections(cur: Round, material: str | None = None, stiff_springs: str = "contour") -> list:
     """(name, Variant) of the corrections the current round's residual points to.
 
     ``drive:<new>``: the drive's correction (:data:`DRIVE_CORRECTIONS`), always a candidate.
@@ -57,10 +63,12 @@ def _corrections(cur: Round, material: str | None = None) -> list:
     ``drive:<new>+trend``: the drive is one factor, its alternatives are tried side by side);
     ``effects:trend``, effect amplitudes that
     follow a trend (integrated random walks) instead of holding their last value.
-    ``springs:x10``: for spring drives, the springs ten times stiffer (soft springs let the tissue
-    lag its border and leave the interior to the elastic response of a few updates; on isolated
-    landmarks stiff springs pull tents, which the evidence need not reject: docs, the measured slice, "A second
-    split", +82 nats while the held-out error nearly doubled). Always a candidate.
+    ``springs:x10``: the springs ten times stiffer (soft springs let the tissue lag its border and
+    leave the interior to the elastic response of a few updates), always a candidate for the drives
+    ``stiff_springs`` names (:data:`STIFF_SPRINGS`): by default only springs spread along the whole
+    contour (``drive="contour"``); on isolated landmarks (``"any"`` also offers those of
+    ``drive="penalty"``) stiff springs pull tents, which the evidence need not reject (docs, the
+    measured slice, "A second split": +82 nats while the held-out error nearly doubled).
     ``noise:x2``: when the innovations are too large for their covariance (NIS z above +3) and no
     effect explains them, every process noise (kinematics, drive, effects) doubled. Not the other
     way: a NIS below 1 in the smoother's final pass comes from the parameters' prior as well as
@@ -83,7 +91,7 @@ def _corrections(cur: Round, material: str | None = None) -> list:
             out.append((f"drive:{alt}+trend", v.with_(drive=alt, drive_trend=True)))
     if lagged and v.effects and not v.effect_rates:
         out.append(("effects:trend", v.with_(effect_rates=True)))
-    if v.drive in ("penalty", "contour"):
+    if v.drive in SPRING_DRIVES[stiff_springs]:
         out.append(("springs:x10", v.with_(spring_scale=v.spring_scale * SPRING_FACTOR)))
     if m["nis_z"] > CHECK_Z:
         out.append(("noise:x2", v.with_(process_scale=v.process_scale * NOISE_FACTOR)))

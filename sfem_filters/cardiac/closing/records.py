@@ -35,15 +35,16 @@ class Search:
                 "screen_iterations": self.screen_iterations}
 
 
-#: The searches the ``dense`` command offers (``--search``). ``fast``, the default: every fit of a
-#: round started from the current model's mode and screened with 3 Gauss-Newton iterations, only the
-#: one kept fitted to the end, and room for the baseline to converge (40 iterations); the same path,
-#: final model and held-out errors as ``full`` on the measured slice and the synthetic checks.
-#: ``coarse``: the same on a mesh of the wall apart from the points (2-pixel edges), a few times
-#: faster again, but another discretisation, which finds other effects on the synthetic checks
-#: (drawn on the node-per-point mesh). ``full``: every fit to the end from the prior on the
-#: node-per-point mesh (what the command did before the searches). The docs' validation page
-#: "Closing the loop: fast and full search" measures what each finds and costs.
+#: The searches the ``dense`` command offers (``--search``). ``coarse``, the default: a mesh of the
+#: wall apart from the points (2-pixel edges), every fit of a round started from the current model's
+#: mode and screened with 3 Gauss-Newton iterations, only the one kept fitted to the end, and room for
+#: the baseline to converge (40 iterations). ``fast``: the same on the node-per-point mesh, a few times
+#: slower; the same path, final model and held-out errors as ``full`` on the measured slice and on
+#: synthetic checks drawn on that mesh. ``full``: every fit to the end from the prior on the
+#: node-per-point mesh (what the command did before the searches). On synthetic checks drawn on a
+#: finer mesh than any estimator's, coarse finds the true effects where fast and full add one; on
+#: checks drawn on the node-per-point mesh (fast's and full's own discretisation) it finds others.
+#: The docs' validation page "Closing the loop: fast and full search" measures what each finds and costs.
 SEARCHES = {"fast": Search(warm_start=True, screen_iterations=3, min_iterations=40),
             "coarse": Search(mesh="polar", warm_start=True, screen_iterations=3, min_iterations=40),
             "full": Search()}

@@ -109,7 +109,7 @@ from ..measured import (ELEMENT_PX, Run, default_max_iterations, exact_posterior
 from ..reference import spline_reference
 from ..sequence import Sequence
 from .criteria import log_evidence, round_cross_validation, time_courses, versus_spline
-from .moves import _corrections, _key, candidate_loads, removals, spans
+from .moves import STIFF_SPRINGS, _corrections, _key, candidate_loads, removals, spans
 from .progress import RoundsInterrupted, _Progress
 from .records import CRITERIA, DEFAULT_CANDIDATES, LAPLACE, SELECTIONS, LoopResult, Round, Variant
 from .workers import _Fits, _fit, fit_workers
@@ -127,7 +127,7 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
                      laplace: str = "gauss-newton", measurement_noise: str = "fixed",
                      mesh: str = "delaunay", angle_origin_deg: float = 0.0, workers: int | None = 1,
                      element_px: float = ELEMENT_PX, warm_start: bool = False,
-                     screen_iterations: int | None = None) -> LoopResult:
+                     screen_iterations: int | None = None, stiff_springs: str = "contour") -> LoopResult:
     """Baseline run, then rounds of ranking and adding effects (module docstring), with the spline
     reference.
 
@@ -185,6 +185,13 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
     corrections : bool
         Also try corrections of the drive and of the effects' dynamics (:func:`_corrections`)
         when no effect passes a round.
+    stiff_springs : {"contour", "any"}
+        :data:`STIFF_SPRINGS`: which drives the correction ``springs:x10`` (springs ten times
+        stiffer) is offered to. ``"contour"`` (default): only to springs spread along the whole
+        contour (``drive="contour"``); on isolated landmarks stiff springs pull tents in the wall
+        that the evidence can reward while the held-out error grows (the docs' validation page
+        "Stiff springs only along the contours" measures both). ``"any"``: to the landmark
+        springs of ``drive="penalty"`` too (what the rounds did before).
     criterion : {"evidence", "cv"}
         What a candidate must improve to be kept (:data:`CRITERIA`): ``log p(y)`` by more than
         ``min_evidence`` nats, or the ``folds``-fold cross-validation RMSE over the observed
@@ -277,6 +284,8 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
     tracker.say(f"closing the loop on {seq.n_points} points x {seq.n_frames} frames: mesh and baseline fit, then "
                 + ("at most {max_rounds} rounds" if effects == "auto" else "no rounds" if effects == "none"
                    else "one fit with the given effects").format(max_rounds=max_rounds))
+    if stiff_springs not in STIFF_SPRINGS:
+        raise ValueError(f"stiff_springs: expected one of {STIFF_SPRINGS}, got {stiff_springs!r}")
     if not isinstance(warm_start, (bool, np.bool_)):
         raise ValueError(f"warm_start: expected True or False, got {warm_start!r}")
     if screen_iterations is not None:
@@ -310,7 +319,7 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
                        names=names, corrections=corrections, criterion=criterion, folds=folds,
                        min_cv_gain=min_cv_gain, selection=selection, prune=prune, laplace=laplace,
                        measurement_noise=measurement_noise, mesh=mesh, cv_possible=cv_possible, tracker=tracker,
-                       warm_start=warm_start, screen_iterations=screen_iterations)
+                       warm_start=warm_start, screen_iterations=screen_iterations, stiff_springs=stiff_springs)
     except KeyboardInterrupt:
         if fits is not None:
             fits.abort()
@@ -323,7 +332,8 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
 def _rounds(seq, setup, start, base, fits, opts, *, effects, drive, landmarks, observe, holdout_seed,
             parameterisation, max_loops, progress, estimator, max_iterations, max_rounds, alpha, min_evidence,
             max_tries, names, corrections, criterion, folds, min_cv_gain, selection, prune, laplace,
-            measurement_noise, mesh, cv_possible, tracker, warm_start=False, screen_iterations=None) -> LoopResult:
+            measurement_noise, mesh, cv_possible, tracker, warm_start=False, screen_iterations=None,
+            stiff_springs="contour") -> LoopResult:
     """The rounds of :func:`closing_the_loop` after its baseline fit (``fits`` makes the others;
     ``tracker``, a :class:`_Progress`, writes a line as the baseline and each round end)."""
     last = {}
@@ -457,7 +467,8 @@ def _rounds(seq, setup, start, base, fits, opts, *, effects, drive, landmarks, o
                 # residual points to is fitted, and the one with the largest gain of the criterion
                 # is kept if the criterion improves
                 # (a correction that fails here is tried again on a later round's model)
-                best = fitted_best(cur, _corrections(cur, parameterisation), f"round {number}, corrections",
+                best = fitted_best(cur, _corrections(cur, parameterisation, stiff_springs),
+                                   f"round {number}, corrections",
                                    "correction ", lambda name: {"effect": name, "score": None}, tried)
                 if best is not None:
                     gain, name, variant, trial, k, cv = best
@@ -504,7 +515,8 @@ def _rounds(seq, setup, start, base, fits, opts, *, effects, drive, landmarks, o
               "n_heldout": int(len(setup.heldout)), "mesh_nodes": int(setup.mesh.n_nodes),
               "mesh_elements": int(setup.mesh.n_elements), "max_rounds": max_rounds, "alpha": float(alpha),
               "min_evidence": min_evidence, "max_tries": max_tries, "candidates": names,
-              "corrections": bool(corrections), "criterion": criterion, "folds": folds,
+              "corrections": bool(corrections), "stiff_springs": stiff_springs, "criterion": criterion,
+              "folds": folds,
               "min_cv_gain": min_cv_gain, "selection": selection, "prune": bool(prune), "laplace": laplace,
               "measurement_noise": measurement_noise, "mesh": mesh, "angle_origin_deg": setup.angle_origin_deg,
               **({"element_px": setup.element_px} if setup.element_px is not None else {}),
