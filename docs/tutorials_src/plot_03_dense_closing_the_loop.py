@@ -15,7 +15,8 @@ extended).
 candidate fitted, no corrections, no backward steps and a 2-fold cross-validation (4 by
 default): a walk through the workflow, not the numbers of the validation pages. Full:
 ``sfem-filters dense example --json dense.json --figures dense/`` (all 35 frames, up to 5
-rounds, the fast search: see the validation page "Closing the loop: fast and full search"), or here ``SFEM_DOCS_QUICK=0`` (all frames, 20 iterations, one
+rounds, the coarse search: see the validation page "Closing the loop: fast and full search"), or here
+``SFEM_DOCS_QUICK=0`` (all frames, 20 iterations, one
 round as the paper).
 
 The data set is not shipped with the package (its source has no licence): it is read from the
