@@ -10,10 +10,10 @@ changes the order of floating-point sums, and so the last bits of the numbers.
 """
 from __future__ import annotations
 
-import functools
-
 import copy
+import functools
 import hashlib
+import inspect
 import json
 import os
 import time
@@ -31,7 +31,7 @@ from ..plotting import comparison_figures, dense_figures
 from ..resources import blas_threads
 
 __all__ = ["Job", "JobOutcome", "KINDS", "compare_jobs", "dense_jobs", "run_job", "split_timing", "merge_timing",
-           "table_rows", "describe_record"]
+           "table_rows", "describe_record", "full_dense_config"]
 
 KINDS = ("compare", "dense")
 #: Keys of a job's ``outputs``: where the job also writes figures, ParaView files and filter
@@ -42,8 +42,34 @@ _TIMING_KEYS = ("seconds",)
 #: would now compute something else, so that a resumed batch does not mix old results with new
 #: (2: the innovations' whiteness with the symmetric root of S instead of its Cholesky factor; 3: what
 #: the data say computed from the data only, no longer from the drive's filled-in values, and no
-#: landmark on a point without data).
-RESULTS_SCHEMA = 3
+#: landmark on a point without data; 4: every keyword of the run in the configuration, its
+#: defaults included, so that no key is there only when it differs from a default, and the rounds'
+#: springs:x10 offered only to contour springs by default).
+RESULTS_SCHEMA = 4
+
+#: Keywords of :func:`~sfem_filters.cardiac.closing_the_loop` that change how fast or how
+#: verbosely, not what: not part of a dense job's configuration (nor its fingerprint).
+_NOT_RESULTS = ("progress", "workers")
+
+
+def full_dense_config(config: dict) -> dict:
+    """Every keyword of :func:`~sfem_filters.cardiac.closing_the_loop` but :data:`_NOT_RESULTS`:
+    ``config`` over the function's defaults, with the iteration limit the run will use (the
+    default depends on the drive). A job's fingerprint hashes this whole configuration with
+    :data:`RESULTS_SCHEMA`, so that a new keyword, or a default that changes, never reuses a
+    result computed without it."""
+    params = inspect.signature(closing_the_loop).parameters
+    unknown = set(config) - set(params) - set(_NOT_RESULTS)
+    if unknown:
+        raise ValueError(f"config: expected keywords of closing_the_loop, got {sorted(unknown)}")
+    cfg = {k: p.default for k, p in params.items()
+           if p.default is not inspect.Parameter.empty and k not in _NOT_RESULTS}
+    cfg.update({k: v for k, v in config.items() if k not in _NOT_RESULTS})
+    if cfg.get("max_iterations") is None:
+        cfg["max_iterations"] = default_max_iterations(cfg["drive"])
+    if isinstance(cfg.get("candidates"), tuple):
+        cfg["candidates"] = list(cfg["candidates"])
+    return cfg
 
 
 def _version() -> str:
@@ -155,10 +181,7 @@ def dense_jobs(paths, figures=None, export=None, **config) -> list:
     paths = [example_path() if p == "example" else os.fspath(p) for p in paths]
     if not paths:
         raise ValueError("paths: expected at least one sequence file")
-    cfg = dict(config)
-    if cfg.get("max_iterations") is None:
-        # the limit the run will use, in its fingerprint: the default depends on the drive
-        cfg["max_iterations"] = default_max_iterations(cfg.get("drive", "penalty"))
+    cfg = full_dense_config(config)
     jobs, seen = [], {}
     for p in paths:
         stem = os.path.splitext(os.path.basename(p))[0]

@@ -140,31 +140,16 @@ def cmd_dense(args) -> int:
                   max_iterations=(search.max_iterations(args.drive) if args.max_iterations is None
                                   else args.max_iterations), max_rounds=args.max_rounds,
                   alpha=args.alpha, criterion=args.criterion, folds=args.folds,
-                  # always in the configuration (and a batch job's fingerprint): the default changed
-                  # from "first" to "best", and a result of the one must not be reused for the other
-                  selection=args.selection, max_tries=args.max_tries,
-                  # likewise: the backward steps are new, and a result without them is not one with them
-                  prune=not args.no_prune,
-                  # likewise: springs:x10 is no longer offered to landmark springs by default
-                  stiff_springs=args.stiff_springs)
-    if args.laplace != "gauss-newton":      # only when asked: batch fingerprints of earlier results stay valid
-        config["laplace"] = args.laplace
-    if args.measurement_noise != "fixed":   # likewise
-        config["measurement_noise"] = args.measurement_noise
-    mesh = search.mesh if args.mesh is None else args.mesh
-    if mesh != "delaunay":                  # likewise
-        config["mesh"] = mesh
-        if mesh == "polar":
-            config["element_px"] = search.element_px if args.element_px is None else args.element_px
-    if (search.warm_start if args.warm_start is None else args.warm_start) and args.estimator == "smoother":
-        config["warm_start"] = True         # likewise
-    screen = search.screen_iterations if args.screen_iterations is None else (args.screen_iterations or None)
-    if screen is not None and args.estimator == "smoother":
-        config["screen_iterations"] = screen
-    if args.angle_origin != 0.0:            # likewise
-        config["angle_origin_deg"] = args.angle_origin
-    if args.candidates is not None:
-        config["candidates"] = args.candidates
+                  selection=args.selection, max_tries=args.max_tries, prune=not args.no_prune,
+                  stiff_springs=args.stiff_springs, laplace=args.laplace, measurement_noise=args.measurement_noise,
+                  mesh=search.mesh if args.mesh is None else args.mesh,
+                  element_px=search.element_px if args.element_px is None else args.element_px,
+                  warm_start=bool(search.warm_start if args.warm_start is None else args.warm_start)
+                  and args.estimator == "smoother",
+                  screen_iterations=((search.screen_iterations if args.screen_iterations is None
+                                      else args.screen_iterations or None) if args.estimator == "smoother" else None),
+                  angle_origin_deg=args.angle_origin, candidates=args.candidates)
+    # every keyword in the configuration, defaults included (a batch job's fingerprint hashes it whole)
     if _batch_mode(args, len(args.path)):
         jobs = batch.dense_jobs(args.path, figures=args.figures, export=args.export, **config)
         report = _run_batch(args, jobs, "dense")
@@ -186,7 +171,7 @@ def cmd_dense(args) -> int:
         # the search's polar mesh cannot follow this wall: the mesh through the points instead
         print(f"sfem-filters dense: warning: --search {args.search}: {exc}; meshing through the points "
               f"(--mesh delaunay) instead", file=sys.stderr)
-        config = {k: v for k, v in config.items() if k not in ("mesh", "element_px")}
+        config = {**config, "mesh": "delaunay"}
         out = closing.closing_the_loop(seq, progress=_progress(args), workers=args.workers, **config)
     print(closing.format_report(out))
     note = not_converged_note(out.as_json())

@@ -134,6 +134,27 @@ def test_fingerprint_covers_configuration_and_input_contents_not_outputs(tmp_pat
     assert j1.fingerprint() != fp_now                   # a result computed otherwise is not reused
 
 
+def test_a_dense_job_carries_every_keyword_of_the_run_defaults_included(tmp_path):
+    """No key only when it differs from a default: passing a default explicitly is the same job, every
+    keyword of closing_the_loop that changes the result is in the configuration (so a new keyword or
+    a changed default changes the fingerprint), and a keyword the run does not take is an error."""
+    import inspect
+
+    from sfem_filters.cardiac import closing_the_loop
+    f = tmp_path / "s.npz"
+    f.write_bytes(b"one")
+    implicit = dense_jobs([str(f)])[0]
+    explicit = dense_jobs([str(f)], mesh="delaunay", stiff_springs="contour", warm_start=False, laplace="gauss-newton",
+                          max_iterations=20, progress=True, workers=2)[0]
+    assert implicit.config == explicit.config and implicit.fingerprint() == explicit.fingerprint()
+    result_keys = set(inspect.signature(closing_the_loop).parameters) - {"seq", "progress", "workers"}
+    assert set(implicit.config) == result_keys
+    assert dense_jobs([str(f)], stiff_springs="any")[0].fingerprint() != implicit.fingerprint()
+    assert dense_jobs([str(f)], drive="pressure")[0].config["max_iterations"] == 80    # the drive's default limit
+    with pytest.raises(ValueError, match="config"):
+        dense_jobs([str(f)], meshes="polar")
+
+
 # --- running batches ---------------------------------------------------------------------------
 
 def _bytes(directory, jobs):

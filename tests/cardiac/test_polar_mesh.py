@@ -3,6 +3,7 @@ points, and the model built on it against the node-per-point model it generalise
 from __future__ import annotations
 
 import dataclasses
+import inspect
 import warnings
 
 import numpy as np
@@ -140,16 +141,18 @@ def test_the_command_line_searches_and_each_option_overrides_its_search(monkeypa
         seen.update(config)
         raise SystemExit(0)
 
+    defaults = inspect.signature(closing.closing_the_loop).parameters
     monkeypatch.setattr(closing, "closing_the_loop", fake)
     with pytest.raises(SystemExit):
         main(["dense", "example", "--search", "full", "--no-progress"])
-    # the full search passes what the command passed before the searches (batch fingerprints stay valid)
-    assert not {"mesh", "element_px", "warm_start", "screen_iterations"} & set(seen)
+    # the full search: the library's defaults, every one passed (a batch fingerprint hashes them all)
+    for key in ("mesh", "warm_start", "screen_iterations", "stiff_springs", "laplace", "measurement_noise"):
+        assert seen[key] == defaults[key].default, key
     assert seen["max_iterations"] == 20
     with pytest.raises(SystemExit):
         main(["dense", "example", "--search", "fast", "--no-progress"])
     fast = SEARCHES["fast"]
-    assert "mesh" not in seen and fast.mesh == "delaunay"            # the node-per-point mesh
+    assert seen["mesh"] == fast.mesh == "delaunay"                   # the node-per-point mesh
     assert (seen["warm_start"], seen["screen_iterations"]) == (True, fast.screen_iterations)
     assert seen["max_iterations"] == fast.max_iterations("penalty") == 40
     with pytest.raises(SystemExit):
@@ -160,10 +163,11 @@ def test_the_command_line_searches_and_each_option_overrides_its_search(monkeypa
     with pytest.raises(SystemExit):
         main(["dense", "example", "--search", "coarse", "--mesh", "delaunay", "--no-warm-start",
               "--screen-iterations", "0", "--max-iterations", "7", "--no-progress"])
-    assert not {"mesh", "element_px", "warm_start", "screen_iterations"} & set(seen) and seen["max_iterations"] == 7
+    assert (seen["mesh"], seen["warm_start"], seen["screen_iterations"], seen["max_iterations"]) == \
+        ("delaunay", False, None, 7)
     with pytest.raises(SystemExit):
         main(["dense", "example", "--search", "full", "--mesh", "polar", "--element-px", "3", "--no-progress"])
-    assert seen["mesh"] == "polar" and seen["element_px"] == 3.0 and "warm_start" not in seen
+    assert seen["mesh"] == "polar" and seen["element_px"] == 3.0 and seen["warm_start"] is False
 
 
 def test_polar_mesh_says_not_star_shaped_with_its_own_error():
@@ -193,8 +197,8 @@ def test_a_search_on_a_polar_mesh_falls_back_to_the_points_mesh_where_the_wall_i
     monkeypatch.setattr(closing, "closing_the_loop", fake)
     with pytest.raises(SystemExit):
         main(["dense", "example", "--search", "coarse", "--no-progress"])
-    assert [c.get("mesh") for c in calls] == ["polar", None] and "element_px" not in calls[1]
-    assert {k: v for k, v in calls[0].items() if k not in ("mesh", "element_px")} == calls[1]
+    assert [c["mesh"] for c in calls] == ["polar", "delaunay"]
+    assert {**calls[0], "mesh": "delaunay"} == calls[1]
     err = capsys.readouterr().err
     assert "warning: --search coarse: epi_xy" in err and "--mesh delaunay" in err
     calls.clear()

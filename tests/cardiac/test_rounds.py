@@ -246,7 +246,7 @@ def test_the_command_line_passes_the_selection_and_rejects_an_unknown_one(capsys
     seen.clear()
     with pytest.raises(SystemExit):                     # --mesh radial reaches prepare through the loop
         main(["dense", "example", "--mesh", "radial", "--no-progress"])
-    assert seen["mesh"] == "radial" and "angle_origin_deg" not in seen
+    assert seen["mesh"] == "radial" and seen["angle_origin_deg"] == 0.0
     seen.clear()
     with pytest.raises(SystemExit):                     # --angle-origin reaches prepare through the loop
         main(["dense", "example", "--angle-origin", "-37.5", "--no-progress"])
