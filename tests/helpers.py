@@ -124,3 +124,29 @@ def bias_model(rng, n, p, m, frames):
             x = A @ x + G @ theta_true + rng.multivariate_normal(np.zeros(n), Q)
         y[t] = H @ x + rng.multivariate_normal(np.zeros(m), R)
     return model, y
+
+
+def write_dicom(path, stored, trigger_ms, instance, slope=2.0, intercept=-4096.0, comments=None, spacing=1.75):
+    """One MR image as a scanner exports it: ``stored`` (H, W) 12-bit integers with RescaleSlope and
+    RescaleIntercept, TriggerTime (ms), InstanceNumber, PixelSpacing (mm) and, when given,
+    ImageComments (which DENSE exports use to tell their series apart)."""
+    from pydicom.dataset import Dataset, FileMetaDataset
+    from pydicom.uid import ExplicitVRLittleEndian, MRImageStorage, generate_uid
+    meta = FileMetaDataset()
+    meta.MediaStorageSOPClassUID = MRImageStorage
+    meta.MediaStorageSOPInstanceUID = generate_uid()
+    meta.TransferSyntaxUID = ExplicitVRLittleEndian
+    ds = Dataset()
+    ds.file_meta = meta
+    ds.SOPClassUID, ds.SOPInstanceUID = MRImageStorage, meta.MediaStorageSOPInstanceUID
+    ds.Modality = "MR"
+    ds.Rows, ds.Columns = np.shape(stored)
+    ds.SamplesPerPixel, ds.PhotometricInterpretation = 1, "MONOCHROME2"
+    ds.BitsAllocated, ds.BitsStored, ds.HighBit, ds.PixelRepresentation = 16, 12, 11, 0
+    ds.PixelSpacing = [spacing, spacing]
+    ds.TriggerTime, ds.InstanceNumber = float(trigger_ms), instance
+    ds.RescaleSlope, ds.RescaleIntercept = slope, intercept
+    if comments is not None:
+        ds.ImageComments = comments
+    ds.PixelData = np.asarray(stored, np.uint16).tobytes()
+    ds.save_as(path, enforce_file_format=True)

@@ -15,6 +15,7 @@ import pydicom                                  # the test extra's (pyproject): 
 import pytest
 import yaml
 
+from helpers import write_dicom
 from sfem_filters import datasets
 from sfem_filters.cardiac import StrainRouteSettings, dense_strain
 from sfem_filters.cli import main
@@ -54,29 +55,6 @@ def short_case(tmp_path_factory):
     return dst
 
 
-def _write_dicom(path, stored, trigger_ms, instance, slope, intercept, comments=None, spacing=PX_MM):
-    from pydicom.dataset import Dataset, FileMetaDataset
-    from pydicom.uid import ExplicitVRLittleEndian, MRImageStorage, generate_uid
-    meta = FileMetaDataset()
-    meta.MediaStorageSOPClassUID = MRImageStorage
-    meta.MediaStorageSOPInstanceUID = generate_uid()
-    meta.TransferSyntaxUID = ExplicitVRLittleEndian
-    ds = Dataset()
-    ds.file_meta = meta
-    ds.SOPClassUID, ds.SOPInstanceUID = MRImageStorage, meta.MediaStorageSOPInstanceUID
-    ds.Modality = "MR"
-    ds.Rows, ds.Columns = stored.shape
-    ds.SamplesPerPixel, ds.PhotometricInterpretation = 1, "MONOCHROME2"
-    ds.BitsAllocated, ds.BitsStored, ds.HighBit, ds.PixelRepresentation = 16, 12, 11, 0
-    ds.PixelSpacing = [spacing, spacing]
-    ds.TriggerTime, ds.InstanceNumber = float(trigger_ms), instance
-    ds.RescaleSlope, ds.RescaleIntercept = slope, intercept
-    if comments is not None:
-        ds.ImageComments = comments
-    ds.PixelData = np.asarray(stored, np.uint16).tobytes()
-    ds.save_as(path, enforce_file_format=True)
-
-
 def _stored_phase(phase):
     """12-bit integers 0..4095 over -pi..pi (a scanner's phase image)."""
     return np.round((np.asarray(phase, float) + np.pi) / PHASE_STEP).astype(np.uint16)
@@ -103,7 +81,7 @@ def _write_export(folder, case_dir, with_comments=True):
         where.mkdir(exist_ok=True)
         for f in range(F):
             text = f"{comment} - Rep:0/1 Slc:0/1 Par:0/1 Phs:{f}/{F} RCswap:0 RCSflip:0/0/0"
-            _write_dicom(where / f"IM_{next(names):04d}", stored[f], tt[f + 1], f + 1, slope, intercept,
+            write_dicom(where / f"IM_{next(names):04d}", stored[f], tt[f + 1], f + 1, slope, intercept,
                          comments=text if with_comments else None)
     (folder / "DICOMDIR.txt").write_text("not a DICOM file")
     return folder, mag_slope
@@ -153,11 +131,11 @@ def test_the_sub_folder_layout_in_radians_with_per_frame_masks(short_case, tmp_p
     for j, sub in enumerate(("phase_x", "phase_y")):
         (folder / sub).mkdir()
         for f in range(FRAMES):
-            _write_dicom(folder / sub / f"{f}.dcm", _stored_phase(ref.phases[j, f]), 1e3 * ref.frame_times_s[f], f + 1,
+            write_dicom(folder / sub / f"{f}.dcm", _stored_phase(ref.phases[j, f]), 1e3 * ref.frame_times_s[f], f + 1,
                          slope=PHASE_STEP, intercept=-np.pi)
     (folder / "magnitude").mkdir()
     for f in range(FRAMES):
-        _write_dicom(folder / "magnitude" / f"{f}.dcm", np.full(ref.shape, 1000), 1e3 * ref.frame_times_s[f], f + 1,
+        write_dicom(folder / "magnitude" / f"{f}.dcm", np.full(ref.shape, 1000), 1e3 * ref.frame_times_s[f], f + 1,
                      slope=1.0, intercept=0.0)
     got = read_dense_dicom_folder(folder, ref.frame_masks, KE)
     assert np.abs(np.angle(np.exp(1j * (got.phases - ref.phases)))).max() <= 0.5 * PHASE_STEP + 1e-6
@@ -325,7 +303,7 @@ def test_dicom_folder_errors_name_the_series(export, tmp_path, capsys):
         if p.name.startswith("IM_"):
             ds = pydicom.dcmread(p)
             if "x-enc pha" in str(ds.ImageComments):
-                _write_dicom(p, ds.pixel_array[::2, ::2], ds.TriggerTime, ds.InstanceNumber, 2.0, -4096.0,
+                write_dicom(p, ds.pixel_array[::2, ::2], ds.TriggerTime, ds.InstanceNumber, 2.0, -4096.0,
                              comments=ds.ImageComments)
     err = _err(capsys, ["strain", str(small), "--json", out] + good)
     assert "path (DENSE x-enc pha series): expected the magnitude's shape" in err
@@ -348,7 +326,7 @@ def test_dicom_folder_errors_name_the_series(export, tmp_path, capsys):
     assert "path (DENSE overall mag series): expected one file per frame (one slice, one repetition)" in err
     plain = tmp_path / "plain"
     plain.mkdir()
-    _write_dicom(plain / "a.dcm", np.zeros((8, 8)), 20.0, 1, 1.0, 0.0)
+    write_dicom(plain / "a.dcm", np.zeros((8, 8)), 20.0, 1, 1.0, 0.0)
     err = _err(capsys, ["strain", str(plain), "--json", out] + good)
     assert "path: expected DENSE DICOM files told apart by ImageComments" in err and "phase_x, phase_y" in err
 
@@ -361,9 +339,9 @@ def test_a_ke_that_differs_from_the_files_encfreq_is_warned_about(tmp_path):
     folder.mkdir()
     for f in range(3):
         for e in "xy":
-            _write_dicom(folder / f"{e}{f}", np.full((24, 24), 2048), 20 + 15 * f, f + 1, 2.0, -4096.0,
+            write_dicom(folder / f"{e}{f}", np.full((24, 24), 2048), 20 + 15 * f, f + 1, 2.0, -4096.0,
                          comments=f"DENSE {e}-enc pha - Scale:1.000000 EncFreq:0.08 Phs:{f}/3")
-        _write_dicom(folder / f"m{f}", np.full((24, 24), 100), 20 + 15 * f, f + 1, 1.0, 0.0,
+        write_dicom(folder / f"m{f}", np.full((24, 24), 100), 20 + 15 * f, f + 1, 1.0, 0.0,
                      comments=f"DENSE overall mag - Phs:{f}/3")
     with pytest.warns(UserWarning, match="EncFreq 0.08; the given value is used"):
         case = read_dense_dicom_folder(folder, np.stack([ring] * 4), 0.1, phase_range=(-4096, 4094))

@@ -58,32 +58,24 @@ def _non_negative_float(text: str) -> float:
     return _number(text, lambda v: v >= 0, "a number >= 0")
 
 
-def _non_negative_int(text: str) -> int:
-    v = _integer(text, "an integer >= 0")
-    if v < 0:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}")
-    return v
+def _int_at_least(least: int, what: str = ""):
+    """An argparse type: an integer >= ``least`` (``what`` says what it counts), named by its expectation."""
+    expected = f"an integer >= {least}{what}"
+
+    def parse(text: str) -> int:
+        v = _integer(text, expected)
+        if v < least:
+            raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}")
+        return v
+
+    parse.__name__ = expected      # what argparse says of a value it cannot convert
+    return parse
 
 
-def _positive_int(text: str) -> int:
-    v = _integer(text, "an integer >= 1")
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {text!r}")
-    return v
-
-
-def _landmarks(text: str) -> int:
-    v = _integer(text, "an integer >= 3 (landmarks per contour)")
-    if v < 3:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 3 (landmarks per contour), got {text!r}")
-    return v
-
-
-def _folds(text: str) -> int:
-    v = _integer(text, "an integer >= 2")
-    if v < 2:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 2, got {text!r}")
-    return v
+_non_negative_int = _int_at_least(0)
+_positive_int = _int_at_least(1)
+_landmarks = _int_at_least(3, " (landmarks per contour)")
+_folds = _int_at_least(2)
 
 
 def _names(text: str) -> list:

@@ -24,6 +24,13 @@ def _circle(r, n=90, centre=(0.0, 0.0)):
     return np.column_stack([centre[0] + r * np.cos(a), centre[1] + r * np.sin(a)])
 
 
+def _wiggly():
+    """A contour that is not star-shaped about the origin: a ray from it crosses the contour thrice."""
+    t = np.linspace(0, 2 * np.pi, 200, endpoint=False)
+    r = 15.0 + 9.0 * np.sin(3 * t)
+    return np.column_stack([r * np.cos(t) + 12 * np.cos(9 * t), r * np.sin(t) + 12 * np.sin(9 * t)])
+
+
 def test_polar_mesh_of_a_ring_covers_it_with_the_asked_edge_and_is_an_annulus():
     mesh = polar_mesh(_circle(10.0), _circle(15.0), (0.0, 0.0), size=2.0)
     area = 0.5 * np.abs(triangle_double_areas(mesh.nodes, mesh.elements)).sum()
@@ -39,9 +46,7 @@ def test_polar_mesh_of_a_ring_covers_it_with_the_asked_edge_and_is_an_annulus():
 
 def test_polar_mesh_refuses_a_contour_that_is_not_star_shaped_naming_it():
     # a C-shaped epicardium seen from the centre: a ray crosses it three times
-    t = np.linspace(0, 2 * np.pi, 200, endpoint=False)
-    r = 15.0 + 9.0 * np.sin(3 * t)
-    wiggly = np.column_stack([r * np.cos(t) + 12 * np.cos(9 * t), r * np.sin(t) + 12 * np.sin(9 * t)])
+    wiggly = _wiggly()
     with pytest.raises(ValueError, match="epi_xy"):
         polar_mesh(_circle(3.0), wiggly, (0.0, 0.0), size=2.0)
     with pytest.raises(ValueError, match="size"):
@@ -171,9 +176,7 @@ def test_the_command_line_searches_and_each_option_overrides_its_search(monkeypa
 
 
 def test_polar_mesh_says_not_star_shaped_with_its_own_error():
-    t = np.linspace(0, 2 * np.pi, 200, endpoint=False)
-    r = 15.0 + 9.0 * np.sin(3 * t)
-    wiggly = np.column_stack([r * np.cos(t) + 12 * np.cos(9 * t), r * np.sin(t) + 12 * np.sin(9 * t)])
+    wiggly = _wiggly()
     with pytest.raises(NotStarShapedError, match="star-shaped"):
         polar_mesh(_circle(3.0), wiggly, (0.0, 0.0), size=2.0)
     assert issubclass(NotStarShapedError, ValueError)

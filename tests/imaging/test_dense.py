@@ -16,6 +16,7 @@ from scipy import ndimage
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from helpers import write_dicom
 from sfem_filters.imaging.conventional import conventional_analysis
 from sfem_filters.imaging.confidence import local_phase_coherence
 from sfem_filters.imaging.dense import (DenseCase, add_complex_noise, carry_offsets, estimate_noise_sd,
@@ -158,27 +159,6 @@ def test_make_dense_case_errors_name_the_argument():
 
 
 # ------------------------------------------------------------------------------------ DICOM reader
-def _write_dicom(path, image, trigger_ms, instance, slope=2.0, intercept=-4096.0):
-    from pydicom.dataset import Dataset, FileMetaDataset
-    from pydicom.uid import ExplicitVRLittleEndian, MRImageStorage, generate_uid
-    meta = FileMetaDataset()
-    meta.MediaStorageSOPClassUID = MRImageStorage
-    meta.MediaStorageSOPInstanceUID = generate_uid()
-    meta.TransferSyntaxUID = ExplicitVRLittleEndian
-    ds = Dataset()
-    ds.file_meta = meta
-    ds.SOPClassUID, ds.SOPInstanceUID = MRImageStorage, meta.MediaStorageSOPInstanceUID
-    ds.Modality = "MR"
-    ds.Rows, ds.Columns = image.shape
-    ds.SamplesPerPixel, ds.PhotometricInterpretation = 1, "MONOCHROME2"
-    ds.BitsAllocated, ds.BitsStored, ds.HighBit, ds.PixelRepresentation = 16, 12, 11, 0
-    ds.PixelSpacing = [1.75, 1.75]
-    ds.TriggerTime, ds.InstanceNumber = trigger_ms, instance
-    ds.RescaleSlope, ds.RescaleIntercept = slope, intercept
-    ds.PixelData = np.asarray(image, np.uint16).tobytes()
-    ds.save_as(path, enforce_file_format=True)
-
-
 def test_dicom_reader_matches_the_arrays(tmp_path):
     case, exact = render_affine(affine_sequence(n=3, stretch=0.1, turn_deg=4), shape=(40, 40))
     stored = np.round((case.phases + np.pi) / (2 * np.pi) * 4095).astype(int)          # 12-bit 0..4095
@@ -189,13 +169,13 @@ def test_dicom_reader_matches_the_arrays(tmp_path):
         d = tmp_path / name
         d.mkdir()
         for f in (2, 0, 1):                                                # written out of order
-            _write_dicom(d / f"im{f}.dcm", stored[j, f], 22.5 + 15 * f, f + 1)
+            write_dicom(d / f"im{f}.dcm", stored[j, f], 22.5 + 15 * f, f + 1)
         (d / "notes.txt").write_text("not a DICOM file")
         dirs.append(d)
     mdir = tmp_path / "mag"
     mdir.mkdir()
     for f in range(3):
-        _write_dicom(mdir / f"m{f}.dcm", np.full((40, 40), 1000), 22.5 + 15 * f, f + 1, slope=1.0, intercept=0.0)
+        write_dicom(mdir / f"m{f}.dcm", np.full((40, 40), 1000), 22.5 + 15 * f, f + 1, slope=1.0, intercept=0.0)
     got = read_dense_dicom(dirs, mdir, masks=case.masks, ke_cycles_per_mm=KE, phase_range=(-4096, 4094))
     assert np.allclose(got.phases, expected, atol=1e-12)
     assert np.max(np.abs(got.phases - case.phases)) < 2 * np.pi / 4095
