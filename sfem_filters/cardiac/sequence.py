@@ -28,6 +28,9 @@ units          ()               optional: "px" (default) or "m"
 provenance     ()               optional: free text on where the data come from
 ============== ================ =====================================================================
 
+Other keys are kept as ``extra`` (for example ``frame_times_s`` (F,), each frame's time in
+seconds, which the ``strain`` command reads where the frames are not evenly spaced from 0).
+
 Image convention: x grows to the right (columns), y grows downwards (rows); point ``i`` is at
 ``points[i] + displacement[t, i]`` in frame ``t``.
 """
