@@ -1,0 +1,328 @@
+"""The DENSE route's mesh, its data compressed to the nodes, the filter model, and the process noise by its evidence.
+
+Split from :mod:`sfem_filters.cardiac.strain_route` along its seam (steps 1-3 of its module
+docstring, which says why each setting); every name stays importable from there. Units: the mesh
+in metres; pixels for the tracks.
+"""
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import scipy.sparse as sp
+
+from .._validate import as_float_array, positive
+from ..fem.elasticity import stiffness_matrix
+from ..fem.loads import penalty_stiffness
+from ..fem.material import Material
+from ..fem.mesh import TriMesh
+from ..fem.observation import point_observation_matrix
+from ..fem.polygon_mesh import polygon_mesh
+from ..filtering.linearised import linearise
+from ..filtering.smoother import kalman_forward
+from ..imaging.contours import mask_borders
+from ..imaging.dense import LagrangianDisplacement
+from ..model import SFEMModel
+from .effects import build_effects
+from .measured import EFFECT_STEP, NOMINAL
+from .myocardium import lv_geometry, tissue_mesh
+
+__all__ = ["MESHES", "INFORMATION_FLOOR", "RELAXATION_CYCLES", "PROCESS_FRACTIONS", "reference_mesh",
+           "observation_points", "nodal_fit", "NodalFitModel", "compliant_modulus", "temporal_noise_floor",
+           "build_dense_model", "concentrated_log_evidence", "process_fraction_ml"]
+
+#: How the reference myocardium is meshed (``mesh=``).
+MESHES = ("gmsh", "pixels")
+#: Regularisation of the nodal fit's information matrix, relative to its mean diagonal.
+INFORMATION_FLOOR = 1e-8
+#: Cycles the elastic relaxation across the wall takes with :func:`compliant_modulus`.
+RELAXATION_CYCLES = 10.0
+#: Candidates of the process noise fraction compared by their evidence (:func:`process_fraction_ml`).
+PROCESS_FRACTIONS = (0.1, 0.3, 1.0, 3.0)
+
+
+# ----------------------------------------------------------------------------------- the mesh
+def reference_mesh(mask, pixel_size_m: float, mesh: str = "gmsh", element_px: float = 2.0) -> TriMesh:
+    """Mesh of a reference myocardium mask, in metres (pixel (r, c) centred on (c, r) px).
+
+    ``"gmsh"``: the mask's borders (marching squares at level 1/2,
+    :func:`sfem_filters.imaging.contours.mask_borders`, taken with about 4 points a pixel so that
+    nothing of the border is lost before :func:`sfem_filters.fem.polygon_mesh.polygon_mesh`
+    resamples it at the element size) meshed at ``element_px`` pixels. ``"pixels"``: one node per
+    pixel centre (:func:`sfem_filters.cardiac.myocardium.tissue_mesh`).
+    """
+    s = positive("pixel_size_m", pixel_size_m, "m")
+    if mesh not in MESHES:
+        raise ValueError(f"mesh: expected one of {MESHES}, got {mesh!r}")
+    m = np.asarray(mask, bool)
+    if mesh == "pixels":
+        rows, cols = np.nonzero(m)
+        return tissue_mesh(np.column_stack([cols, rows]).astype(float) * s)[0]
+    h = positive("element_px", element_px, "pixels")
+    n = 4 * int(m.sum()) + 16
+    b = mask_borders(m, n_endo=max(16, n // 3), n_epi=max(16, n // 2))
+    return polygon_mesh(b.epi * s, [b.endo * s], size=h * s)
+
+
+def observation_points(mesh: TriMesh, points_m) -> tuple:
+    """Points (m) moved into the mesh where they lie outside it (onto the nearest boundary edge).
+
+    Returns the points to observe at and how far each was moved (m). Pixel centres of the
+    reference mask lie inside its level-1/2 border, but the mesh's boundary, a polygon through
+    resampled border points, cuts the border's corners by up to a small fraction of a pixel.
+    """
+    pts = as_float_array("points_m", points_m, shape=(None, 2))
+    tri = mesh.nodes[mesh.elements]
+    v0 = tri[:, 0]
+    Tinv = np.linalg.inv(np.stack([tri[:, 1] - v0, tri[:, 2] - v0], axis=2))
+    lam12 = np.einsum("eij,pej->pei", Tinv, pts[:, None, :] - v0[None])
+    worst = np.minimum(1.0 - lam12.sum(axis=2), lam12.min(axis=2)).max(axis=1)
+    outside = np.flatnonzero(worst < -1e-9)
+    out = pts.copy()
+    moved = np.zeros(len(pts))
+    if outside.size:
+        edges = mesh.boundary_edges()
+        a, b = mesh.nodes[edges[:, 0]], mesh.nodes[edges[:, 1]]
+        ab = b - a
+        for k in outside:
+            t = np.clip(np.einsum("ej,ej->e", pts[k] - a, ab) / np.einsum("ej,ej->e", ab, ab), 1e-6, 1 - 1e-6)
+            q = a + t[:, None] * ab
+            j = int(np.argmin(np.linalg.norm(q - pts[k], axis=1)))
+            # a hair inside: towards the opposite node of the edge's triangle (the tissue is on the left)
+            inward = np.array([-ab[j, 1], ab[j, 0]]) / np.linalg.norm(ab[j])
+            out[k] = q[j] + 1e-9 * np.linalg.norm(ab[j]) * inward
+            moved[k] = float(np.linalg.norm(out[k] - pts[k]))
+    return out, moved
+
+
+# -------------------------------------------------------------------------- the data, compressed
+def nodal_fit(D, displacement_m, sd_m) -> tuple:
+    """Per frame, the weighted least-squares nodal displacements and their covariance.
+
+    Parameters
+    ----------
+    D : (2P, n_dofs) sparse matrix
+        Point observation operator (rows point by point, x before y).
+    displacement_m, sd_m : (F, P, 2) arrays
+        Data (m), NaN where untracked, and their sd (m).
+
+    Returns
+    -------
+    y : (F, n_dofs) array
+        ``J_t^-1 D^T W_t y_t`` (m).
+    R : (F, n_dofs, n_dofs) array
+        ``J_t^-1`` (m^2), ``J_t = D^T W_t D + floor I``, ``floor`` :data:`INFORMATION_FLOOR` of
+        the mean diagonal of ``D^T W_t D``.
+    """
+    D = sp.csr_matrix(D)
+    u = np.asarray(displacement_m, float)
+    s = np.asarray(sd_m, float)
+    F = u.shape[0]
+    n = D.shape[1]
+    y = np.empty((F, n))
+    R = np.empty((F, n, n))
+    for t in range(F):
+        d = u[t].reshape(-1)
+        w = np.where(np.isfinite(d) & np.isfinite(s[t].reshape(-1)) & (s[t].reshape(-1) > 0),
+                     1.0 / np.where(s[t].reshape(-1) > 0, s[t].reshape(-1), 1.0) ** 2, 0.0)
+        if not np.any(w > 0):
+            raise ValueError(f"displacement: expected some tracked point in every frame, got none in frame {t}")
+        Dw = D.multiply(w[:, None]).tocsr()
+        J = (D.T @ Dw).toarray()
+        J[np.diag_indices(n)] += INFORMATION_FLOOR * float(np.mean(np.diag(J)))
+        b = Dw.T @ np.where(w > 0, d, 0.0)
+        Li = np.linalg.solve(np.linalg.cholesky(J), np.eye(n))        # J^-1 = Li^T Li
+        R[t] = Li.T @ Li
+        y[t] = R[t] @ b
+    return y, R
+
+
+class NodalFitModel(SFEMModel):
+    """:class:`SFEMModel` observing every node, with a full measurement covariance per frame.
+
+    ``R_frames`` (F, m, m), m the observed rows: :meth:`R_at` returns frame t's (the filters'
+    per-frame noise protocol); ``R`` is their mean. Everything else is :class:`SFEMModel`'s.
+    """
+
+    def __init__(self, *args, R_frames, **kwargs):
+        R_frames = np.asarray(R_frames, float)
+        super().__init__(*args, **kwargs)
+        if R_frames.shape != (self.n_frames, self.dim_obs, self.dim_obs):
+            raise ValueError(f"R_frames: expected shape ({self.n_frames}, {self.dim_obs}, {self.dim_obs}), "
+                             f"got {R_frames.shape}")
+        self._R_full = R_frames
+        self.R = R_frames.mean(axis=0)
+
+    def R_at(self, t: int) -> np.ndarray:
+        """Measurement noise covariance of frame ``t`` (m^2), full."""
+        return self._R_full[t]
+
+    def with_measurement_noise(self, scale: float) -> "NodalFitModel":
+        out = super().with_measurement_noise(scale)
+        out._R_full = self._R_full * positive("scale", scale)
+        return out
+
+
+def compliant_modulus(wall_m: float, cycle_s: float, density: float = NOMINAL["density"],
+                      alpha: float = NOMINAL["alpha"], cycles: float = RELAXATION_CYCLES) -> float:
+    """Young's modulus (Pa) whose elastic relaxation across the wall takes ``cycles`` cardiac cycles.
+
+    ``E = alpha rho w^2 / (cycles t)``: a wall mode of wavelength ~ the wall thickness ``w`` has
+    ``omega^2 ~ E / (rho w^2)`` and, overdamped by the Rayleigh mass damping ``alpha``, relaxes at
+    ``omega^2 / alpha``; this modulus makes that ``1 / (cycles t)``.
+
+    Why: displacement data cannot identify the force scale (:data:`sfem_filters.cardiac.measured.NOMINAL`),
+    and an elastic tissue pulls every state back towards the reference configuration (with the
+    nominal modulus and Rayleigh damping, every mode relaxes at ``1 / beta`` = 333/s, within a
+    frame), while a near-incompressible plane-strain material also resists the wall's
+    thickening: the model then forgets where the wall was, cannot average the data over frames,
+    and flattens radial strain. With this modulus the elastic forces are negligible over the
+    cycle: from frame to frame the state carries the motion (a damped constant-velocity prior
+    through the mass and the mass damping), and the data, not the reference shape, hold it.
+    """
+    w = positive("wall_m", wall_m, "m")
+    t = positive("cycle_s", cycle_s, "s")
+    return float(positive("alpha", alpha, "1/s") * positive("density", density, "kg/m^3") * w ** 2
+                 / (positive("cycles", cycles) * t))
+
+
+def temporal_noise_floor(displacement) -> float:
+    """Noise sd per component (data units) from the second differences in time of the tracks.
+
+    ``u_t - (u_t-1 + u_t+1) / 2`` of white noise of sd ``s`` has variance ``1.5 s^2``; a smooth
+    motion adds little. So ``sqrt(mean(d2^2) / 1.5)`` over every point, component and frame
+    bounds the noise from above; it holds what the phase-based sd misses (the simulator's or the
+    scanner's phase texture, interpolation). The same rule as the library's measured-data
+    workflow (:func:`sfem_filters.cardiac.measured.noise_floor`, which reports it per point).
+    """
+    u = np.asarray(displacement, float)
+    d2 = u[1:-1] - 0.5 * (u[:-2] + u[2:])
+    if not np.any(np.isfinite(d2)):
+        raise ValueError("displacement: expected a point tracked in 3 consecutive frames for the noise floor, got none")
+    return float(np.sqrt(np.nanmean(d2 ** 2) / 1.5))
+
+
+def build_dense_model(mesh: TriMesh, tracks: LagrangianDisplacement, pixel_size_m: float,
+                      settings: StrainRouteSettings) -> tuple:
+    """The filter model of dense displacement data and its observations (module docstring, steps 2-3).
+
+    Noise, by the data's own level: each datum's sd is the tracks' ``sd`` scaled up (never
+    down) so that its RMS equals the temporal noise floor (:func:`temporal_noise_floor`); the
+    process noise is ``settings.process_fraction`` of that floor per frame on the displacement,
+    and the same over the frame interval on the velocity (the rule of
+    :func:`sfem_filters.cardiac.measured.build_model`).
+
+    Returns ``(model, y, info, points)``: a :class:`NodalFitModel`, the observations (F, n_dofs)
+    in m, a dict of what was derived, and the observed points (m, moved into the mesh).
+    """
+    s = positive("pixel_size_m", pixel_size_m, "m")
+    X = tracks.points * s
+    Xin, moved = observation_points(mesh, X)
+    D = point_observation_matrix(mesh, Xin)
+    F = tracks.displacement.shape[0]
+    if F < 3:
+        raise ValueError(f"tracks: expected at least 3 frames, got {F}")
+    floor_px = temporal_noise_floor(tracks.displacement)
+    sd = np.asarray(tracks.sd, float)
+    sd_rms = float(np.sqrt(np.nanmean(sd ** 2)))
+    sd_scale = max(1.0, floor_px / sd_rms)
+    y, R = nodal_fit(D, tracks.displacement * s, sd * sd_scale * s)
+    T = float(np.median(np.diff(tracks.frame_times_s)))
+    alpha = NOMINAL["alpha"] if settings.alpha is None else settings.alpha
+    E = settings.E if settings.E is not None else compliant_modulus(_wall_thickness(mesh), F * T, alpha=alpha)
+    geometry = lv_geometry(mesh)
+    effs = build_effects(list(settings.effects), mesh, geometry, scale=NOMINAL["E"],
+                         process_std=EFFECT_STEP, initial_std=EFFECT_STEP) if settings.effects else []
+    material = Material.uniform(mesh.n_elements, E, settings.nu)
+    # soft ground springs (the library's drive-free convention, NOMINAL["foundation"] of K's median
+    # diagonal) only remove the rigid-body null space of K; the data hold the position
+    ground = NOMINAL["foundation"] * float(np.median(stiffness_matrix(mesh, material.E, material.nu).diagonal()))
+    penalty = penalty_stiffness(mesh.n_dofs, np.arange(mesh.n_dofs), ground)
+    H = sp.identity(mesh.n_dofs, format="csr")
+    if settings.process_fraction is None:
+        raise ValueError("settings: expected a process_fraction (None is resolved by process_fraction_ml)")
+    q = settings.process_fraction * floor_px * s
+    # the initial state: at rest in the reference configuration (encoding time, t = 0), uncertain
+    # by the first frame's displacement (frame 0 is 22.5 ms after the encoding, already moved)
+    u0_sd = max(float(np.sqrt(np.mean(y[0] ** 2))), floor_px * s)
+    model = NodalFitModel(mesh, material, np.zeros((F, mesh.n_dofs)), H, T, (), density=NOMINAL["density"],
+                          alpha=alpha, beta=NOMINAL["beta"], measurement_std=1.0,
+                          process_std=(q, q / T), initial_std=(u0_sd, u0_sd / T), effects=effs, penalty=penalty,
+                          R_frames=R)
+    info = {"n_points_moved_into_mesh": int(np.count_nonzero(moved)), "largest_move_px": float(moved.max() / s),
+            "noise_floor_px": floor_px, "tracks_sd_rms_px": sd_rms, "sd_scale": sd_scale,
+            "process_std_px": q / s, "frame_interval_s": T, "E_Pa": E, "alpha_per_s": alpha,
+            "wall_thickness_px": _wall_thickness(mesh) / s,
+            "initial_std_px": u0_sd / s}
+    return model, y, info, Xin
+
+
+def _wall_thickness(mesh: TriMesh) -> float:
+    """Mean wall thickness (m): the area over the mean of the two borders' lengths."""
+    geometry = lv_geometry(mesh)
+    lengths = []
+    for loop in (geometry.endo, geometry.epi):
+        p = mesh.nodes[loop]
+        lengths.append(float(np.sum(np.linalg.norm(p - np.roll(p, 1, axis=0), axis=1))))
+    return float(mesh.areas.sum() / np.mean(lengths))
+
+
+def concentrated_log_evidence(log_likelihood: float, nis_sum: float, n_obs: int) -> tuple:
+    """Log-evidence with the common noise scale ``c`` profiled out, and that ``c``.
+
+    With R, Q and the initial covariance all scaled by ``c`` (:func:`noise_scale`), ``log p(y | c) =
+    -1/2 sum_t (log|c S_t| + e_t^T S_t^-1 e_t / c + m_t log 2 pi)``, maximised by ``c = sum nis / N``
+    (``N`` the observed rows), where it is ``log p(y | 1) + sum nis / 2 - N log c / 2 - N / 2``.
+    Comparing settings by this value compares their noise *shapes* (the split between process
+    and measurement noise) at each one's best overall level.
+    """
+    n = int(n_obs)
+    if n <= 0 or not nis_sum > 0:
+        raise ValueError(f"nis_sum, n_obs: expected a positive NIS sum over some observed rows, got {nis_sum}, {n}")
+    c = float(nis_sum) / n
+    return float(log_likelihood) + 0.5 * float(nis_sum) - 0.5 * n * np.log(c) - 0.5 * n, c
+
+
+def process_fraction_ml(mesh: TriMesh, tracks: LagrangianDisplacement, pixel_size_m: float,
+                        settings: StrainRouteSettings, candidates=PROCESS_FRACTIONS, progress=None) -> tuple:
+    """The process noise fraction of largest evidence (type-II maximum likelihood), from the data alone.
+
+    For each candidate, one Kalman filter pass (no smoothing, nothing stored) of the route's
+    model (:func:`build_dense_model`) gives the log-likelihood of the data by the
+    prediction-error decomposition; the common noise level is profiled out
+    (:func:`concentrated_log_evidence`), so what is compared is how the data's variance divides
+    between the motion's frame-to-frame change (process noise) and the data's noise. The best
+    candidate is refined by the vertex of the parabola through it and its two neighbours in
+    ``log q`` (kept within them), when it is not at an end of the grid.
+
+    Why not the fixed 0.1 of the measured-data rule: on dense data that prior is stiff in time,
+    the smoother flattens the peaks of the strain curves and the ML noise scale of step 6 a
+    comes out far above 1 (the innovations are larger than the model allows); the evidence
+    prefers a process noise near the noise floor itself. Held-out pixels are no cleaner
+    referee here: the phase texture is correlated over neighbouring pixels, so a held-out
+    pixel's noise is partly predictable from its neighbours and the cross-validation error keeps
+    falling as the smoothing weakens.
+
+    Returns ``(q, table)``: the chosen fraction and ``{candidate: [log-evidence, c]}``.
+    """
+    say = progress if progress is not None else (lambda msg: None)
+    qs = sorted(float(positive("candidates", v)) for v in candidates)
+    if not qs:
+        raise ValueError("candidates: expected at least one process fraction, got none")
+    table, evid = {}, []
+    for q in qs:
+        model, y, _, _ = build_dense_model(mesh, tracks, pixel_size_m, replace(settings, process_fraction=q))
+        fw = kalman_forward(linearise(model, np.zeros((y.shape[0], model.dim_x))), y, store=False,
+                            check_every_frame=False)
+        ev, c = concentrated_log_evidence(fw.log_likelihood, float(np.nansum(fw.nis)), int(np.sum(fw.n_obs)))
+        table[q] = [ev, c]
+        evid.append(ev)
+        say(f"process fraction {q:g}: log-evidence {ev:.1f} (noise scale {c:.2f})")
+    k = int(np.argmax(evid))
+    if 0 < k < len(qs) - 1:
+        x = np.log(qs[k - 1:k + 2])
+        a, b, _ = np.polyfit(x, evid[k - 1:k + 2], 2)
+        best = float(np.exp(np.clip(-b / (2 * a), x[0], x[2]))) if a < 0 else qs[k]
+    else:
+        best = qs[k]
+    return best, table
