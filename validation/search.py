@@ -50,7 +50,9 @@ _RUNNER = ("import resource, sys\n"
            "sys.exit(rc)\n")
 
 
-def _slice(search: str, args: list, out_dir) -> dict:
+def measured_slice_row(search: str, args: list, out_dir) -> dict:
+    """The command ``sfem-filters dense example --search <search> <args>`` as a user runs it: its final
+    model, held-out error beside the spline's, fits, wall time and peak memory (one table row)."""
     path = Path(out_dir) / f"search_{search}.command.json"
     cmd = ["dense", "example", "--search", search, *args, "--no-progress", "--json", str(path)]
     env = {**os.environ, "OPENBLAS_NUM_THREADS": os.environ.get("OPENBLAS_NUM_THREADS", "1")}
@@ -97,7 +99,7 @@ def _terms(final: dict) -> list:
 
 def compute(settings: dict, out_dir) -> dict:
     # the measured slice first, every search (its timings the ones users meet), then the checks
-    rows = [_slice(name, settings["slice_args"], out_dir) for name in settings["searches"]]
+    rows = [measured_slice_row(name, settings["slice_args"], out_dir) for name in settings["searches"]]
     for name in settings["searches"]:
         search = SEARCHES[name]
         limit = settings["synthetic_max_iterations"] or search.max_iterations("penalty")

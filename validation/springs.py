@@ -40,7 +40,7 @@ def compute(settings: dict, out_dir) -> dict:
     name = settings["search"]
     rows = []
     for offer in OFFERS:
-        r = search._slice(name, [*settings["slice_args"], "--stiff-springs", offer], out_dir)
+        r = search.measured_slice_row(name, [*settings["slice_args"], "--stiff-springs", offer], out_dir)
         rows.append({**r, "stiff_springs": offer, "springs_kept": "springs x" in r["final"]})
     s = SEARCHES[name]
     limit = settings["synthetic_max_iterations"] or s.max_iterations("penalty")
