@@ -23,7 +23,7 @@ NAME = "closing_loop"
 TITLE = "Closing the loop on the measured DENSE slice"
 #: Needs the measured slice (``sfem_filters.datasets``: set SFEM_FILTERS_DATA).
 NEEDS_DATA = True
-FULL_COST = "about 20-30 min"
+FULL_COST = "about 5-10 min"
 TIERS = {"quick": {"args": ["--effects", "active_polar", "--estimator", "cyclic", "--max-loops", "1",
                             "--workers", "1"]},
          "full": {"args": ["--landmarks", "8", "--workers", "1"]}}
