@@ -95,8 +95,10 @@ def markdown(results: dict) -> str:
                    for n in names), "thin-plate spline"]
     body = [[label, *(fmt(runs[n].get(key), spec) for n in names), fmt(spline.get(key), spec)]
             for label, key, spec in METRICS]
-    body.append(["iterations or loops", *(str(runs[n].get("iterations") or runs[n].get("loops"))
-                                          + ("" if runs[n].get("converged") else "*") for n in names), ""])
+    # "loops": Gauss-Newton iterations of the smoother or loops of the cyclic filter (a count; the
+    # smoother's "iterations" is its per-iteration record)
+    body.append(["iterations or loops", *(str(runs[n].get("loops")) + ("" if runs[n].get("converged") else "*")
+                                          for n in names), ""])
     text = [f"`{results['command']}`: {results['config']['n_observed']} points observed, "
             f"{results['config']['n_heldout']} held out; noise floor {results['noise_floor_px']:.3f} px; "
             f"stop: {results['stop_reason']}.", "", md_table(heads, body),
