@@ -150,3 +150,25 @@ def write_dicom(path, stored, trigger_ms, instance, slope=2.0, intercept=-4096.0
         ds.ImageComments = comments
     ds.PixelData = np.asarray(stored, np.uint16).tobytes()
     ds.save_as(path, enforce_file_format=True)
+
+
+def thickening_ring_tracks(mask, frames=6, noise_px=0.05, seed=0, turn=0.02):
+    """Lagrangian tracks (px) of every pixel of ``mask`` (a ring) that dilates radially inward,
+    u_r = -k(t) / r (area preserving: the wall thickens), and turns by ``turn`` rad per unit of t,
+    with white noise of ``noise_px``. Returns ``(tracks, noise-free displacement (F, P, 2))``."""
+    from sfem_filters.imaging.dense import LagrangianDisplacement, reference_points
+    from sfem_filters.imaging.strain import mask_centre
+    X = reference_points(mask)
+    d = X - mask_centre(mask)
+    t = np.linspace(0.2, 1.0, frames)
+    rng = np.random.default_rng(seed)
+    r = np.linalg.norm(d, axis=1)
+    u_r = -(0.15 * t[:, None]) * (20.0 / r)[None]
+    rot = np.column_stack([-d[:, 1], d[:, 0]])
+    disp = u_r[..., None] * (d / r[:, None])[None] + turn * t[:, None, None] * rot[None]
+    noisy = disp + noise_px * rng.standard_normal(disp.shape)
+    tracks = LagrangianDisplacement(points=X, displacement=noisy, sd=np.full(disp.shape, noise_px),
+                                    confidence=np.ones(disp.shape[:2]),
+                                    frame_times_s=0.0225 + 0.015 * np.arange(frames), n_untracked=0,
+                                    noise_sd=np.array([1.0, 1.0]))
+    return tracks, disp

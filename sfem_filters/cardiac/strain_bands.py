@@ -74,14 +74,8 @@ def _component_rows(ops) -> sp.csr_matrix:
 
 
 def _covariance_from_blocks(v: np.ndarray, m: int) -> np.ndarray:
-    """(F, m, 4, 4) covariances from (F, 10 m) variances of :func:`_component_rows`."""
-    v = v.reshape(v.shape[0], 10, m)
-    C = np.zeros((v.shape[0], m, 4, 4))
-    for i in range(4):
-        C[..., i, i] = v[:, i]
-    for k, (i, j) in enumerate(_PAIRS):
-        C[..., i, j] = C[..., j, i] = 0.5 * (v[:, 4 + k] - v[:, i] - v[:, j])
-    return C
+    """(F, m, 4, 4) covariances from (F, 10 m) variances of :func:`_component_rows` (component-major)."""
+    return _covariance_from_rows(np.swapaxes(v.reshape(v.shape[0], 10, m), 1, 2))
 
 
 def point_variance(weights, a, C) -> np.ndarray:
@@ -260,7 +254,8 @@ def _gradient_rows(mesh: TriMesh, Ge: np.ndarray, elements=None) -> sp.csr_matri
 
 
 def _covariance_from_rows(v: np.ndarray) -> np.ndarray:
-    """(F, n_el, 4, 4) covariances from (F, 10 n_el) variances of components and pairwise sums."""
+    """(F, n_el, 4, 4) covariances from (F, 10 n_el) variances of components and pairwise sums (item-major):
+    Var(g_i + g_j) = Var g_i + Var g_j + 2 Cov(g_i, g_j)."""
     F = v.shape[0]
     v = v.reshape(F, -1, 10)
     C = np.zeros(v.shape[:2] + (4, 4))

@@ -17,20 +17,16 @@ from sfem_filters.cardiac.strain_route import (  # noqa: E402
     reference_mesh,
     strain_and_sd,
 )
-from sfem_filters.imaging.dense import LagrangianDisplacement, reference_points  # noqa: E402
+from helpers import thickening_ring_tracks  # noqa: E402
+from sfem_filters.cardiac.annulus import annulus_mask  # noqa: E402
+from sfem_filters.imaging.dense import reference_points  # noqa: E402
 from sfem_filters.imaging.strain import green_strain, mask_centre, project_strain, segment_labels  # noqa: E402
 
 PX = 1.75e-3
 
 
-def _ring(n=24, r0=4.0, r1=8.5):
-    yy, xx = np.mgrid[0:n, 0:n]
-    r = np.hypot(xx - (n - 1) / 2, yy - (n - 1) / 2)
-    return (r >= r0) & (r <= r1)
-
-
 def _setup(element_px=2.0):
-    mask = _ring()
+    mask = annulus_mask(4.0, 8.5, 24)
     mesh = reference_mesh(mask, PX, "gmsh", element_px)
     X = reference_points(mask)
     elem = _element_of(mesh, X * PX)
@@ -118,28 +114,9 @@ def test_the_segment_band_is_the_sd_of_the_mean_from_the_full_covariance():
         assert abs(var_rows[g] - independent) > 0.05 * var_rows[g]      # the correlations count
 
 
-def _synthetic_tracks(mask, frames=6, noise_px=0.05, seed=0):
-    """A ring that dilates radially (thickening) and turns, with noisy Lagrangian displacements (px)."""
-    X = reference_points(mask)
-    c = mask_centre(mask)
-    d = X - c
-    t = np.linspace(0.2, 1.0, frames)
-    rng = np.random.default_rng(seed)
-    r = np.linalg.norm(d, axis=1)
-    # an inward radial field u_r = -k(t) / r (area preserving: the wall thickens) and a small turn
-    u_r = -(0.15 * t[:, None]) * (20.0 / r)[None]
-    turn = np.column_stack([-d[:, 1], d[:, 0]])
-    disp = u_r[..., None] * (d / r[:, None])[None] + 0.02 * t[:, None, None] * turn[None]
-    noisy = disp + noise_px * rng.standard_normal(disp.shape)
-    sd = np.full(disp.shape, noise_px)
-    return LagrangianDisplacement(points=X, displacement=noisy, sd=sd, confidence=np.ones(disp.shape[:2]),
-                                  frame_times_s=0.0225 + 0.015 * np.arange(frames), n_untracked=0,
-                                  noise_sd=np.array([1.0, 1.0])), disp
-
-
 def test_dense_strain_on_a_small_ring_gives_the_issue_names_and_honest_shapes():
-    mask = _ring()
-    tracks, truth = _synthetic_tracks(mask)
+    mask = annulus_mask(4.0, 8.5, 24)
+    tracks, truth = thickening_ring_tracks(mask)
     messages = []
     r = dense_strain(tracks, mask, PX, StrainRouteSettings(element_px=2.0, start_deg=15.0), progress=messages.append)
     F, P = tracks.displacement.shape[:2]

@@ -8,6 +8,8 @@ from hypothesis import strategies as st
 
 pytest.importorskip("gmsh", reason="gmsh (the optional mesher, GPL-2.0-or-later) is not installed")
 
+from helpers import thickening_ring_tracks  # noqa: E402
+from sfem_filters.cardiac.annulus import annulus_mask  # noqa: E402
 from sfem_filters.cardiac.strain_bands import (  # noqa: E402
     curve_noise_variance,
     discrepancy_variance,
@@ -32,13 +34,7 @@ from sfem_filters.imaging.dense import LagrangianDisplacement, reference_points 
 PX = 1.75e-3
 
 
-def _ring(n=24, r0=4.0, r1=8.5):
-    yy, xx = np.mgrid[0:n, 0:n]
-    r = np.hypot(xx - (n - 1) / 2, yy - (n - 1) / 2)
-    return (r >= r0) & (r <= r1)
-
-
-MASK = _ring()
+MASK = annulus_mask(4.0, 8.5, 24)
 MESH = reference_mesh(MASK, PX, "gmsh", 2.0)
 POINTS = reference_points(MASK) * PX
 
@@ -261,22 +257,8 @@ def test_the_scaled_bands_of_a_gaussian_local_level_model_cover_at_their_nominal
     assert 0.93 <= inside_ml / n <= 0.97
 
 
-def _tracks(mask, frames=6, noise_px=0.05, seed=0):
-    X = reference_points(mask)
-    c = X.mean(axis=0)
-    d = X - c
-    r = np.linalg.norm(d, axis=1)
-    t = np.linspace(0.2, 1.0, frames)
-    disp = -(0.15 * t[:, None, None]) * (20.0 / r)[None, :, None] * (d / r[:, None])[None]
-    rng = np.random.default_rng(seed)
-    return LagrangianDisplacement(points=X, displacement=disp + noise_px * rng.standard_normal(disp.shape),
-                                  sd=np.full(disp.shape, noise_px), confidence=np.ones(disp.shape[:2]),
-                                  frame_times_s=0.0225 + 0.015 * np.arange(frames), n_untracked=0,
-                                  noise_sd=np.array([1.0, 1.0]))
-
-
 def test_dense_strain_keeps_the_smoothers_sd_beside_the_total_and_the_switches_work():
-    tracks = _tracks(MASK)
+    tracks = thickening_ring_tracks(MASK, turn=0.0)[0]
     full = dense_strain(tracks, MASK, PX, StrainRouteSettings(element_px=2.0))
     bare = dense_strain(tracks, MASK, PX, StrainRouteSettings(element_px=2.0, noise_scale=False, discrepancy=False))
     for q in ("Ecc", "Err"):
