@@ -37,6 +37,20 @@ uncertainty lives in the parameters only, as in the paper) and any part of the i
 kinematic covariance not explained by the parameters; :meth:`ROUKFEngine.reset` keeps of a full
 ``P`` exactly its parameter block and the kinematics' regression on the parameters.
 
+Where that leaves out most of the model's uncertainty (a model whose frame-to-frame kinematics are
+mostly process noise, such as the measured slice's penalty drive, whose spring targets move by
+about the landmarks' step each frame), the predicted innovation covariance ``HL HL^T + W`` is
+far too small, the innovations are many times their predicted spread (the NIS / dof of
+``docs/_generated/peers_measured.md``), and the gain hands the misfit to the parameters: the
+estimate itself (not the spread of its sigma points) runs off, until the model rejects a sigma
+point (a stiffness field too wide to be positive definite in double precision). The EKF with its
+Q set to zero does the same, so this is the method's limit, not a defect of the sigma points or
+of the parameters' transform (``tests/filtering/test_roukf.py``). The engine then raises a
+``ValueError`` that says so, with the model's own error as its cause, and names the setting to
+change: a filter that keeps the process noise (engine ``"structured"``: ``estimator="cyclic"``
+or ``"smoother"``). The restart states the parameters do not move (an effect amplitude with its
+own random walk) stay at their initial value in this filter.
+
 Drivers: it is a filter, so it runs in the cyclic driver (``cyclic_estimate(model, y,
 engine="roukf")``, ``CyclicEKF(engine="roukf")``: loops, checkpoints, safeguards, progress bar
 and the one-cycle covariance as for the EKF), and so in ``sfem-filters dense --estimator roukf``.
@@ -47,6 +61,7 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.linalg as sla
+from scipy import stats
 
 from .base import Engine
 from .protocol import measurement_cov
@@ -101,6 +116,7 @@ class ROUKFEngine(Engine):
                              "(use a material-estimating configuration)")
         self.I = simplex_points(self.p)
         self.alpha = 1.0 / (self.p + 1)
+        self._worst = None              # (NIS / dof, frame) of this loop's most inconsistent update, above 99.9 %
 
     def reset(self, x, P) -> None:
         x = np.asarray(x, float).ravel()
@@ -110,6 +126,8 @@ class ROUKFEngine(Engine):
         C = _cholesky_with_jitter(Ptt)
         self._z = x.copy()
         self._L = np.vstack([np.linalg.solve(Ptt, P[nx:, :nx]).T, np.eye(self.p)]) @ C
+        self._start, self._start_sd = x[nx:].copy(), np.sqrt(np.diag(Ptt))
+        self._worst = None
 
     @property
     def x(self) -> np.ndarray:
@@ -127,17 +145,37 @@ class ROUKFEngine(Engine):
             return None
         return S
 
+    def _through(self, f, Z, t: int, step: str) -> np.ndarray:
+        """``f(z_i, t)`` of every sigma point (columns of Z), as columns. A model error
+        (``ValueError``, ``FloatingPointError``, ``LinAlgError``) after an update of this loop
+        whose innovations were beyond the 99.9 % chi-square bound is the filter's divergence:
+        re-raised as a ``ValueError`` naming the cause (:func:`_divergence_message`), the model's
+        error as its cause; any other is passed on unchanged."""
+        out = []
+        for i in range(Z.shape[1]):
+            try:
+                out.append(np.asarray(f(Z[:, i], t), float).ravel())
+            except (ValueError, FloatingPointError, np.linalg.LinAlgError) as err:
+                if self._worst is None:
+                    raise
+                theta, sd = self._z[self.nx:], self._start_sd
+                moved = np.abs(theta - self._start)
+                spread = float(np.max(np.abs(Z[self.nx:] - theta[:, None]) / sd[:, None]))
+                has_q = bool(np.any(np.asarray(self.model.Q, float)[:self.nx, :self.nx]))
+                raise ValueError(_divergence_message(step, self._worst, float(np.max(moved / sd)), float(moved.max()),
+                                                     spread, i, has_q, err)) from err
+        return np.column_stack(out)
+
     def predict(self, t: int) -> None:
         Z = self._z[:, None] + self._L @ self.I
-        Zf = np.column_stack([np.asarray(self.model.fx(Z[:, i], t), float).ravel() for i in range(self.p + 1)])
+        Zf = self._through(self.model.fx, Z, t, f"frame {t} to {t + 1}")
         self._z = Zf.mean(axis=1)
         self._L = self.alpha * Zf @ self.I.T            # U^- = I: L^- is a square root of P^-
 
     def update(self, y, t: int, mask) -> tuple:
         L = self._L                                     # sampled square root (U = I)
         Z = self._z[:, None] + L @ self.I
-        Y = np.column_stack([np.asarray(self.model.hx(Z[:, i], t), float).ravel()[mask]
-                             for i in range(self.p + 1)])
+        Y = self._through(self.model.hx, Z, t, f"observing frame {t}")[mask]
         W = measurement_cov(self.model, t)[np.ix_(mask, mask)]
         HL = self.alpha * Y @ self.I.T
         e = np.asarray(y, float)[mask] - Y.mean(axis=1)
@@ -149,4 +187,25 @@ class ROUKFEngine(Engine):
         self._z = self._z + L @ sla.cho_solve((R, False), WiHL.T @ e)
         self._L = sla.solve_triangular(R, L.T, trans="T", lower=False).T
         S = HL @ HL.T + W
-        return e, 0.5 * (S + S.T)
+        S = 0.5 * (S + S.T)
+        m = int(e.size)
+        nis = float(e @ sla.cho_solve(sla.cho_factor(S), e))
+        if nis > stats.chi2.ppf(0.999, m) and (self._worst is None or nis / m > self._worst[0]):
+            self._worst = (nis / m, t)
+        return e, S
+
+
+def _divergence_message(step: str, worst: tuple, moved_sd: float, moved: float, spread: float, point: int,
+                        has_q: bool, err: Exception) -> str:
+    """The reduced-order UKF's divergence, explained: where the model rejected a sigma point, the
+    innovations' excess (``worst``: NIS / dof and frame), how far the estimate moved from the
+    loop's start (in its sd there, ``moved_sd``, and in parameter units) against its sigma
+    points' spread (``spread``, in the same sd), what the filter leaves out (``has_q``: the model
+    has process noise on its restart states) and the setting to change."""
+    left_out = "the model's process noise Q" if has_q else "the model's misfit"
+    return (f"reduced-order UKF diverged ({step}): without process noise its parameters absorbed the misfit; "
+            f"use estimator 'cyclic' or 'smoother' (engine 'structured'). NIS/dof up to {worst[0]:.3g} (frame "
+            f"{worst[1]}); the estimate itself ran off, {moved_sd:.3g} sd (up to {moved:.3g}) from the loop's start, "
+            f"its sigma points within {spread:.3g} sd of it: the covariance of rank p has no room for {left_out}, "
+            f"so the innovations are explained by the parameters (Moireau & Chapelle 2011). The model rejected "
+            f"sigma point {point}: {err}")
