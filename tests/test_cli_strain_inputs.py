@@ -376,5 +376,27 @@ def test_sequence_input_errors_name_what_is_missing(tmp_path, capsys):
     assert "--ke: is for DENSE images" in run("ke", extra=("--ke", "0.1"))
     assert "--snr: is for DENSE images" in run("snr", extra=("--snr", "30"))
     assert "--route contours: expected the myocardium masks" in run("contours", extra=("--route", "contours"))
+    assert "--resolution-px acquisition: a sequence file carries no acquisition" in run(
+        "res_seq", extra=("--resolution-px", "acquisition"))
+    for bad in ("0.5", "nan", "wide"):                   # argparse's own error: usage and exit status 2
+        with pytest.raises(SystemExit) as stop:
+            main(["strain", str(tmp_path / "no_px.npz"), "--json", out, "--resolution-px", bad])
+        err = capsys.readouterr().err
+        assert stop.value.code == 2
+        assert "argument --resolution-px: expected the acquired resolution in reconstructed pixels" in err
     err = _err(capsys, ["strain", str(tmp_path / "absent.npz"), "--json", out])
     assert "path: expected a DENSE-Sim case folder, a folder of DENSE DICOM files or a sequence .npz" in err
+
+
+@pytest.mark.needs_data(CASE)
+def test_the_acquisitions_resolution_reaches_the_route(short_case, folder_report, tmp_path):
+    out = tmp_path / "psf.json"
+    assert main(["strain", str(short_case), "--json", str(out), "--quiet", "--resolution-px", "acquisition"]) == 0
+    rep = json.loads(out.read_text())
+    settings = rep["settings"]
+    assert settings["resolution_px"] == pytest.approx(128 / 60)             # config.yaml N_im / N_im_pre_spiral
+    assert settings["observation_tissue_weight_mean"] < 0.95                # border pixels' PSF reaches outside
+    assert folder_report["settings"]["resolution_px"] == 1.0                 # the default: point observation
+    # the operator changes the estimate (it is not ignored), within the strain's own scale
+    a, b = _a(rep["global"]["Err"]), _a(folder_report["global"]["Err"])
+    assert 1e-4 < np.max(np.abs(a - b)) < 0.2

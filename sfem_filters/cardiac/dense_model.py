@@ -6,22 +6,23 @@ in metres; pixels for the tracks.
 """
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 import scipy.sparse as sp
+from scipy import ndimage
 
 from .._validate import as_float_array, positive
 from ..fem.elasticity import stiffness_matrix
 from ..fem.loads import penalty_stiffness
 from ..fem.material import Material
 from ..fem.mesh import TriMesh
-from ..fem.observation import point_observation_matrix
+from ..fem.observation import blurred_observation_matrix, point_observation_matrix, sample_interpolation
 from ..fem.polygon_mesh import polygon_mesh
 from ..filtering.linearised import linearise
 from ..filtering.smoother import kalman_forward
 from ..imaging.contours import mask_borders
-from ..imaging.dense import LagrangianDisplacement
+from ..imaging.dense import LagrangianDisplacement, BackgroundSignal, psf_samples
 from ..model import SFEMModel
 from .effects import build_effects
 from .measured import EFFECT_STEP, NOMINAL
@@ -29,7 +30,8 @@ from .myocardium import lv_geometry, tissue_mesh
 
 __all__ = ["MESHES", "INFORMATION_FLOOR", "RELAXATION_CYCLES", "PROCESS_FRACTIONS", "reference_mesh",
            "observation_points", "nodal_fit", "NodalFitModel", "compliant_modulus", "temporal_noise_floor",
-           "build_dense_model", "concentrated_log_evidence", "process_fraction_ml"]
+           "build_dense_model", "concentrated_log_evidence", "process_fraction_ml", "observation_operator",
+           "ObservationScaling"]
 
 #: How the reference myocardium is meshed (``mesh=``).
 MESHES = ("gmsh", "pixels")
@@ -95,6 +97,133 @@ def observation_points(mesh: TriMesh, points_m) -> tuple:
     return out, moved
 
 
+# ------------------------------------------------------------------------ the observation operator
+def observation_operator(mesh: TriMesh, points_m, tracks: LagrangianDisplacement, pixel_size_m: float,
+                         resolution_px: float = 1.0, background=None) -> tuple:
+    """The DENSE route's ``D`` of Eq. 12 with the acquisition's point spread, and each datum's scaling.
+
+    A DENSE datum is the phase of the complex signal summed over the point spread function
+    (PSF), so it reports the signal-weighted mean displacement of what the PSF reaches, not the
+    displacement at the pixel centre: deeper tissue, and at the borders what surrounds the
+    myocardium (the cavity, the tissue around the heart), with its own signal and phase. With the
+    PSF of the acquired resolution (:func:`sfem_filters.imaging.dense.psf_samples`, a Gaussian of
+    FWHM ``resolution_px``, sampled at a third of a pixel), datum ``y_pt`` (pixels) of point p at
+    frame t is modelled, per component, as
+
+    ``y_pt sum_in w_s - offset_pt = sum_in w_s N(X_p + o_s) U_t``,
+
+    ``N`` the shape functions (:func:`sfem_filters.fem.observation.blurred_observation_matrix`),
+    "in" the sample points inside the reference mesh, and ``offset`` the pull of the signal
+    outside the tissue on the datum's phase (:func:`_background_terms`: the phasors add, so a
+    static background pulls a large phase less than a linear average says), read from the
+    background's complex signal (:func:`sfem_filters.imaging.dense.background_signal`; None: a
+    dark background, no offset) at the samples' positions now, ``x_pt + o_s``, ``x_pt = X_p +
+    d_pt`` the datum's tracked position. With ``resolution_px = 1`` this is the point
+    interpolation.
+
+    The Eulerian-to-Lagrangian approximation: the phase is blurred in the *current* image, around
+    the tissue's position now; the operator blurs the model's *Lagrangian* field around the
+    reference position with the same PSF, i.e. it takes the deformation gradient as the identity
+    across the PSF (a kernel about one pixel wide, where the strain changes its shape by up to
+    the strain itself) and ignores that the tracked position is itself displaced by the blur's
+    bias (a second-order effect: the bias times the displacement gradient). Both are what the
+    tracks' inversion of a blurred field already assumes (the datum belongs to the reference
+    pixel it was tracked from); in exchange ``D`` is one matrix for every frame, and each frame
+    only rescales and shifts its data (:class:`ObservationScaling`). Measured on a thickening
+    ring rendered through a known point spread (``tests/cardiac/test_strain_route_psf.py``), the
+    route through this operator recovers the radial strain the blur takes off: the approximation
+    is not what limits it there.
+
+    Returns
+    -------
+    D : (2 P, n_dofs) sparse matrix
+        ``sum_in w_s N(X_p + o_s)``, rows point by point, x before y.
+    scaling : ObservationScaling
+        ``tissue``, ``offset`` and ``gain``, each (F, P, 2).
+    """
+    s = positive("pixel_size_m", pixel_size_m, "m")
+    pts = as_float_array("points_m", points_m, shape=(None, 2))
+    F, P = tracks.displacement.shape[:2]
+    offsets, weights = psf_samples(resolution_px)
+    if len(offsets) == 1:
+        ones = np.ones((F, P, 2))
+        return point_observation_matrix(mesh, pts), ObservationScaling(tissue=ones, offset=np.zeros_like(ones),
+                                                                       gain=ones)
+    if background is not None and not isinstance(background, BackgroundSignal):
+        raise TypeError(f"background: expected a BackgroundSignal (sfem_filters.imaging.dense.background_signal) or "
+                        f"None, got {type(background).__name__}")
+    if background is not None and background.signal.shape[0] != F:
+        raise ValueError(f"background: expected the signal of F = {F} frames, got shape {background.signal.shape}")
+    samples = sample_interpolation(mesh, pts, offsets * s)
+    D = blurred_observation_matrix(mesh, pts, offsets * s, weights, background=1.0, samples=samples)
+    inside = samples[1]
+    tissue = np.repeat(np.sum(np.where(inside, weights, 0.0), axis=1)[None, :, None], F, axis=0).repeat(2, axis=2)
+    offset = np.zeros((F, P, 2))
+    gain = tissue.copy()
+    if background is not None:
+        out_p, out_s = np.nonzero(~inside)
+        for t in range(F):
+            q = tracks.points[out_p] + offsets[out_s] + np.nan_to_num(tracks.displacement[t])[out_p]
+            off_t, gain_t = _background_terms(background, tracks, t, out_p, weights[out_s], q, P)
+            offset[t] = off_t
+            gain[t] += gain_t
+    return D, ObservationScaling(tissue=tissue, offset=offset, gain=gain)
+
+
+def _background_terms(background: BackgroundSignal, tracks, t: int, out_p, w_out, q_px, P: int) -> tuple:
+    """(P, 2) the background's offset (pixels) and gain of each datum at frame ``t``, per component.
+
+    The phase ``theta`` of a sum of phasors ``sum_k c_k exp(i phi_k)`` solves ``sum_k c_k
+    sin(phi_k - theta) = 0``. With the tissue's phases near ``theta`` (``sin(phi - theta) ~ phi -
+    theta``) and the background's complex signal ``z_s = b_s exp(i psi_s)`` at the samples outside
+    the tissue (bilinear in the image at the samples' positions ``q_px``): ``theta sum_in w_s =
+    sum_in w_s phi_s + sum_out w_s Im(z_s exp(-i theta))``. In displacement (``theta = p y``, ``p``
+    the phase per pixel): ``y sum_in w = D U + offset``, ``offset = sum_out w_s Im(z_s exp(-i
+    theta)) / p``; the datum's noise passes with the gain ``sum_in w + sum_out w_s Re(z_s exp(-i
+    theta))``. A static background (``psi = 0``) gives ``y (sum_in w + b sinc(theta)) = D U``: it
+    pulls a large phase less than a linear average says. The encodings are taken along x and y.
+    """
+    theta = background.phase_per_px * np.nan_to_num(tracks.displacement[t])             # (P, 2) rad
+    offset, gain = np.zeros((P, 2)), np.zeros((P, 2))
+    for c in range(2):
+        zc = background.signal[t, ..., c]
+        z = (ndimage.map_coordinates(zc.real, [q_px[:, 1], q_px[:, 0]], order=1, mode="nearest")
+             + 1j * ndimage.map_coordinates(zc.imag, [q_px[:, 1], q_px[:, 0]], order=1, mode="nearest"))
+        rot = z * np.exp(-1j * theta[out_p, c])
+        offset[:, c] = np.bincount(out_p, weights=w_out * rot.imag, minlength=P) / background.phase_per_px
+        gain[:, c] = np.bincount(out_p, weights=w_out * rot.real, minlength=P)
+    return offset, gain
+
+
+@dataclass(frozen=True)
+class ObservationScaling:
+    """How each DENSE datum relates to ``D U`` (:func:`observation_operator`): ``tissue * y - offset = D U``.
+
+    Each attribute is an (F, P, 2) array: per frame, point and component.
+
+    Attributes
+    ----------
+    tissue : array
+        ``sum_in w_s``, the point spread's weight on the tissue.
+    offset : array
+        The background's pull (pixels): ``sum_out w_s Im(z_s exp(-i theta)) / p``.
+    gain : array
+        ``d(tissue y - offset) / dy``: the datum's noise sd is multiplied by ``|gain|``.
+    """
+
+    tissue: np.ndarray
+    offset: np.ndarray
+    gain: np.ndarray
+
+    def transform(self, y):
+        """``tissue * y - offset``: the datum as ``D U`` sees it (pixels)."""
+        return self.tissue * np.asarray(y, float) - self.offset
+
+    def predict(self, DU):
+        """The datum ``D U`` predicts (pixels): ``(D U + offset) / tissue``."""
+        return (np.asarray(DU, float) + self.offset) / self.tissue
+
+
 # -------------------------------------------------------------------------- the data, compressed
 def nodal_fit(D, displacement_m, sd_m) -> tuple:
     """Per frame, the weighted least-squares nodal displacements and their covariance.
@@ -102,7 +231,7 @@ def nodal_fit(D, displacement_m, sd_m) -> tuple:
     Parameters
     ----------
     D : (2P, n_dofs) sparse matrix
-        Point observation operator (rows point by point, x before y).
+        Observation operator (rows point by point, x before y).
     displacement_m, sd_m : (F, P, 2) arrays
         Data (m), NaN where untracked, and their sd (m).
 
@@ -114,10 +243,10 @@ def nodal_fit(D, displacement_m, sd_m) -> tuple:
         ``J_t^-1`` (m^2), ``J_t = D^T W_t D + floor I``, ``floor`` :data:`INFORMATION_FLOOR` of
         the mean diagonal of ``D^T W_t D``.
     """
-    D = sp.csr_matrix(D)
     u = np.asarray(displacement_m, float)
     s = np.asarray(sd_m, float)
     F = u.shape[0]
+    D = sp.csr_matrix(D)
     n = D.shape[1]
     y = np.empty((F, n))
     R = np.empty((F, n, n))
@@ -203,7 +332,7 @@ def temporal_noise_floor(displacement) -> float:
 
 
 def build_dense_model(mesh: TriMesh, tracks: LagrangianDisplacement, pixel_size_m: float,
-                      settings: StrainRouteSettings) -> tuple:
+                      settings: StrainRouteSettings, background=None) -> tuple:
     """The filter model of dense displacement data and its observations (module docstring, steps 2-3).
 
     Noise, by the data's own level: each datum's sd is the tracks' ``sd`` scaled up (never
@@ -212,13 +341,16 @@ def build_dense_model(mesh: TriMesh, tracks: LagrangianDisplacement, pixel_size_
     and the same over the frame interval on the velocity (the rule of
     :func:`sfem_filters.cardiac.measured.build_model`).
 
+    Observations through :func:`observation_operator` with ``settings.resolution_px`` and
+    ``background`` (a :class:`~sfem_filters.imaging.dense.BackgroundSignal`, or None: a dark background).
+
     Returns ``(model, y, info, points)``: a :class:`NodalFitModel`, the observations (F, n_dofs)
     in m, a dict of what was derived, and the observed points (m, moved into the mesh).
     """
     s = positive("pixel_size_m", pixel_size_m, "m")
     X = tracks.points * s
     Xin, moved = observation_points(mesh, X)
-    D = point_observation_matrix(mesh, Xin)
+    D, scaling = observation_operator(mesh, Xin, tracks, s, getattr(settings, "resolution_px", 1.0), background)
     F = tracks.displacement.shape[0]
     if F < 3:
         raise ValueError(f"tracks: expected at least 3 frames, got {F}")
@@ -226,7 +358,8 @@ def build_dense_model(mesh: TriMesh, tracks: LagrangianDisplacement, pixel_size_
     sd = np.asarray(tracks.sd, float)
     sd_rms = float(np.sqrt(np.nanmean(sd ** 2)))
     sd_scale = max(1.0, floor_px / sd_rms)
-    y, R = nodal_fit(D, tracks.displacement * s, sd * sd_scale * s)
+    gain = np.maximum(np.abs(scaling.gain), 0.1 * scaling.tissue)      # a datum the background all but cancels
+    y, R = nodal_fit(D, scaling.transform(tracks.displacement) * s, sd * sd_scale * gain * s)
     T = float(np.median(np.diff(tracks.frame_times_s)))
     alpha = NOMINAL["alpha"] if settings.alpha is None else settings.alpha
     E = settings.E if settings.E is not None else compliant_modulus(_wall_thickness(mesh), F * T, alpha=alpha)
@@ -253,7 +386,8 @@ def build_dense_model(mesh: TriMesh, tracks: LagrangianDisplacement, pixel_size_
             "noise_floor_px": floor_px, "tracks_sd_rms_px": sd_rms, "sd_scale": sd_scale,
             "process_std_px": q / s, "frame_interval_s": T, "E_Pa": E, "alpha_per_s": alpha,
             "wall_thickness_px": _wall_thickness(mesh) / s,
-            "initial_std_px": u0_sd / s}
+            "initial_std_px": u0_sd / s, "observation_tissue_weight_mean": float(scaling.tissue.mean()),
+            "observation_background_offset_rms_px": float(np.sqrt(np.mean(scaling.offset ** 2)))}
     return model, y, info, Xin
 
 
@@ -284,7 +418,8 @@ def concentrated_log_evidence(log_likelihood: float, nis_sum: float, n_obs: int)
 
 
 def process_fraction_ml(mesh: TriMesh, tracks: LagrangianDisplacement, pixel_size_m: float,
-                        settings: StrainRouteSettings, candidates=PROCESS_FRACTIONS, progress=None) -> tuple:
+                        settings: StrainRouteSettings, candidates=PROCESS_FRACTIONS, progress=None,
+                        background=None) -> tuple:
     """The process noise fraction of largest evidence (type-II maximum likelihood), from the data alone.
 
     For each candidate, one Kalman filter pass (no smoothing, nothing stored) of the route's
@@ -311,7 +446,8 @@ def process_fraction_ml(mesh: TriMesh, tracks: LagrangianDisplacement, pixel_siz
         raise ValueError("candidates: expected at least one process fraction, got none")
     table, evid = {}, []
     for q in qs:
-        model, y, _, _ = build_dense_model(mesh, tracks, pixel_size_m, replace(settings, process_fraction=q))
+        model, y, _, _ = build_dense_model(mesh, tracks, pixel_size_m, replace(settings, process_fraction=q),
+                                           background)
         fw = kalman_forward(linearise(model, np.zeros((y.shape[0], model.dim_x))), y, store=False,
                             check_every_frame=False)
         ev, c = concentrated_log_evidence(fw.log_likelihood, float(np.nansum(fw.nis)), int(np.sum(fw.n_obs)))

@@ -21,6 +21,22 @@ The DENSE route of issue 42 (items 3 and 4), as a library function, :func:`dense
    image (2P rows). A direction of ``U`` no datum sees (a node whose elements hold no tracked
    pixel) gets ``J`` regularised by :data:`INFORMATION_FLOOR` of its mean diagonal: a pseudo-datum
    of zero with a variance ~1e8 times the others', i.e. no information.
+
+   *Resolution-aware* (``resolution_px > 1``, :func:`observation_operator`): a DENSE datum is the
+   phase of the signal summed over the acquisition's point spread, so each row of ``D`` becomes
+   the point-spread-weighted mean of the shape-function interpolation over sub-pixel samples
+   around the pixel (Eq. 12 as a weighted average instead of a point interpolation,
+   :func:`sfem_filters.fem.observation.blurred_observation_matrix`), and where the point spread
+   reaches outside the reference myocardium a static (zero-displacement) background enters the
+   normalisation with the signal the magnitude shows there
+   (:func:`sfem_filters.imaging.dense.background_signal`) and a factor ``sin(theta) / theta`` of
+   the datum's own phase (phasors add, phases do not). The width comes from the acquisition
+   (:attr:`sfem_filters.imaging.DenseCase.resolution_px`: DENSE-Sim's ``N_im / N_im_pre_spiral``,
+   a DICOM's matrix over its AcquisitionMatrix) or the user, never from a fit; the operator is one
+   matrix for every frame (the point spread taken in the reference configuration, see
+   :func:`observation_operator`) and the frame's background rescales each datum (``n y = D U``,
+   so :func:`nodal_fit` is unchanged). Default 1: the point interpolation above; the validation
+   page's ablation row reports the operator at the acquisition's width and what it trades.
 3. **Estimator.** :class:`sfem_filters.model.SFEMModel` (plane-strain linear elasticity, Eq. 19)
    estimated by :class:`sfem_filters.filtering.iterated.IteratedSmoother`; with the material
    fixed the model is linear and its MAP is one Kalman-RTS pass. The configuration is chosen for
@@ -106,7 +122,10 @@ The DENSE route of issue 42 (items 3 and 4), as a library function, :func:`dense
    the frames, :func:`discrepancy_variance`), one model for the global curve and one shared by the
    six segments (:func:`curve_discrepancy`); each pixel takes the segments' ``tau0`` and ``k`` (a
    pixel's own finite differences are far too noisy to tell). Reported as
-   ``settings["discrepancy_sd"]``.
+   ``settings["discrepancy_sd"]``. With the resolution-aware operator (step 2) the tracks see the
+   blurred field and the estimate does not, so the finite differences of the data are compared with
+   those of the model's prediction of the data (``D U`` through :class:`ObservationScaling`): the
+   disagreement is then the blurred error of the estimate, not the blur itself.
 
    ``Ecc_sd`` and ``Err_sd`` (and the curves' ``*_sd`` and bands) are the total; the smoother's
    own (with ``c``) stay beside as ``Ecc_sd_model``, ``Err_sd_model`` and the curves'
@@ -127,6 +146,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from .._validate import as_float_array, positive
+from ..imaging.dense import check_resolution_px
 from ..fem.mesh import TriMesh
 from ..fem.observation import point_observation_matrix
 from ..filtering.iterated import IteratedSmoother
@@ -137,7 +157,7 @@ from ..imaging.strain import N_SEGMENTS, Z95, StrainEstimate, displacement_gradi
     json_list, mask_centre, project_strain, segment_labels
 from .dense_model import INFORMATION_FLOOR, MESHES, PROCESS_FRACTIONS, RELAXATION_CYCLES, NodalFitModel, \
     build_dense_model, compliant_modulus, concentrated_log_evidence, nodal_fit, observation_points, \
-    process_fraction_ml, reference_mesh, temporal_noise_floor
+    ObservationScaling, observation_operator, process_fraction_ml, reference_mesh, temporal_noise_floor
 from .measured import NOMINAL
 from .strain_bands import STRAINS, _component_rows, _covariance_from_blocks, curve_noise_variance, \
     discrepancy_variance, element_gradient_operator, gradient_operators, linearised_disagreement, linearised_rows, \
@@ -150,7 +170,8 @@ __all__ = ["StrainRouteSettings", "DenseStrain", "NodalFitModel", "reference_mes
            "linearised_rows", "strain_and_sd", "dense_strain", "MESHES", "INFORMATION_FLOOR",
            "RELAXATION_CYCLES", "Z95", "STRAINS", "gradient_operators", "point_variance", "discrepancy_variance",
            "noise_scale", "DenseRouteStrain", "linearised_disagreement", "curve_noise_variance", "curve_discrepancy",
-           "PROCESS_FRACTIONS", "process_fraction_ml", "concentrated_log_evidence"]
+           "PROCESS_FRACTIONS", "process_fraction_ml", "concentrated_log_evidence", "observation_operator",
+           "ObservationScaling"]
 
 
 @dataclass(frozen=True)
@@ -197,6 +218,13 @@ class StrainRouteSettings:
     discrepancy : bool
         Add the excess-error (model-discrepancy) variance (:func:`discrepancy_variance`, step 6 b) to the
         smoother's own variance in the reported sd and bands.
+    resolution_px : float
+        Acquired resolution of the images the tracks come from, in reconstructed pixels (>= 1; the
+        acquisition's pixel, field of view over acquired matrix, over the image's pixel): the
+        observation operator blurs the model's displacement by the acquisition's point spread
+        (:func:`observation_operator`, step 2). 1 (default): no blur beyond the pixel, point
+        interpolation. Callers with images take it from the acquisition
+        (:attr:`sfem_filters.imaging.DenseCase.resolution_px`), never from a fit to a case.
     """
 
     mesh: str = "gmsh"
@@ -211,6 +239,7 @@ class StrainRouteSettings:
     strain: str = "recovered"
     noise_scale: bool = True
     discrepancy: bool = True
+    resolution_px: float = 1.0
 
     def __post_init__(self):
         if self.mesh not in MESHES:
@@ -221,6 +250,7 @@ class StrainRouteSettings:
             if not isinstance(getattr(self, name), (bool, np.bool_)):
                 raise TypeError(f"{name}: expected True or False, got {getattr(self, name)!r}")
         positive("element_px", self.element_px, "pixels")
+        object.__setattr__(self, "resolution_px", check_resolution_px(self.resolution_px))
         if self.E is not None:
             positive("E", self.E, "Pa")
         if not 0 < self.nu < 0.5:
@@ -297,7 +327,7 @@ def curve_discrepancy(diffs, estimates) -> np.ndarray:
 
 
 def dense_strain(tracks: LagrangianDisplacement, reference_mask, pixel_size_m: float,
-                 settings: StrainRouteSettings | None = None, progress=None) -> DenseRouteStrain:
+                 settings: StrainRouteSettings | None = None, progress=None, background=None) -> DenseRouteStrain:
     """The DENSE route: tracks in, Green-Lagrange strain with sd and curves with 95% bands out.
 
     Parameters
@@ -312,6 +342,10 @@ def dense_strain(tracks: LagrangianDisplacement, reference_mask, pixel_size_m: f
     settings : StrainRouteSettings, optional
     progress : callable, optional
         ``progress(message)`` called at each step (from the first second).
+    background : BackgroundSignal, optional
+        The complex signal around the myocardium at each frame
+        (:func:`sfem_filters.imaging.dense.background_signal`), for the observation operator when
+        ``settings.resolution_px > 1``; None: a dark background.
 
     Returns
     -------
@@ -335,10 +369,10 @@ def dense_strain(tracks: LagrangianDisplacement, reference_mask, pixel_size_m: f
     q_table = None
     if cfg.process_fraction is None:
         say(f"choosing the process noise by its evidence ({len(PROCESS_FRACTIONS)} filter passes)")
-        q_ml, q_table = process_fraction_ml(mesh, tracks, s, cfg, progress=say)
+        q_ml, q_table = process_fraction_ml(mesh, tracks, s, cfg, progress=say, background=background)
         cfg = replace(cfg, process_fraction=q_ml)
     say(f"mesh: {mesh.n_nodes} nodes, {mesh.n_elements} triangles; building the model")
-    model, y, info, Xin = build_dense_model(mesh, tracks, s, cfg)
+    model, y, info, Xin = build_dense_model(mesh, tracks, s, cfg, background)
     F, P = tracks.displacement.shape[:2]
     say(f"smoothing {F} frames ({model.dim_state} states)")
     result = IteratedSmoother(covariance=False).run(model, y)
@@ -378,8 +412,14 @@ def dense_strain(tracks: LagrangianDisplacement, reference_mask, pixel_size_m: f
     vc = sm.variances["curves"].reshape(F, F, k)[np.arange(F), np.arange(F)]    # frame t's rows at frame t
     sd_curves = np.sqrt(c_ml * np.maximum(vc, 0.0))                             # (F, 14)
     # step 6 (b): the excess error, against the unsmoothed finite-difference strain of the same tracks, linearised
-    diffs = {"Ecc": linearised_disagreement(displacement_gradient(X, tracks.displacement), grad, a_cc),
-             "Err": linearised_disagreement(displacement_gradient(X, tracks.displacement), grad, a_rr)}
+    g_ref = displacement_gradient(X, tracks.displacement)
+    if cfg.resolution_px > 1:
+        # the tracks see the blurred field: compare like with like, the finite differences of the data against
+        # those of the model's prediction of the data (D U / n), i.e. the blurred error, moved onto our gradient
+        Db, scaling = observation_operator(mesh, Xin, tracks, s, cfg.resolution_px, background)
+        pred = scaling.predict((Db @ U.T).T.reshape(F, P, 2) / s)
+        g_ref = g_ref - displacement_gradient(X, pred) + grad
+    diffs = {"Ecc": linearised_disagreement(g_ref, grad, a_cc), "Err": linearised_disagreement(g_ref, grad, a_rr)}
     means = {"Ecc": ecc, "Err": err}
     pixel_sd = {"Ecc": sd_cc, "Err": sd_rr}
     glob, segs, total_sd, tau_report = {}, {}, {}, {}

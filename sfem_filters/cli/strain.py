@@ -16,7 +16,7 @@ from ..imaging.strain_report import spline_block, strain_csv, truth_block, with_
 from ..plotting.strain import strain_figures
 from ._common import _finite_float, _message, _non_negative_float, _non_negative_int, _positive_float, \
     _progress, _progress_options, _write_json
-from .strain_input import _strain_input
+from .strain_input import ACQUISITION, _observation_inputs, _resolution_px, _strain_input
 
 
 def add_parser(sub) -> None:
@@ -71,6 +71,16 @@ def add_parser(sub) -> None:
                    help="add complex Gaussian noise first (SNR = mean myocardial magnitude / noise sd), as the "
                         "validation does; default none (images only: a sequence has no images)")
     s.add_argument("--seed", type=_non_negative_int, default=0, help="seed of --snr's noise (default 0)")
+    s.add_argument("--resolution-px", type=_resolution_px, metavar=f"W|{ACQUISITION}",
+                   help="dense route: the images' acquired resolution, in reconstructed pixels (the acquisition's "
+                        "pixel, field of view over acquired matrix, over the image's pixel; >= 1); the observation "
+                        "operator then models each datum as the point-spread-weighted mean of the displacement over "
+                        "the tissue around its pixel, with the signal the images show around the myocardium mixed in "
+                        "at the borders (a Gaussian of FWHM W). "
+                        f"'{ACQUISITION}': from the images (DENSE-Sim config N_im / N_im_pre_spiral, a DICOM's "
+                        "Rows and Columns over its AcquisitionMatrix; 1 when they say nothing). Default 1: point "
+                        "observation at the pixel centres (the validated default; the docs' validation page reports "
+                        "both)")
     s.add_argument("--csv", metavar="PATH",
                    help="also write the report as one tidy CSV table (one row per method, region = pixel, global "
                         "or segment, frame and component; PATH ending .gz is compressed); see the how-to page "
@@ -87,6 +97,8 @@ def cmd_strain(args) -> int:
     t0 = time.perf_counter()
     src = _strain_input(args, say)
     case, tracks = src["case"], src["tracks"]
+    if args.route == "contours" and getattr(args, "resolution_px", None) is not None:
+        _observation_inputs(args, case)                          # says --resolution-px is for the dense route
     if args.route == "contours":       # the masks alone (no phase): tracked borders, interior from the physics
         if src["masks"] is None:
             raise ValueError("--route contours: expected the myocardium masks of the reference and of every frame; the "
@@ -94,8 +106,10 @@ def cmd_strain(args) -> int:
         ours = contour_strain(src["masks"], src["pixel_size_m"], src["frame_times_s"],
                               ContourRouteSettings(start_deg=args.segment_start), progress=say)
     else:
+        resolution, background = _observation_inputs(args, case)
         ours = dense_strain(tracks, src["reference_mask"], src["pixel_size_m"],
-                            StrainRouteSettings(start_deg=args.segment_start), progress=say)
+                            StrainRouteSettings(start_deg=args.segment_start, resolution_px=resolution), progress=say,
+                            background=background)
     centre = ours.centre if ours.centre is not None else mask_centre(src["reference_mask"])
     conv = conventional_from_displacement(tracks, centre, sigma=args.conventional_sigma, start_deg=args.segment_start)
     out = ours.to_dict()

@@ -3,6 +3,7 @@ or a sequence ``.npz`` of points on the pixel grid, each turned into Lagrangian 
 reference mask, the pixel size and the frame times; an error names the command's argument."""
 from __future__ import annotations
 
+import argparse
 import os
 import re
 
@@ -12,6 +13,7 @@ from ..cardiac import load_sequence
 from ..cardiac.strain_route import temporal_noise_floor
 from ..imaging import (add_complex_noise, phase_to_displacement, read_dense_dicom_folder, read_dense_sim,
                        tracks_on_pixel_grid)
+from ..imaging.dense import background_signal, check_resolution_px
 
 
 _IMAGE_ONLY = (("ke", "--ke"), ("masks", "--masks"), ("directions", "--directions"), ("phase_range", "--phase-range"))
@@ -55,6 +57,45 @@ def _strain_input(args, say) -> dict:
             "pixel_size_m": case.pixel_size_m, "frame_times_s": case.frame_times_s, "input": info,
             "conventional": "finite-difference Green-Lagrange strain on the reference pixel grid of the Lagrangian "
                             "tracks from the unwrapped phase (the same tracks the DENSE route observes)"}
+
+
+#: ``--resolution-px`` word for the acquisition's own resolution (a DENSE-Sim config, a DICOM's AcquisitionMatrix).
+ACQUISITION = "acquisition"
+
+
+def _resolution_px(text: str):
+    """argparse type of ``--resolution-px``: ``acquisition`` or a number >= 1 (reconstructed pixels)."""
+    if text.strip().lower() == ACQUISITION:
+        return ACQUISITION
+    try:
+        return check_resolution_px(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected the acquired resolution in reconstructed pixels, a finite number "
+                                         f">= 1 (1: no blur beyond the pixel), or '{ACQUISITION}' for the images' own "
+                                         f"acquisition, got {text!r}") from None
+
+
+def _observation_inputs(args, case) -> tuple:
+    """``(resolution_px, background)`` of the DENSE route's observation operator from ``--resolution-px``.
+
+    Not given: 1 (point observation at the pixel centres, the route's validated default).
+    ``acquisition``: the case's acquired resolution (DENSE-Sim ``N_im / N_im_pre_spiral``, a DICOM's
+    Rows and Columns over its AcquisitionMatrix; 1 when the file says nothing). A number: that.
+    With images and a resolution above 1, the complex signal around the myocardium from the images
+    (:func:`sfem_filters.imaging.dense.background_signal`); a sequence file has none (a dark background)."""
+    value = getattr(args, "resolution_px", None)
+    if value is None:
+        return 1.0, None
+    if args.route != "dense":
+        raise ValueError("--resolution-px: is for the dense route (the phase's point spread); the contours route "
+                         "observes tracked borders")
+    if value == ACQUISITION:
+        if case is None:
+            raise ValueError(f"--resolution-px {ACQUISITION}: a sequence file carries no acquisition; give the "
+                             f"acquired resolution in reconstructed pixels (a number >= 1)")
+        value = case.resolution_px
+    background = background_signal(case, value) if case is not None and value > 1 else None
+    return float(value), background
 
 
 def _has_dicom_file(folder: str) -> bool:

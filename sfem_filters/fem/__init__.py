@@ -39,7 +39,8 @@ from .loads import penalty_load, penalty_stiffness, pressure_load, stress_loads
 from .material import Material, Parameterisation, correlated_prior
 from .mesh import (TriMesh, check_mesh, delaunay_mesh, delaunay_triangles, lattice_mesh, lattice_offset, mesh_quality,
                    rectangle_mesh, triangle_angles)
-from .observation import interpolation_matrix, locate_points, node_observation_matrix, point_observation_matrix
+from .observation import (blurred_observation_matrix, interpolation_matrix, locate_points, node_observation_matrix,
+                          point_observation_matrix, sample_interpolation)
 from .polygon_mesh import circle_polygon, edge_lengths, polygon_mesh, resample_polygon
 from .statespace import (ModalSystem, StiffnessPlan, continuous_matrices, discretize_zoh, reference_sensitivity,
                          stiffness_plan)
@@ -54,4 +55,5 @@ __all__ = ["TriMesh", "check_mesh", "rectangle_mesh", "delaunay_mesh", "delaunay
            "node_dofs", "DofMap", "Material", "Parameterisation", "correlated_prior", "ModalSystem",
            "StiffnessPlan", "stiffness_plan", "continuous_matrices", "discretize_zoh", "reference_sensitivity",
            "node_observation_matrix", "interpolation_matrix",
-           "point_observation_matrix", "locate_points", "element_strains", "nodal_average", "nodal_strains"]
+           "point_observation_matrix", "locate_points", "blurred_observation_matrix", "sample_interpolation",
+           "element_strains", "nodal_average", "nodal_strains"]

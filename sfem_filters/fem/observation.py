@@ -141,3 +141,121 @@ def interpolation_matrix(mesh: TriMesh, points, max_outside: float = 0.0) -> sp.
         cols.extend(mesh.elements[e].tolist())
         vals.extend(w.tolist())
     return sp.csr_matrix((vals, (rows, cols)), shape=(len(pts), mesh.n_nodes))
+
+
+def sample_interpolation(mesh: TriMesh, points, offsets) -> tuple:
+    """Shape-function weights at the sample points ``points[p] + offsets[s]``, and which lie in the mesh.
+
+    The building block of :func:`blurred_observation_matrix` (Eq. 12 as a weighted average):
+    each sample point inside the mesh gets the barycentric coordinates of its triangle (a point on
+    an edge takes one of its triangles: the interpolation is continuous); one outside gets a zero
+    row. Sample points shared by several ``points`` (a common lattice, as pixel centres plus
+    sub-pixel offsets make) are located once.
+
+    Parameters
+    ----------
+    points : (P, 2) array
+        Centres (m).
+    offsets : (S, 2) array
+        Offsets of the sample points from each centre (m).
+
+    Returns
+    -------
+    N : (P S, n_nodes) sparse matrix
+        Row ``p S + s``: the nodal weights of the sample point ``points[p] + offsets[s]``.
+    inside : (P, S) bool array
+        Whether each sample point lies in the mesh.
+    """
+    check_mesh("mesh", mesh)
+    pts = as_float_array("points", points, shape=(None, 2))
+    off = as_float_array("offsets", offsets, shape=(None, 2))
+    P, S = len(pts), len(off)
+    q = (pts[:, None, :] + off[None, :, :]).reshape(-1, 2)
+    scale = float(np.max(np.ptp(mesh.nodes, axis=0))) or 1.0
+    _, first, inverse = np.unique(np.round(q / scale, 10), axis=0, return_index=True, return_inverse=True)
+    uq = q[first]
+    element = -np.ones(len(uq), np.int64)
+    bary = np.zeros((len(uq), 3))
+    tri = mesh.nodes[mesh.elements]
+    lo, hi = tri.min(axis=1), tri.max(axis=1)
+    pad = 1e-9 * scale
+    order = np.argsort(uq[:, 0])
+    xs = uq[order, 0]
+    for e in range(mesh.n_elements):
+        cand = order[np.searchsorted(xs, lo[e, 0] - pad):np.searchsorted(xs, hi[e, 0] + pad, side="right")]
+        cand = cand[(element[cand] < 0) & (uq[cand, 1] >= lo[e, 1] - pad) & (uq[cand, 1] <= hi[e, 1] + pad)]
+        if cand.size == 0:
+            continue
+        v0 = tri[e, 0]
+        Tinv = np.linalg.inv(np.column_stack([tri[e, 1] - v0, tri[e, 2] - v0]))
+        lam12 = (uq[cand] - v0) @ Tinv.T
+        lam = np.column_stack([1.0 - lam12.sum(axis=1), lam12])
+        ok = lam.min(axis=1) >= -1e-9
+        element[cand[ok]] = e
+        bary[cand[ok]] = np.clip(lam[ok], 0.0, None) / np.clip(lam[ok], 0.0, None).sum(axis=1, keepdims=True)
+    inside_u = element >= 0
+    rows = np.repeat(np.flatnonzero(inside_u[inverse.ravel()]), 3)
+    src = inverse.ravel()[inside_u[inverse.ravel()]]
+    cols = mesh.elements[element[src]].ravel()
+    vals = bary[src].ravel()
+    N = sp.csr_matrix((vals, (rows, cols)), shape=(P * S, mesh.n_nodes))
+    return N, inside_u[inverse.ravel()].reshape(P, S)
+
+
+def blurred_observation_matrix(mesh: TriMesh, points, offsets, weights, background=None,
+                               samples=None) -> sp.csr_matrix:
+    """Rows observing a point-spread-weighted mean of the displacement around each point (Eq. 12 as an average).
+
+    An image datum at a point is not the displacement there but the signal-weighted mean over the
+    point spread function: with ``w_s`` the PSF weights at sample offsets ``o_s`` (summing to 1),
+    the sample points in the tissue (the mesh) carrying the interpolated displacement ``N(x_p +
+    o_s) U`` and those outside carrying a static background of relative signal ``b_ps`` (zero
+    displacement),
+
+    ``y_p = sum_in w_s N(x_p + o_s) U / (sum_in w_s + sum_out w_s b_ps)``.
+
+    So with ``b = 0`` (a dark background) each row's weights sum to 1 (a mean over the tissue
+    alone), with ``b = 1`` (a background as bright as the tissue) they sum to the tissue fraction
+    ``sum_in w_s``; as the PSF narrows to one sample at ``o = 0`` the rows are
+    :func:`point_observation_matrix`'s.
+
+    Parameters
+    ----------
+    points : (P, 2) array
+        Centres (m); rows are ordered point by point, x before y.
+    offsets : (S, 2) array
+        Sample offsets (m).
+    weights : (S,) or (P, S) array
+        PSF weights (>= 0, each row's summing to 1 over all its samples, inside and out).
+    background : float, (P, S) array or None
+        Relative signal (>= 0) of the static background at each sample point outside the mesh;
+        None: 0 (the mean over the tissue alone).
+    samples : tuple, optional
+        :func:`sample_interpolation`'s answer for these points and offsets (reused across calls).
+
+    Returns
+    -------
+    (2 P, n_dofs) sparse matrix
+    """
+    check_mesh("mesh", mesh)
+    pts = as_float_array("points", points, shape=(None, 2))
+    off = as_float_array("offsets", offsets, shape=(None, 2))
+    P, S = len(pts), len(off)
+    w = np.broadcast_to(as_float_array("weights", weights), (P, S))
+    if np.any(w < 0) or not np.allclose(w.sum(axis=1), 1.0, atol=1e-9):
+        raise ValueError("weights: expected non-negative PSF weights summing to 1 for each point")
+    b = np.zeros((P, S)) if background is None else np.broadcast_to(as_float_array("background", background), (P, S))
+    if np.any(b < 0):
+        raise ValueError("background: expected a non-negative relative signal of the static background")
+    N, inside = sample_interpolation(mesh, pts, off) if samples is None else samples
+    norm = np.sum(np.where(inside, w, w * b), axis=1)
+    if np.any(norm <= 0):
+        k = int(np.flatnonzero(norm <= 0)[0])
+        raise ValueError(f"points: expected every point's PSF to reach some tissue or lit background, point {k} "
+                         f"at {tuple(pts[k].tolist())} m sees neither")
+    vals = (np.where(inside, w, 0.0) / norm[:, None]).ravel()
+    Wt = sp.csr_matrix((vals, (np.repeat(np.arange(P), S), np.arange(P * S))), shape=(P, P * S))
+    nodal = (Wt @ N).tocoo()                                      # (P, n_nodes)
+    rows = np.concatenate([2 * nodal.row, 2 * nodal.row + 1])
+    cols = np.concatenate([2 * nodal.col, 2 * nodal.col + 1])
+    return sp.csr_matrix((np.concatenate([nodal.data, nodal.data]), (rows, cols)), shape=(2 * P, mesh.n_dofs))

@@ -13,7 +13,12 @@ phase into Lagrangian displacements of every reference myocardial pixel
 each connected piece carried from frame to frame, the Eulerian field extended two pixels beyond
 the mask (local plane fits), the inversion ``x = X + u_t(x)`` by fixed-point iteration, and each datum's noise sd
 (from the local magnitude SNR) and confidence (from the phase's local quality; section 2.6 of
-Shi & Liu 2003, the confidence-weighted data of Eqs. 38-39).
+Shi & Liu 2003, the confidence-weighted data of Eqs. 38-39). For the DENSE route's
+resolution-aware observation operator it gives the acquisition's point spread
+(:func:`psf_sigma_px`, :func:`psf_samples`, from :attr:`DenseCase.resolution_px`), the complex
+signal around the myocardium that a border pixel mixes in (:func:`background_signal`), and a
+cross-check of the acquired resolution from the magnitude's edge spread
+(:func:`edge_spread_resolution`).
 
 Units: displacements and points in pixels (x = column, y = row); pixel size in m and mm; ``ke``
 in cycles/m inside (cycles/mm where a file or argument says so); times in s.
@@ -35,18 +40,21 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import ndimage
+from scipy import ndimage, optimize, special
 from skimage.restoration import unwrap_phase
 
 from .._validate import as_float_array, as_mask, integer, positive
-from .dense_io import (DICOM_SUBFOLDERS, PHASE_TOLERANCE, DenseCase, dense_masks, dense_series_kind, make_dense_case,
-                       read_dense_dicom, read_dense_dicom_folder, read_dense_sim)
+from .dense_io import (DEFAULT_RESOLUTION_PX, DICOM_SUBFOLDERS, PHASE_TOLERANCE, DenseCase, check_resolution_px,
+                       dense_masks, dense_series_kind, dicom_resolution_px, make_dense_case, read_dense_dicom,
+                       read_dense_dicom_folder, read_dense_sim)
 
 __all__ = ["DenseCase", "make_dense_case", "read_dense_sim", "read_dense_dicom", "read_dense_dicom_folder",
            "dense_masks", "dense_series_kind", "DICOM_SUBFOLDERS", "add_complex_noise",
            "LagrangianDisplacement", "unwrap_frames", "carry_offsets", "eulerian_displacement", "extend_field",
            "invert_eulerian", "estimate_noise_sd", "phase_quality", "phase_to_displacement", "reference_points",
-           "tracks_on_pixel_grid", "truth_at_points", "PHASE_TOLERANCE"]
+           "tracks_on_pixel_grid", "truth_at_points", "PHASE_TOLERANCE", "DEFAULT_RESOLUTION_PX", "check_resolution_px",
+           "dicom_resolution_px", "FWHM_PER_SD", "PSF_SAMPLES_PER_PX", "PSF_RADIUS_SD", "psf_sigma_px", "psf_samples",
+           "BackgroundSignal", "background_signal", "edge_spread_resolution"]
 
 _CHI2_1_MEDIAN = 0.45493642311957283     # median of a chi-square variable with one degree of freedom
 
@@ -79,7 +87,8 @@ def add_complex_noise(case: DenseCase, snr: float, seed: int) -> DenseCase:
     return DenseCase(phases=np.stack(noisy).astype(float), magnitude=case.magnitude, masks=case.masks,
                      pixel_size_m=case.pixel_size_m, ke_per_m=case.ke_per_m, frame_times_s=case.frame_times_s,
                      directions=case.directions, truth_ecc=case.truth_ecc, truth_err=case.truth_err,
-                     provenance=f"{case.provenance} + complex noise SNR {snr:g} seed {seed}")
+                     provenance=f"{case.provenance} + complex noise SNR {snr:g} seed {seed}",
+                     resolution_px=case.resolution_px)
 
 
 # ------------------------------------------------------------------------------- phase unwrapping
@@ -619,3 +628,177 @@ def phase_to_displacement(case: DenseCase, noise_sd=None, rings: int = 2) -> Lag
     n_bad = int((~np.isfinite(disp).all(axis=2)).sum())
     return LagrangianDisplacement(points=X, displacement=disp, sd=sd, confidence=conf,
                                   frame_times_s=case.frame_times_s.copy(), n_untracked=n_bad, noise_sd=noise)
+
+
+# ------------------------------------------------------------------ the acquisition's point spread
+#: FWHM of a Gaussian over its sd, ``2 sqrt(2 ln 2)``.
+FWHM_PER_SD = 2.0 * np.sqrt(2.0 * np.log(2.0))
+#: Sub-samples per pixel (each axis) of the point spread function (:func:`psf_samples`).
+PSF_SAMPLES_PER_PX = 3
+#: Radius (in sd) at which the Gaussian point spread function is cut (:func:`psf_samples`).
+PSF_RADIUS_SD = 3.0
+
+
+def psf_sigma_px(resolution_px) -> float:
+    """sd (reconstructed pixels) of the Gaussian point spread beyond the pixel grid, from the acquired resolution.
+
+    The acquisition's point spread function is modelled as a Gaussian whose FWHM is the acquired
+    pixel, ``resolution_px`` reconstructed pixels wide (the PSF of a k-space disc of radius
+    ``1 / (2 w)``, the jinc, has a FWHM of 1.03 ``w``; a Cartesian box's sinc, 1.21 ``w``; the
+    Gaussian keeps its main lobe and drops the side lobes). Observing the model at a pixel centre
+    already stands for one reconstructed pixel (FWHM 1), so the blur the observation operator adds
+    is the Gaussian that convolved with that one gives the acquired FWHM:
+    ``sd = sqrt(w^2 - 1) / (2 sqrt(2 ln 2))``, zero (point observation) at ``w = 1``.
+
+    Parameters
+    ----------
+    resolution_px : float
+        Acquired resolution in reconstructed pixels (>= 1).
+    """
+    w = check_resolution_px(resolution_px)
+    return float(np.sqrt(max(w * w - 1.0, 0.0)) / FWHM_PER_SD)
+
+
+def psf_samples(resolution_px, per_px: int = PSF_SAMPLES_PER_PX, radius_sd: float = PSF_RADIUS_SD) -> tuple:
+    """Sample offsets (pixels) and weights of the Gaussian point spread of :func:`psf_sigma_px`.
+
+    A square lattice of ``per_px`` samples per pixel (offsets ``k / per_px``, so pixel centres plus
+    offsets share one lattice), cut at ``radius_sd`` sd, weights ``exp(-|o|^2 / (2 sd^2))``
+    normalised to sum 1. At ``resolution_px = 1`` (no blur) one sample at the centre.
+
+    Returns
+    -------
+    offsets : (S, 2) array
+        (x, y) offsets in pixels.
+    weights : (S,) array
+    """
+    sd = psf_sigma_px(resolution_px)
+    n = integer("per_px", per_px, 1)
+    r = positive("radius_sd", radius_sd)
+    if sd == 0.0:
+        return np.zeros((1, 2)), np.ones(1)
+    k = int(np.ceil(r * sd * n))
+    g = np.arange(-k, k + 1) / n
+    off = np.stack(np.meshgrid(g, g, indexing="xy"), axis=-1).reshape(-1, 2)
+    off = off[np.hypot(off[:, 0], off[:, 1]) <= r * sd + 1e-12]
+    w = np.exp(-0.5 * np.sum(off ** 2, axis=1) / sd ** 2)
+    return off, w / w.sum()
+
+
+@dataclass(frozen=True, eq=False)
+class BackgroundSignal:
+    """The signal around the myocardium, as the DENSE route's observation operator needs it.
+
+    Attributes
+    ----------
+    signal : (F, H, W, 2) complex array
+        Per frame and encoding (x, then y), the complex signal of what surrounds the myocardium
+        (magnitude times ``exp(i phase)``) over the frame's median myocardial magnitude: its
+        modulus is the background's relative signal, its argument the phase it encodes (zero for
+        static material).
+    phase_per_px : float
+        Phase (rad) that one pixel of displacement along an encoding direction encodes,
+        ``2 pi ke`` times the pixel size.
+    """
+
+    signal: np.ndarray
+    phase_per_px: float
+
+
+def background_signal(case: DenseCase, resolution_px=None) -> BackgroundSignal:
+    """The complex signal around the myocardium that a border pixel's point spread mixes in, per frame and pixel.
+
+    What the DENSE route's observation operator weights the point spread's reach outside the
+    tissue by (:func:`sfem_filters.cardiac.dense_model.observation_operator`). The image near the
+    myocardium is the tissue's own signal blurred outwards, so the background is read where the
+    myocardium's blur has faded: for each connected piece of a frame's non-myocardium (the
+    cavity, the outside), its pixels between ``r`` and ``r + 2`` pixels from the frame's mask,
+    ``r`` the acquired resolution rounded up (or the piece's farthest distance if it is thinner);
+    there the complex signal ``m exp(i phi_j)`` of each encoding averaged over a 5 x 5 window (a
+    complex mean: the noise averages out without the magnitude's Rician bias), carried to every
+    pixel of the piece, and to the mask's pixels, from the nearest such pixel; divided by the
+    frame's median myocardial magnitude. Its phase is kept: what surrounds the heart need not be
+    static (DENSE-Sim's cavity early in the cycle is bright and carries a phase, the spiral's
+    interleaves mixing the moving wall's signal into it).
+
+    Parameters
+    ----------
+    case : DenseCase
+    resolution_px : float, optional
+        Acquired resolution (reconstructed pixels); default ``case.resolution_px``.
+
+    Returns
+    -------
+    BackgroundSignal
+    """
+    w = check_resolution_px(case.resolution_px if resolution_px is None else resolution_px)
+    reach = int(np.ceil(w))
+    masks = case.frame_masks
+    out = np.zeros(case.magnitude.shape + (2,), complex)
+    for f in range(case.n_frames):
+        m, k = case.magnitude[f], masks[f]
+        tissue = float(np.median(m[k]))
+        if not tissue > 0:
+            continue
+        z = np.stack([m * np.exp(1j * case.phases[j, f]) for j in range(2)], axis=-1) / tissue
+        dist = ndimage.distance_transform_edt(~k)
+        labels, n = ndimage.label(~k)
+        level = np.zeros(z.shape, complex)
+        rings = np.zeros(m.shape, bool)
+        for piece in range(1, n + 1):
+            sel = labels == piece
+            r0 = min(reach, float(dist[sel].max()))
+            ring = sel & (dist >= r0) & (dist <= r0 + 2)
+            if not ring.any():
+                continue
+            den = np.maximum(ndimage.uniform_filter(ring.astype(float), 5, mode="constant"), 1e-12)
+            vals = np.stack([(ndimage.uniform_filter(np.where(ring, z[..., j].real, 0.0), 5, mode="constant")
+                              + 1j * ndimage.uniform_filter(np.where(ring, z[..., j].imag, 0.0), 5, mode="constant"))
+                             / den for j in range(2)], axis=-1)
+            _, (ir, ic) = ndimage.distance_transform_edt(~ring, return_indices=True)
+            level[sel] = vals[ir, ic][sel]
+            rings |= ring
+        if rings.any():
+            _, (ir, ic) = ndimage.distance_transform_edt(~rings, return_indices=True)
+            level[k] = level[ir, ic][k]
+        out[f] = level
+    return BackgroundSignal(signal=out, phase_per_px=float(2 * np.pi * case.ke_per_m * case.pixel_size_m))
+
+
+def edge_spread_resolution(case: DenseCase, frames=None, band_px: float = 4.0) -> dict:
+    """The acquired resolution estimated from the magnitude's edge spread (a cross-check of the file's).
+
+    For each frame, the magnitude (over its median in the myocardium) as a function of the signed
+    distance to the border of the filled myocardium (epicardium; the cavity excluded), within
+    ``band_px`` pixels, is fitted by a blurred step ``b + (a - b) Phi((d - d0) / s)``; the edge's
+    sd ``s`` (median over the frames) gives the FWHM ``2.355 s`` and, in the convention of
+    :func:`psf_sigma_px`, the resolution ``sqrt(1 + (2.355 s)^2)``. Not used by the route: the
+    border of a mask is itself only known to a pixel, so this is a check of the acquisition's
+    number, not a replacement.
+
+    Returns
+    -------
+    dict
+        ``sd_px``, ``fwhm_px``, ``resolution_px`` (medians over the frames), ``per_frame_sd_px``.
+    """
+    fs = range(case.n_frames) if frames is None else frames
+    sds = []
+    for f in fs:
+        k = case.frame_masks[f]
+        fill = ndimage.binary_fill_holes(k)
+        d = np.where(fill, ndimage.distance_transform_edt(fill) - 0.5, -(ndimage.distance_transform_edt(~fill) - 0.5))
+        sel = (np.abs(d) <= band_px) & (k | ~fill)
+        tissue = float(np.median(case.magnitude[f][k]))
+        if sel.sum() < 8 or not tissue > 0:
+            continue
+        x, y = d[sel], case.magnitude[f][sel] / tissue
+
+        def resid(p):
+            return p[2] + (p[3] - p[2]) * 0.5 * (1 + special.erf((x - p[0]) / (np.sqrt(2) * abs(p[1]) + 1e-9))) - y
+        p = optimize.least_squares(resid, [0.0, 1.0, 0.1, 1.0]).x
+        sds.append(abs(float(p[1])))
+    if not sds:
+        raise ValueError("case: expected frames with a myocardium border to fit the edge spread, got none")
+    sd = float(np.median(sds))
+    return {"sd_px": sd, "fwhm_px": FWHM_PER_SD * sd, "resolution_px": float(np.sqrt(1 + (FWHM_PER_SD * sd) ** 2)),
+            "per_frame_sd_px": sds}

@@ -27,10 +27,34 @@ import yaml
 from .._validate import as_float_array, as_mask, integer, positive
 
 __all__ = ["DenseCase", "make_dense_case", "read_dense_sim", "read_dense_dicom", "read_dense_dicom_folder",
-           "dense_masks", "dense_series_kind", "DICOM_SUBFOLDERS", "PHASE_TOLERANCE"]
+           "dense_masks", "dense_series_kind", "DICOM_SUBFOLDERS", "PHASE_TOLERANCE", "DEFAULT_RESOLUTION_PX",
+           "check_resolution_px", "dicom_resolution_px"]
 
 PHASE_TOLERANCE = 1e-4
 """rad: how far beyond +-pi a stored phase may lie (float rounding of a wrapped phase)."""
+
+DEFAULT_RESOLUTION_PX = 1.0
+"""The acquired resolution (reconstructed pixels) assumed when nothing says otherwise: the image's own
+pixel, i.e. no blur beyond the pixel grid (the DENSE route's observation is then a point interpolation)."""
+
+
+def check_resolution_px(resolution_px, name: str = "resolution_px") -> float:
+    """A checked acquired resolution: a finite number >= 1 of reconstructed pixels (a clear error otherwise).
+
+    The acquired resolution is the width of the acquisition's own pixel (field of view over the
+    acquired matrix) in pixels of the reconstructed image: 1 when the image is reconstructed at
+    the acquired matrix, above 1 when it is interpolated (zero-filled) to a finer grid. Below 1
+    would be an image coarser than its data, which no reconstruction makes.
+    """
+    try:
+        w = float(resolution_px)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}: expected the acquired resolution in reconstructed pixels (a number >= 1), got "
+                         f"{resolution_px!r}") from None
+    if not np.isfinite(w) or w < 1.0:
+        raise ValueError(f"{name}: expected the acquired resolution in reconstructed pixels, a finite number >= 1 "
+                         f"(1: the image's own pixel, no blur beyond it), got {resolution_px!r}")
+    return w
 
 
 @dataclass(frozen=True, eq=False)
@@ -57,6 +81,12 @@ class DenseCase:
         Ground-truth Green-Lagrange strain of each reference pixel (fraction), NaN elsewhere.
     provenance : str
         Where the case came from.
+    resolution_px : float
+        Acquired resolution in reconstructed pixels (>= 1; :func:`check_resolution_px`): the field
+        of view over the acquired matrix, from the file when it says (DENSE-Sim's
+        ``N_im / N_im_pre_spiral``, a DICOM's Rows and Columns over its ``AcquisitionMatrix``), else
+        :data:`DEFAULT_RESOLUTION_PX`. The DENSE route's observation operator takes its point
+        spread function from it (:func:`sfem_filters.imaging.dense.psf_sigma_px`).
     """
 
     phases: np.ndarray
@@ -69,6 +99,7 @@ class DenseCase:
     truth_ecc: np.ndarray | None = None
     truth_err: np.ndarray | None = None
     provenance: str = ""
+    resolution_px: float = DEFAULT_RESOLUTION_PX
 
     @property
     def n_frames(self) -> int:
@@ -99,7 +130,8 @@ class DenseCase:
 
 
 def make_dense_case(phases, magnitude, masks, pixel_size_mm, ke_cycles_per_mm, frame_times_s, directions=None,
-                    truth_ecc=None, truth_err=None, provenance: str = "") -> DenseCase:
+                    truth_ecc=None, truth_err=None, provenance: str = "",
+                    resolution_px: float = DEFAULT_RESOLUTION_PX) -> DenseCase:
     """Check arrays into a :class:`DenseCase`; errors name the argument and the expectation.
 
     Parameters
@@ -121,7 +153,11 @@ def make_dense_case(phases, magnitude, masks, pixel_size_mm, ke_cycles_per_mm, f
         (encoding 0 along x = columns, encoding 1 along y = rows).
     truth_ecc, truth_err : (F, H, W) arrays, optional
         Ground-truth strain (fraction), NaN outside the reference mask.
+    provenance : str
+    resolution_px : float
+        Acquired resolution in reconstructed pixels (>= 1; default 1, no blur beyond the pixel).
     """
+    resolution_px = check_resolution_px(resolution_px)
     if ke_cycles_per_mm is None:
         raise ValueError("ke_cycles_per_mm: expected the DENSE encoding frequency in cycles/mm, got None")
     ke = positive("ke_cycles_per_mm", ke_cycles_per_mm, "cycles/mm")
@@ -152,7 +188,7 @@ def make_dense_case(phases, magnitude, masks, pixel_size_mm, ke_cycles_per_mm, f
         truths.append(None if t is None else as_float_array(name, t, shape=(F, H, W), allow_nan=True))
     return DenseCase(phases=phases, magnitude=magnitude, masks=masks, pixel_size_m=px * 1e-3, ke_per_m=ke * 1e3,
                      frame_times_s=times, directions=d, truth_ecc=truths[0], truth_err=truths[1],
-                     provenance=provenance)
+                     provenance=provenance, resolution_px=resolution_px)
 
 
 def _load(folder: str, name: str, required: bool = True):
@@ -171,7 +207,15 @@ def read_dense_sim(path) -> DenseCase:
     y (row) encodings; ``magnitude.npy``; ``LV_mask_time_lowres.npy`` (F + 1, H, W), index 0 the
     reference; optional ``GT_Ecc.npy``, ``GT_Err.npy``; ``config.yaml`` (``sim_params``: ``FOV``
     in mm, first two entries; ``N_im``; ``ke`` in cycles/mm; ``tt`` in ms, frame f at
-    ``tt[f + 1]``). Pixel size = FOV / N_im.
+    ``tt[f + 1]``; optional ``N_im_pre_spiral``). Pixel size = FOV / N_im.
+
+    Acquired resolution (:attr:`DenseCase.resolution_px`) = ``N_im / N_im_pre_spiral`` when the
+    config gives ``N_im_pre_spiral``, else 1. Why that ratio: the simulator grids the spins' signal
+    on an ``N_im_pre_spiral`` matrix over the field of view and rescales its spiral trajectory to
+    span +-``N_im_pre_spiral / 2`` cycles per field of view (``generate_sampling`` in DENSE-Sim's
+    ``run_DENSE_sim.py``), then reconstructs on the ``N_im`` grid: the data hold no spatial
+    frequency above that of an ``N_im_pre_spiral`` matrix, so the acquired pixel is
+    ``FOV / N_im_pre_spiral``, ``N_im / N_im_pre_spiral`` reconstructed pixels wide.
 
     Parameters
     ----------
@@ -203,6 +247,10 @@ def read_dense_sim(path) -> DenseCase:
     if px.shape != py.shape:
         raise ValueError(f"phase_y.npy: expected the shape of phase_x.npy {px.shape}, got {py.shape}")
     F = px.shape[0]
+    res = DEFAULT_RESOLUTION_PX
+    if sim.get("N_im_pre_spiral") is not None:
+        n_acq = integer("config.yaml N_im_pre_spiral", sim["N_im_pre_spiral"], 1)
+        res = check_resolution_px(n_im / n_acq, "config.yaml N_im / N_im_pre_spiral")
     tt = np.asarray(sim["tt"], float)
     if tt.size < F + 1:
         raise ValueError(f"config.yaml tt: expected at least F + 1 = {F + 1} times (ms), got {tt.size}")
@@ -210,7 +258,7 @@ def read_dense_sim(path) -> DenseCase:
                            masks=_load(folder, "LV_mask_time_lowres.npy"), pixel_size_mm=px_mm,
                            ke_cycles_per_mm=sim["ke"], frame_times_s=tt[1:F + 1] * 1e-3,
                            truth_ecc=_load(folder, "GT_Ecc.npy", False), truth_err=_load(folder, "GT_Err.npy", False),
-                           provenance=f"DENSE-Sim case {folder}")
+                           provenance=f"DENSE-Sim case {folder}", resolution_px=res)
 
 
 DICOM_SUBFOLDERS = ("phase_x", "phase_y", "magnitude")
@@ -356,7 +404,27 @@ def _case_from_series(phase_series, names, magnitude, masks, ke_cycles_per_mm, d
         raise ValueError("magnitude: expected TriggerTime (ms) in every DICOM file, not found")
     return make_dense_case(phases=np.stack(phases), magnitude=mag, masks=masks, pixel_size_mm=ps[0],
                            ke_cycles_per_mm=ke_cycles_per_mm, frame_times_s=times * 1e-3, directions=directions,
-                           provenance=provenance)
+                           provenance=provenance, resolution_px=dicom_resolution_px(ds0))
+
+
+def dicom_resolution_px(ds) -> float:
+    """Acquired resolution (reconstructed pixels) of a DICOM image: its Rows and Columns over its AcquisitionMatrix.
+
+    ``AcquisitionMatrix`` (0018,1310) holds (frequency rows, frequency columns, phase rows, phase
+    columns), two of them zero; the acquired samples along the image's rows and columns are the
+    non-zero entries. The resolution is the larger of ``Columns / n_columns`` and ``Rows / n_rows``
+    (a zero-filled reconstruction gives above 1), at least 1. Without the tag, or with an
+    unusable one, :data:`DEFAULT_RESOLUTION_PX` (1: no blur beyond the pixel).
+    """
+    am = getattr(ds, "AcquisitionMatrix", None)
+    rows, cols = getattr(ds, "Rows", None), getattr(ds, "Columns", None)
+    try:
+        f_r, f_c, p_r, p_c = (int(v) for v in am)
+        n_rows, n_cols = max(f_r, p_r), max(f_c, p_c)
+        ratio = max(float(rows) / n_rows if n_rows > 0 else 1.0, float(cols) / n_cols if n_cols > 0 else 1.0)
+    except (TypeError, ValueError):
+        return DEFAULT_RESOLUTION_PX
+    return max(DEFAULT_RESOLUTION_PX, ratio) if np.isfinite(ratio) else DEFAULT_RESOLUTION_PX
 
 
 def read_dense_dicom(phase_dirs, magnitude_dir, masks, ke_cycles_per_mm, directions=((1.0, 0.0), (0.0, 1.0)),
