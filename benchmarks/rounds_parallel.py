@@ -22,7 +22,8 @@ import sys
 import time
 
 from sfem_filters.batch import split_timing
-from sfem_filters.cardiac import annulus_sequence, closing_the_loop, example_path, load_sequence
+from sfem_filters.cardiac import (EstimatorSettings, LoopSettings, ModelSpec, annulus_sequence, closing_the_loop,
+                                  example_path, load_sequence)
 
 
 def main(argv=None) -> int:
@@ -36,11 +37,12 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     seq = (load_sequence(example_path()) if args.subject == "slice"
            else annulus_sequence("active_polar", n_frames=args.frames, landmarks=args.landmarks))
-    kw = dict(landmarks=args.landmarks, max_iterations=args.max_iterations, max_rounds=args.max_rounds)
+    specs = (ModelSpec(landmarks=args.landmarks), EstimatorSettings(max_iterations=args.max_iterations),
+             LoopSettings(max_rounds=args.max_rounds))
     reports, wall = [], []
     for workers in (1, args.workers):
         t0 = time.perf_counter()
-        out = closing_the_loop(seq, workers=workers, **kw)
+        out = closing_the_loop(seq, *specs, workers=workers)
         wall.append(time.perf_counter() - t0)
         reports.append(split_timing(json.loads(json.dumps(out.as_json(), default=str)))[0])
         fits = 1 + sum(len(r.tried) + len(r.backward) for r in out.rounds) + len(out.last_attempt.get("tried", []))

@@ -15,6 +15,9 @@ import argparse
 import numpy as np
 
 from sfem_filters.cardiac import (
+    EstimatorSettings,
+    LoopSettings,
+    ModelSpec,
     closing_the_loop,
     example_path,
     format_report,
@@ -31,6 +34,7 @@ args = ap.parse_args()
 quick = args.quick
 iterations = 2 if quick else 20
 tries = {"max_tries": 2, "prune": False} if quick else {}     # the defaults (3, True) otherwise
+estimator = EstimatorSettings(max_iterations=iterations)
 
 try:
     seq = load_sequence(example_path("subject_a", download=args.download))
@@ -45,12 +49,12 @@ if quick:
 #    point is held out. The baseline's residual is scored against candidate missing effects,
 #    the best one is added (one round, as the paper; `sfem-filters dense` runs more rounds),
 #    and the run is repeated.
-out = closing_the_loop(seq, effects="auto", landmarks=8, observe="boundary", max_iterations=iterations,
-                       max_rounds=1, corrections=False, **tries)
+boundary = ModelSpec(landmarks=8, observe="boundary")
+out = closing_the_loop(seq, boundary, estimator, LoopSettings(effects="auto", max_rounds=1, corrections=False, **tries))
 print(format_report(out))
 
 # 2. The paper's second experiment: also observe a seeded half of the mid-wall points.
-mid = closing_the_loop(seq, effects=out.effects, landmarks=8, observe="boundary+midwall", max_iterations=iterations)
+mid = closing_the_loop(seq, boundary.with_(observe="boundary+midwall"), estimator, LoopSettings(effects=out.effects))
 print()
 print(format_report(mid))
 

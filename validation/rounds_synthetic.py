@@ -20,7 +20,7 @@ import warnings
 import numpy as np
 
 from sfem_filters import Material
-from sfem_filters.cardiac import NOMINAL, closing_the_loop, prepare
+from sfem_filters.cardiac import NOMINAL, closing_the_loop, prepare, specs_from
 from sfem_filters.cardiac import annulus_sequence as _annulus_sequence
 
 from ._core import fmt, md_table
@@ -44,9 +44,14 @@ def _row(case, out, truth, **extra) -> dict:
 def compute(settings: dict, out_dir) -> dict:
     warnings.simplefilter("ignore", RuntimeWarning)
     frames, rows = settings["frames"], []
-    # "loop": further settings of closing_the_loop (for example the search's: mesh, warm_start, screening)
+    # "loop": further settings by the specs' field names (for example the search's: mesh, warm_start,
+    # screening), and "workers"
     kw = {"effects": "auto", "max_iterations": settings["max_iterations"], "max_rounds": settings["max_rounds"],
           **settings.get("loop", {})}
+    workers = kw.pop("workers", 1)
+
+    def closing(seq, **change):
+        return closing_the_loop(seq, *specs_from(**{**kw, **change}), workers=workers)
     # "truth_element_px": draw the motion on a polar mesh that fine, sampled at the pixels (every
     # estimator's mesh then pays its discretisation error); None: on the node-per-pixel mesh
     fine = settings.get("truth_element_px")
@@ -58,7 +63,7 @@ def compute(settings: dict, out_dir) -> dict:
             mat = Material.uniform(mesh.n_elements, E * 1e3, NOMINAL["nu"])
             seq = annulus_sequence(None, seed=0, drive="pressure", material=mat, peak_pressure=2e3 * E / 10,
                                    n_frames=frames)
-            out = closing_the_loop(seq, drive="pressure", **{**kw, "max_iterations": max(80, kw["max_iterations"])})
+            out = closing(seq, drive="pressure", max_iterations=max(80, kw["max_iterations"]))
             m = out.baseline.metrics
             rows.append(_row(f"pressure drive, E = {E:g} kPa", out, "none", level_kPa=m["E_level_kPa"],
                              level_kPa_95=list(m["E_level_kPa_95"]), true_level_kPa=E))
@@ -66,15 +71,15 @@ def compute(settings: dict, out_dir) -> dict:
         for label, amps in (("polar (0.15, -0.3) + helical 0.3", ((0.15, -0.3), (0.0, 0.3))),
                             ("polar (0.1, -0.2) + helical 0.6", ((0.1, -0.2), (0.0, 0.6)))):
             seq = annulus_sequence(["active_polar", "active_helical"], amplitude=amps, seed=0, n_frames=frames)
-            rows.append(_row(label, closing_the_loop(seq, **kw), "active_polar, active_helical"))
+            rows.append(_row(label, closing(seq), "active_polar, active_helical"))
     if "akinetic" in settings["cases"]:
         amp = np.tile([0.15, -0.3], 6)
         amp[[4, 5]] = 0.0
         seq = annulus_sequence("active_segments", amplitude=tuple(amp), seed=0, n_frames=frames)
-        rows.append(_row("active_segments, segment 2 akinetic", closing_the_loop(seq, **kw), "active_segments"))
+        rows.append(_row("active_segments, segment 2 akinetic", closing(seq), "active_segments"))
     if "clean" in settings["cases"]:
         for seed in settings["seeds"]:
-            out = closing_the_loop(annulus_sequence(None, seed=seed, n_frames=frames), **kw)
+            out = closing(annulus_sequence(None, seed=seed, n_frames=frames))
             rows.append(_row(f"no effect, seed {seed}", out, "none"))
     return {"rows": rows}
 

@@ -25,7 +25,8 @@ import tempfile
 import matplotlib.pyplot as plt
 import numpy as np
 
-from sfem_filters.cardiac import closing_the_loop, format_report, load_sequence, make_sequence, save_sequence
+from sfem_filters.cardiac import (EstimatorSettings, LoopSettings, ModelSpec, closing_the_loop, format_report,
+                                  load_sequence, make_sequence, save_sequence)
 
 QUICK = os.environ.get("SFEM_DOCS_QUICK", "1") != "0"
 
@@ -86,10 +87,13 @@ fig.tight_layout()
 # -------------
 # :func:`~sfem_filters.cardiac.closing_the_loop` meshes the points, observes 8 landmarks per
 # contour (they also drive the elastic model through springs), holds every other point out,
-# and fits kinematics and a 12-region material map with the iterated smoother. ``effects="none"``
-# fits the baseline only; the held-out error is judged against a thin-plate spline through the
-# same landmarks.
-result = closing_the_loop(seq, effects="none", landmarks=8, max_iterations=3 if QUICK else None)
+# and fits kinematics and a 12-region material map with the iterated smoother. Its settings are
+# three small specs: the model (:class:`~sfem_filters.cardiac.ModelSpec`: landmarks, drive, material
+# map, mesh), the estimator's (:class:`~sfem_filters.cardiac.EstimatorSettings`) and the loop's
+# (:class:`~sfem_filters.cardiac.LoopSettings`). ``effects="none"`` fits the baseline only; the
+# held-out error is judged against a thin-plate spline through the same landmarks.
+result = closing_the_loop(seq, ModelSpec(landmarks=8), EstimatorSettings(max_iterations=3 if QUICK else None),
+                          LoopSettings(effects="none"))
 print(format_report(result))
 
 # %%

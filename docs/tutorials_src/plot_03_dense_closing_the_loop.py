@@ -34,7 +34,8 @@ import warnings
 import matplotlib.pyplot as plt
 import numpy as np
 
-from sfem_filters.cardiac import closing_the_loop, example_path, format_report, load_sequence, make_sequence
+from sfem_filters.cardiac import (EstimatorSettings, LoopSettings, ModelSpec, closing_the_loop, example_path,
+                                  format_report, load_sequence, make_sequence)
 from sfem_filters.plotting import dense_figures
 
 QUICK = os.environ.get("SFEM_DOCS_QUICK", "1") != "0"
@@ -52,12 +53,13 @@ if QUICK:
 # %%
 # One round of closing the loop
 # -----------------------------
-# ``effects="auto"`` runs the rounds; ``max_rounds=1`` stops after the first added effect, as the
-# paper did. The report prints the ranking of the candidates (a score test on the baseline's
-# innovations), the rounds, and the baseline against the final model.
-quick = dict(max_iterations=2, max_tries=1, prune=False, folds=2) if QUICK else dict(max_iterations=20)
-result = closing_the_loop(seq, effects="auto", landmarks=8, observe="boundary", max_rounds=1,
-                          corrections=False, **quick)
+# ``LoopSettings(effects="auto")`` runs the rounds; ``max_rounds=1`` stops after the first added
+# effect, as the paper did. The report prints the ranking of the candidates (a score test on the
+# baseline's innovations), the rounds, and the baseline against the final model.
+quick = dict(max_tries=1, prune=False, folds=2) if QUICK else {}
+result = closing_the_loop(seq, ModelSpec(landmarks=8, observe="boundary"),
+                          EstimatorSettings(max_iterations=2 if QUICK else 20),
+                          LoopSettings(effects="auto", max_rounds=1, corrections=False, **quick))
 print(format_report(result))
 
 # %%

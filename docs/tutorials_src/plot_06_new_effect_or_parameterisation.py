@@ -31,7 +31,8 @@ import numpy as np
 
 from sfem_filters import IteratedSmoother, Parameterisation
 from sfem_filters.benchmark import benchmark_model, pinned_benchmark
-from sfem_filters.cardiac import CATALOGUE, Effect, annulus_sequence, closing_the_loop, format_report
+from sfem_filters.cardiac import (CATALOGUE, Effect, EstimatorSettings, LoopSettings, annulus_sequence,
+                                  closing_the_loop, format_report)
 from sfem_filters.fem import stress_loads
 
 QUICK = os.environ.get("SFEM_DOCS_QUICK", "1") != "0"
@@ -95,13 +96,14 @@ def active_inner_circumferential(mesh, geometry, scale=1e3, thickness=1.0, **opt
 
 # %%
 # Registered in the catalogue, the workflow accepts it by name like the built-in effects:
-# ``effects=[...]`` fits it, and ``effects="auto"`` ranks it among the candidates when it is named
-# in ``candidates=``. (Fits in other processes, ``workers`` > 1, need the registration in a module
+# ``LoopSettings(effects=[...])`` fits it, and ``effects="auto"`` ranks it among the candidates when
+# it is named in ``candidates=``. (Fits in other processes, ``workers`` > 1, need the registration in a module
 # they import.)
 CATALOGUE["active_inner_circumferential"] = active_inner_circumferential
 
 seq = annulus_sequence(effect="active_circumferential", seed=0, n_frames=12 if QUICK else 24)
-result = closing_the_loop(seq, effects=["active_inner_circumferential"], max_iterations=2 if QUICK else 20)
+result = closing_the_loop(seq, estimator=EstimatorSettings(max_iterations=2 if QUICK else 20),
+                          loop=LoopSettings(effects=["active_inner_circumferential"]))
 print(format_report(result))
 
 # %%

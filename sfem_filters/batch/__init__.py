@@ -28,10 +28,11 @@ over many draws.
 Modules: :mod:`~sfem_filters.batch.jobs` (what a job is and runs),
 :mod:`~sfem_filters.batch.store` (the result folder), :mod:`~sfem_filters.batch.runner`.
 """
-from .jobs import (KINDS, Job, JobOutcome, compare_jobs, dense_jobs, describe_record, full_dense_config, merge_timing,
-                   run_job, split_timing, table_rows)
+from .jobs import (KINDS, Job, JobOutcome, compare_jobs, dense_config, dense_jobs, dense_specs, describe_record,
+                   merge_timing, run_job, split_timing, table_rows)
 from .runner import SCHEDULERS, BatchReport, run_batch
 from .store import ResultStore
 
 __all__ = ["Job", "JobOutcome", "KINDS", "compare_jobs", "dense_jobs", "run_job", "split_timing", "merge_timing",
-           "table_rows", "describe_record", "full_dense_config", "ResultStore", "run_batch", "BatchReport", "SCHEDULERS"]
+           "table_rows", "describe_record", "dense_config", "dense_specs", "ResultStore", "run_batch", "BatchReport",
+           "SCHEDULERS"]

@@ -13,7 +13,6 @@ from __future__ import annotations
 import copy
 import functools
 import hashlib
-import inspect
 import json
 import os
 import time
@@ -24,14 +23,14 @@ from importlib import metadata
 from .._io import json_safe
 from ..benchmark.comparison import LABELS, run_comparison
 from ..cardiac.closing import closing_the_loop, length_display
-from ..cardiac.measured import default_max_iterations
 from ..cardiac.sequence import example_path, load_sequence
+from ..cardiac.specs import EstimatorSettings, LoopSettings, ModelSpec, check_specs
 from ..export import export_comparison, export_dense
 from ..plotting import comparison_figures, dense_figures
 from ..resources import blas_threads
 
 __all__ = ["Job", "JobOutcome", "KINDS", "compare_jobs", "dense_jobs", "run_job", "split_timing", "merge_timing",
-           "table_rows", "describe_record", "full_dense_config"]
+           "table_rows", "describe_record", "dense_config", "dense_specs"]
 
 KINDS = ("compare", "dense")
 #: Keys of a job's ``outputs``: where the job also writes figures, ParaView files and filter
@@ -44,32 +43,32 @@ _TIMING_KEYS = ("seconds",)
 #: the data say computed from the data only, no longer from the drive's filled-in values, and no
 #: landmark on a point without data; 4: every keyword of the run in the configuration, its
 #: defaults included, so that no key is there only when it differs from a default, and the rounds'
-#: springs:x10 offered only to contour springs by default).
-RESULTS_SCHEMA = 4
-
-#: Keywords of :func:`~sfem_filters.cardiac.closing_the_loop` that change how fast or how
-#: verbosely, not what: not part of a dense job's configuration (nor its fingerprint).
-_NOT_RESULTS = ("progress", "workers")
+#: springs:x10 offered only to contour springs by default; 5: a dense job's configuration is the
+#: three settings specs' full JSON, :func:`dense_config`, the same results under new keys).
+RESULTS_SCHEMA = 5
 
 
-def full_dense_config(config: dict) -> dict:
-    """Every keyword of :func:`~sfem_filters.cardiac.closing_the_loop` but :data:`_NOT_RESULTS`:
-    ``config`` over the function's defaults, with the iteration limit the run will use (the
-    default depends on the drive). A job's fingerprint hashes this whole configuration with
-    :data:`RESULTS_SCHEMA`, so that a new keyword, or a default that changes, never reuses a
-    result computed without it."""
-    params = inspect.signature(closing_the_loop).parameters
-    unknown = set(config) - set(params) - set(_NOT_RESULTS)
+def dense_config(model: ModelSpec = ModelSpec(), estimator: EstimatorSettings = EstimatorSettings(),
+                 loop: LoopSettings = LoopSettings()) -> dict:
+    """A dense job's configuration: the specs of :func:`~sfem_filters.cardiac.closing_the_loop`, each
+    as its full JSON (``to_json``: every field, defaults included, no key that is there only when it
+    differs from a default), with the iteration limit the run will use (the default depends on the
+    drive). A job's fingerprint hashes it whole with :data:`RESULTS_SCHEMA`, so that a new setting,
+    or a default that changes, never reuses a result computed without it. The specs are checked
+    together (:func:`~sfem_filters.cardiac.specs.check_specs`) before any job runs."""
+    check_specs(model, estimator, loop)
+    estimator = estimator.with_(max_iterations=estimator.iteration_limit(model.drive))
+    return {"model": model.to_json(), "estimator": estimator.to_json(), "loop": loop.to_json()}
+
+
+def dense_specs(config: dict) -> tuple:
+    """``(ModelSpec, EstimatorSettings, LoopSettings)`` of a dense job's configuration
+    (:func:`dense_config`)."""
+    unknown = sorted(set(config) - {"model", "estimator", "loop"})
     if unknown:
-        raise ValueError(f"config: expected keywords of closing_the_loop, got {sorted(unknown)}")
-    cfg = {k: p.default for k, p in params.items()
-           if p.default is not inspect.Parameter.empty and k not in _NOT_RESULTS}
-    cfg.update({k: v for k, v in config.items() if k not in _NOT_RESULTS})
-    if cfg.get("max_iterations") is None:
-        cfg["max_iterations"] = default_max_iterations(cfg["drive"])
-    if isinstance(cfg.get("candidates"), tuple):
-        cfg["candidates"] = list(cfg["candidates"])
-    return cfg
+        raise ValueError(f"config: expected the keys 'model', 'estimator' and 'loop', got also {unknown}")
+    return (ModelSpec.from_json(config.get("model", {})), EstimatorSettings.from_json(config.get("estimator", {})),
+            LoopSettings.from_json(config.get("loop", {})))
 
 
 def _version() -> str:
@@ -99,8 +98,8 @@ class Job:
     name : str
         Unique within a batch; the stem of its result files (``seed0007``, a file's stem).
     config : dict
-        Keyword arguments of the job's run (JSON values): they and the inputs' contents make
-        the fingerprint.
+        The job's settings (JSON values: :func:`run_comparison`'s keywords, or the specs of
+        :func:`dense_config`): they and the inputs' contents make the fingerprint.
     inputs : tuple of str
         Files the job reads (hashed by content into the fingerprint).
     outputs : dict
@@ -174,14 +173,17 @@ def compare_jobs(seeds, *, refine: int = 1, noise_mm: float = 0.1, engine: str =
     return jobs
 
 
-def dense_jobs(paths, figures=None, export=None, **config) -> list:
-    """One job per sequence file (``"example"`` for the shipped slice); ``config``: keyword
-    arguments of :func:`~sfem_filters.cardiac.closing_the_loop`. Names are the files' stems
-    (made unique with ``-2``, ``-3`` ... when two files share one)."""
+def dense_jobs(paths, model: ModelSpec = ModelSpec(), estimator: EstimatorSettings = EstimatorSettings(),
+               loop: LoopSettings = LoopSettings(), *, figures=None, export=None) -> list:
+    """One job per sequence file (``"example"`` for the shipped slice), each run by
+    :func:`~sfem_filters.cardiac.closing_the_loop` with the specs ``model``, ``estimator`` and ``loop``
+    (its configuration :func:`dense_config`; the number of worker processes and the progress are
+    not settings of the results). Names are the files' stems (made unique with ``-2``, ``-3`` ...
+    when two files share one)."""
     paths = [example_path() if p == "example" else os.fspath(p) for p in paths]
     if not paths:
         raise ValueError("paths: expected at least one sequence file")
-    cfg = full_dense_config(config)
+    cfg = dense_config(model, estimator, loop)
     jobs, seen = [], {}
     for p in paths:
         stem = os.path.splitext(os.path.basename(p))[0]
@@ -242,7 +244,7 @@ def _run_compare(job: Job) -> tuple:
 
 
 def _run_dense(job: Job) -> tuple:
-    out = closing_the_loop(load_sequence(job.inputs[0]), **job.config, progress=False)
+    out = closing_the_loop(load_sequence(job.inputs[0]), *dense_specs(job.config), progress=False)
     return out.as_json(), _outputs(job, out, dense_figures, export_dense)
 
 

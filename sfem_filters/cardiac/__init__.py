@@ -5,13 +5,13 @@ Composes :mod:`sfem_filters.fem`, :mod:`sfem_filters.filtering` (through
 tagging, tracked borders) comes as a :class:`Sequence` in pixels; the workflow meshes the wall
 on the points, observes sparse landmarks, holds the rest out and closes the loop (section 3.2):
 
->>> from sfem_filters.cardiac import annulus_sequence, closing_the_loop, prepare
+>>> from sfem_filters.cardiac import EstimatorSettings, LoopSettings, annulus_sequence, closing_the_loop, prepare
 >>> seq = annulus_sequence(effect="active_polar", seed=0)   # a synthetic ring with a known answer
 >>> setup = prepare(seq, landmarks=8)
 >>> setup.mesh.n_nodes, len(setup.observed), len(setup.heldout)
 (240, 16, 224)
->>> result = closing_the_loop(seq, effects="auto", max_iterations=3, max_rounds=1,
-...                           selection="first", prune=False)   # quick: the defaults try more
+>>> result = closing_the_loop(seq, estimator=EstimatorSettings(max_iterations=3),
+...                           loop=LoopSettings(max_rounds=1, selection="first", prune=False))  # quick settings
 >>> result.effects                                                       # the undeclared effect is found
 ['active_polar']
 >>> result.extended.metrics["heldout_rmse_px"] < result.reference["heldout_rmse_px"]   # beats the spline
@@ -25,7 +25,7 @@ Modules: :mod:`~sfem_filters.cardiac.sequence` (the file format, loader, example
 directions, landmarks), :mod:`~sfem_filters.cardiac.effects` (the catalogue of missing
 effects), :mod:`~sfem_filters.cardiac.measured` (set-up, model, runs, evaluation),
 :mod:`~sfem_filters.cardiac.closing` (residual diagnosis, effects and corrections added in rounds,
-and taken out again by backward steps),
+and taken out again by backward steps; its settings the specs of :mod:`~sfem_filters.cardiac.specs`),
 :mod:`~sfem_filters.cardiac.reference` (the thin-plate-spline yardstick, the model plus
 the spline of its residual, and intervals for a difference of held-out errors),
 :mod:`~sfem_filters.cardiac.crossval` (cross-validation over the observed points),
@@ -42,7 +42,6 @@ from .closing import (
                        LoopResult,
                        Round,
                        Search,
-                       Variant,
                        candidate_loads,
                        closing_the_loop,
                        format_report,
@@ -81,6 +80,7 @@ from .myocardium import (
                        tissue_mesh,
 )
 from .reference import angular_sectors, contour_interpolant, residual_spline, rmse_difference, spline_reference
+from .specs import EstimatorSettings, LoopSettings, ModelSpec, specs_from
 from .sequence import (
                        Sequence,
                        example_path,
@@ -96,7 +96,8 @@ __all__ = ["Sequence", "make_sequence", "load_sequence", "save_sequence", "examp
            "lv_geometry", "mesh_from_points", "tissue_mesh", "polar_mesh", "NotStarShapedError", "mesh_from_mask", "contour_landmarks", "Effect", "CATALOGUE",
            "build_effects", "NOMINAL", "PARAMETERISATIONS", "DRIVES", "OBSERVE", "MESHES", "Setup", "Run", "prepare",
            "build_model", "run", "evaluate", "noise_floor", "strain_maps", "measured_wall_kinematics",
-           "LoopResult", "Round", "Variant", "Search", "SEARCHES", "closing_the_loop", "candidate_loads", "format_report", "log_evidence",
+           "ModelSpec", "EstimatorSettings", "LoopSettings", "specs_from",
+           "LoopResult", "Round", "Search", "SEARCHES", "closing_the_loop", "candidate_loads", "format_report", "log_evidence",
            "removals",
            "spline_reference", "residual_spline", "rmse_difference", "angular_sectors", "kriged_heldout", "material_conflict",
            "contour_interpolant", "cross_validate", "observation_folds",

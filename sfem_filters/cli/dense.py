@@ -11,6 +11,7 @@ from ..cardiac.closing import CRITERIA, LAPLACE, SEARCHES, SELECTIONS, STIFF_SPR
 from ..cardiac.effects import CATALOGUE, EXPLICIT_ONLY
 from ..cardiac.measured import DRIVES, ELEMENT_PX, ESTIMATORS, MESHES, OBSERVE, PARAMETERISATIONS
 from ..cardiac.myocardium import NotStarShapedError
+from ..cardiac.specs import EstimatorSettings, LoopSettings, ModelSpec
 from ..export import export_dense
 from ..filtering.iterated import NOISE_LEVELS
 from ..plotting.measured import dense_figures
@@ -132,26 +133,35 @@ def add_parser(sub) -> None:
                               "the memory holds them)")
 
 
-def cmd_dense(args) -> int:
+def _specs(args) -> tuple:
+    """``(ModelSpec, EstimatorSettings, LoopSettings)`` of the command's options: the search's values
+    (``--search``) where an option is not given; warm starts and screening for the smoother only."""
     search = SEARCHES[args.search]
-    config = dict(effects=args.effects, drive=args.drive, landmarks=args.landmarks, observe=args.observe,
-                  holdout_seed=args.holdout_seed, parameterisation=args.parameterisation, max_loops=args.max_loops,
-                  estimator=args.estimator,
-                  max_iterations=(search.max_iterations(args.drive) if args.max_iterations is None
-                                  else args.max_iterations), max_rounds=args.max_rounds,
-                  alpha=args.alpha, criterion=args.criterion, folds=args.folds,
-                  selection=args.selection, max_tries=args.max_tries, prune=not args.no_prune,
-                  stiff_springs=args.stiff_springs, laplace=args.laplace, measurement_noise=args.measurement_noise,
-                  mesh=search.mesh if args.mesh is None else args.mesh,
-                  element_px=search.element_px if args.element_px is None else args.element_px,
-                  warm_start=bool(search.warm_start if args.warm_start is None else args.warm_start)
-                  and args.estimator == "smoother",
-                  screen_iterations=((search.screen_iterations if args.screen_iterations is None
-                                      else args.screen_iterations or None) if args.estimator == "smoother" else None),
-                  angle_origin_deg=args.angle_origin, candidates=args.candidates)
-    # every keyword in the configuration, defaults included (a batch job's fingerprint hashes it whole)
+    smoother = args.estimator == "smoother"
+    model = ModelSpec(drive=args.drive, parameterisation=args.parameterisation, landmarks=args.landmarks,
+                      observe=args.observe, holdout_seed=args.holdout_seed,
+                      mesh=search.mesh if args.mesh is None else args.mesh,
+                      element_px=search.element_px if args.element_px is None else args.element_px,
+                      angle_origin_deg=args.angle_origin)
+    estimator = EstimatorSettings(estimator=args.estimator, max_loops=args.max_loops, laplace=args.laplace,
+                                  measurement_noise=args.measurement_noise,
+                                  max_iterations=(search.max_iterations(args.drive) if args.max_iterations is None
+                                                  else args.max_iterations))
+    loop = LoopSettings(effects=args.effects, candidates=args.candidates, max_rounds=args.max_rounds,
+                        alpha=args.alpha, criterion=args.criterion, folds=args.folds, selection=args.selection,
+                        max_tries=args.max_tries, prune=not args.no_prune, stiff_springs=args.stiff_springs,
+                        warm_start=bool(search.warm_start if args.warm_start is None else args.warm_start)
+                        and smoother,
+                        screen_iterations=((search.screen_iterations if args.screen_iterations is None
+                                            else args.screen_iterations or None) if smoother else None))
+    return model, estimator, loop
+
+
+def cmd_dense(args) -> int:
+    model, estimator, loop = _specs(args)
+    # every setting in the specs, defaults included (a batch job's fingerprint hashes them whole)
     if _batch_mode(args, len(args.path)):
-        jobs = batch.dense_jobs(args.path, figures=args.figures, export=args.export, **config)
+        jobs = batch.dense_jobs(args.path, model, estimator, loop, figures=args.figures, export=args.export)
         report = _run_batch(args, jobs, "dense")
         for j in jobs:
             if j.name in report.records:
@@ -162,17 +172,17 @@ def cmd_dense(args) -> int:
         return 1 if report.failed or not report.records else 0
     path = args.path[0]
     seq = sequence.load_sequence(sequence.example_path(download=args.download) if path == "example" else path)
-    # --workers changes how fast, not what: it is not part of the configuration (nor a batch fingerprint)
+    # --workers changes how fast, not what: it is not part of the specs (nor a batch fingerprint)
     try:
-        out = closing.closing_the_loop(seq, progress=_progress(args), workers=args.workers, **config)
+        out = closing.closing_the_loop(seq, model, estimator, loop, progress=_progress(args), workers=args.workers)
     except NotStarShapedError as exc:
         if args.mesh is not None:           # asked for by name: the error stands
             raise
         # the search's polar mesh cannot follow this wall: the mesh through the points instead
         print(f"sfem-filters dense: warning: --search {args.search}: {exc}; meshing through the points "
               f"(--mesh delaunay) instead", file=sys.stderr)
-        config = {**config, "mesh": "delaunay"}
-        out = closing.closing_the_loop(seq, progress=_progress(args), workers=args.workers, **config)
+        model = model.with_(mesh="delaunay")
+        out = closing.closing_the_loop(seq, model, estimator, loop, progress=_progress(args), workers=args.workers)
     print(closing.format_report(out))
     note = not_converged_note(out.as_json())
     if note:

@@ -3,6 +3,7 @@ fingerprints, the combined table, and Table 1 over many draws (Wilson intervals)
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import os
 import re
@@ -19,10 +20,12 @@ from hypothesis import strategies as st
 
 from sfem_filters.batch import Job, ResultStore, compare_jobs, dense_jobs, describe_record, merge_timing, run_batch, \
     run_job, split_timing
+from sfem_filters.batch import dense_specs
 from sfem_filters.batch import jobs as jobs_module
 from sfem_filters.batch.runner import _client
 from sfem_filters.benchmark import format_summary, format_table, summarise, wilson_interval
 from sfem_filters.benchmark.comparison import ROWS
+from sfem_filters.cardiac.specs import EstimatorSettings, LoopSettings, ModelSpec
 from sfem_filters.cli import main
 
 # A cheap comparison job: few loops (the numbers are not the point here, their bytes are).
@@ -123,36 +126,75 @@ def test_fingerprint_covers_configuration_and_input_contents_not_outputs(tmp_pat
     assert a.fingerprint() != compare_jobs([1])[0].fingerprint()
     f = tmp_path / "s.npz"
     f.write_bytes(b"one")
-    j1 = dense_jobs([str(f)], landmarks=8)[0]
+    j1 = dense_jobs([str(f)], ModelSpec(landmarks=8))[0]
     fp1 = j1.fingerprint()
     f.write_bytes(b"two")
     assert j1.fingerprint() != fp1
     fp_now = j1.fingerprint()
-    assert dense_jobs([str(f)], landmarks=16)[0].fingerprint() != fp_now
+    assert dense_jobs([str(f)], ModelSpec(landmarks=16))[0].fingerprint() != fp_now
     assert [j.name for j in dense_jobs([str(f), str(f)])] == ["s", "s-2"]
     monkeypatch.setattr(jobs_module, "RESULTS_SCHEMA", jobs_module.RESULTS_SCHEMA + 1)
     assert j1.fingerprint() != fp_now                   # a result computed otherwise is not reused
 
 
-def test_a_dense_job_carries_every_keyword_of_the_run_defaults_included(tmp_path):
-    """No key only when it differs from a default: passing a default explicitly is the same job, every
-    keyword of closing_the_loop that changes the result is in the configuration (so a new keyword or
-    a changed default changes the fingerprint), and a keyword the run does not take is an error."""
-    import inspect
+#: A value other than the default of every field of the three specs (a new field must be added here)
+OTHER_VALUES = {
+    "model": {"effects": ("active_polar",), "drive": "contour", "drive_trend": True, "effect_rates": True,
+              "process_scale": 2.0, "spring_scale": 10.0, "material": "basis", "parameterisation": "basis",
+              "landmarks": 6, "observe": "boundary+midwall", "holdout_seed": 1, "mesh": "polar", "element_px": 3.0,
+              "angle_origin_deg": -30.0},
+    "estimator": {"estimator": "cyclic", "max_iterations": 7, "max_loops": 2, "laplace": "exact",
+                  "measurement_noise": "estimate"},
+    "loop": {"effects": "none", "candidates": ("active_polar",), "max_rounds": 2, "alpha": 0.05, "min_evidence": 1.0,
+             "max_tries": 2, "selection": "first", "corrections": False, "stiff_springs": "any", "criterion": "cv",
+             "folds": 3, "min_cv_gain": 0.1, "prune": False, "warm_start": True, "screen_iterations": 2},
+}
+SPECS = {"model": ModelSpec, "estimator": EstimatorSettings, "loop": LoopSettings}
 
-    from sfem_filters.cardiac import closing_the_loop
+
+def test_a_dense_job_carries_every_setting_of_the_specs_defaults_included(tmp_path):
+    """No key only when it differs from a default: passing a default explicitly is the same job, every
+    field of the three specs is in the configuration and changes the fingerprint (so a new setting
+    or a changed default changes it), and settings that are not specs are an error."""
     f = tmp_path / "s.npz"
     f.write_bytes(b"one")
     implicit = dense_jobs([str(f)])[0]
-    explicit = dense_jobs([str(f)], mesh="delaunay", stiff_springs="contour", warm_start=False, laplace="gauss-newton",
-                          max_iterations=20, progress=True, workers=2)[0]
+    explicit = dense_jobs([str(f)], ModelSpec(mesh="delaunay"), EstimatorSettings(laplace="gauss-newton",
+                                                                                   max_iterations=20),
+                          LoopSettings(stiff_springs="contour", warm_start=False, candidates=None))[0]
     assert implicit.config == explicit.config and implicit.fingerprint() == explicit.fingerprint()
-    result_keys = set(inspect.signature(closing_the_loop).parameters) - {"seq", "progress", "workers"}
-    assert set(implicit.config) == result_keys
-    assert dense_jobs([str(f)], stiff_springs="any")[0].fingerprint() != implicit.fingerprint()
-    assert dense_jobs([str(f)], drive="pressure")[0].config["max_iterations"] == 80    # the drive's default limit
+    assert set(implicit.config) == set(SPECS)
+    for key, cls in SPECS.items():
+        assert set(implicit.config[key]) == {f.name for f in dataclasses.fields(cls)} == set(OTHER_VALUES[key])
+        for name, value in OTHER_VALUES[key].items():
+            spec = cls(**{name: value})
+            assert getattr(spec, name) != getattr(cls(), name), name
+            assert cls.to_json(spec)[name] != implicit.config[key][name], name
+    # the job runs what it records: its specs, from its configuration
+    assert dense_specs(implicit.config) == (ModelSpec(), EstimatorSettings(max_iterations=20), LoopSettings())
+    assert dense_jobs([str(f)], loop=LoopSettings(stiff_springs="any"))[0].fingerprint() != implicit.fingerprint()
+    # the drive's default iteration limit, resolved
+    assert dense_jobs([str(f)], ModelSpec(drive="pressure"))[0].config["estimator"]["max_iterations"] == 80
+    with pytest.raises(TypeError, match="model: expected sfem_filters.cardiac.ModelSpec"):
+        dense_jobs([str(f)], {"mesh": "polar"})
+    with pytest.raises(ValueError, match="laplace: 'exact' needs a material map"):
+        dense_jobs([str(f)], ModelSpec(parameterisation="none"), EstimatorSettings(laplace="exact"))
     with pytest.raises(ValueError, match="config"):
-        dense_jobs([str(f)], meshes="polar")
+        dense_specs({**implicit.config, "workers": 2})
+
+
+def test_every_setting_changes_a_dense_jobs_fingerprint(tmp_path):
+    f = tmp_path / "s.npz"
+    f.write_bytes(b"one")
+    base = dense_jobs([str(f)])[0].fingerprint()
+    seen = {base}
+    for key, cls in SPECS.items():
+        for name, value in OTHER_VALUES[key].items():
+            if (key, name) in (("model", "effects"), ("model", "material")):
+                continue                    # the loop starts from a model without them (check_specs)
+            fp = dense_jobs([str(f)], **{key: cls(**{name: value})})[0].fingerprint()
+            assert fp not in seen, (key, name)
+            seen.add(fp)
 
 
 # --- running batches ---------------------------------------------------------------------------
@@ -231,7 +273,8 @@ def test_other_configuration_reruns_and_keeps_the_old_result(tmp_path):
 
 @pytest.mark.needs_data("subject_a")
 def test_dense_job_record_and_rows(tmp_path):
-    jobs = dense_jobs(["example"], effects="none", estimator="cyclic", max_loops=1, parameterisation="none")
+    jobs = dense_jobs(["example"], ModelSpec(parameterisation="none"),
+                      EstimatorSettings(estimator="cyclic", max_loops=1), LoopSettings(effects="none"))
     rep = run_batch(jobs, tmp_path, scheduler="serial", progress=False)
     assert rep.ran == ["subject_a"], rep.failed
     rec = rep.records["subject_a"]

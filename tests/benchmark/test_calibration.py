@@ -9,7 +9,7 @@ from scipy import stats
 
 from sfem_filters.benchmark.calibration import (Calibration, Replicate, _strain_inside, annulus_problem, calibrate,
                                                 format_calibration, pinned_problem, wilson_interval)
-from sfem_filters.cardiac import closing_the_loop
+from sfem_filters.cardiac import EstimatorSettings, LoopSettings, closing_the_loop
 from sfem_filters.cardiac.annulus import annulus_sequence
 from sfem_filters.filtering import IteratedSmoother
 
@@ -91,7 +91,8 @@ def test_dense_workflow_reports_material_and_strain_uncertainty():
     """The measured-data workflow with the default estimator (the smoother) reports the material's
     and the strains' posterior sd, per element and per point and frame, in its JSON."""
     seq = annulus_sequence("active_polar", n_frames=8, seed=2)
-    out = closing_the_loop(seq, effects=["active_polar"], max_iterations=4)
+    out = closing_the_loop(seq, estimator=EstimatorSettings(max_iterations=4),
+                           loop=LoopSettings(effects=["active_polar"]))
     m = out.extended.metrics
     assert out.config["estimator"] == "smoother" and m["estimator"] == "smoother"
     sd = np.asarray(m["strain_polar_sd"])

@@ -9,6 +9,7 @@ import pytest
 from hypothesis import given, settings, strategies as st
 
 from sfem_filters.cardiac import annulus_sequence, closing, measured
+from sfem_filters.cardiac.specs import EstimatorSettings, LoopSettings, ModelSpec, specs_from
 from sfem_filters.cardiac.crossval import cross_validate, observation_folds, spline_cross_validation
 from sfem_filters.fem import Material
 from sfem_filters.cardiac.reference import spline_reference
@@ -65,7 +66,7 @@ def test_bad_folds_are_rejected(setup, nominal):
     for kw, match in (({"criterion": "aic"}, "criterion"), ({"folds": 1}, "folds"), ({"min_cv_gain": -0.1}, "min_cv_gain"),
                       ({"criterion": "cv", "landmarks": 4, "folds": 2}, "at least 4 folds")):
         with pytest.raises(ValueError, match=match):
-            closing.closing_the_loop(seq, **kw)
+            closing.closing_the_loop(seq, *specs_from(**kw))
 
 
 @pytest.mark.parametrize("drive", ["penalty", "contour"])
@@ -131,9 +132,9 @@ def test_rounds_judged_by_cross_validation_keep_what_lowers_it():
     default ``selection="best"``); every round and the spline carry their CV, and the report
     prints it."""
     seq = annulus_sequence("active_polar", n_frames=8, seed=1)
-    out = closing.closing_the_loop(seq, criterion="cv", folds=2, candidates=["active_polar", "cavity_pressure"],
-                                   parameterisation="none",
-                                   max_rounds=1, max_iterations=3, corrections=False, min_cv_gain=0.01)
+    out = closing.closing_the_loop(seq, ModelSpec(parameterisation="none"), EstimatorSettings(max_iterations=3),
+                                   LoopSettings(criterion="cv", folds=2, candidates=["active_polar", "cavity_pressure"],
+                                                max_rounds=1, corrections=False, min_cv_gain=0.01))
     js = out.as_json()
     assert js["config"]["criterion"] == "cv"
     assert all(r["cross_validation"]["rmse_px"] > 0 for r in js["rounds"])
@@ -186,8 +187,9 @@ def test_a_candidate_that_raises_the_cv_error_is_rejected(monkeypatch):
     for part in (closing.rounds, closing.workers):      # where it is looked up
         monkeypatch.setattr(part, "round_cross_validation", worse_with_effects)
     seq = annulus_sequence("active_polar", n_frames=8, seed=1)
-    out = closing.closing_the_loop(seq, criterion="cv", folds=2, candidates=["active_polar"], parameterisation="none",
-                                   max_rounds=1, max_iterations=3, corrections=False)
+    out = closing.closing_the_loop(seq, ModelSpec(parameterisation="none"), EstimatorSettings(max_iterations=3),
+                                   LoopSettings(criterion="cv", folds=2, candidates=["active_polar"], max_rounds=1,
+                                                corrections=False))
     assert out.effects == [] and out.stop_reason == "cv"
     (t,) = out.last_attempt["tried"]
     assert t["effect"] == "active_polar" and not t["accepted"] and t["evidence_gain"] > 0 and t["cv_gain_px"] < 0
@@ -205,7 +207,7 @@ def test_a_runs_report_gives_the_model_plus_the_spline_of_its_residual(setup):
     expected = np.sqrt(np.nanmean(np.sum((seq.displacement[:, h] - pred) ** 2, axis=2)))
     assert r.metrics["residual_spline"]["heldout_rmse_px"] == pytest.approx(expected, rel=1e-10)
     assert r.metrics["residual_spline"]["heldout_rmse_px"] != pytest.approx(r.metrics["heldout_rmse_px"], rel=1e-3)
-    cv = closing.round_cross_validation(setup, closing.Variant(drive="contour", drive_trend=True), r, 2)
+    cv = closing.round_cross_validation(setup, ModelSpec(drive="contour", drive_trend=True), r, 2)
     assert set(cv["residual_spline"]) == {"rmse_px", "rmse_radial_px", "rmse_circumferential_px", "per_fold_px"}
     assert np.isfinite(cv["residual_spline"]["rmse_px"]) and cv["residual_spline"]["rmse_px"] != cv["rmse_px"]
 

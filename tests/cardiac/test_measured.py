@@ -15,6 +15,7 @@ from sfem_filters.cardiac import closing, measured
 from sfem_filters.cardiac.annulus import annulus_mask, annulus_sequence
 from sfem_filters.cardiac.effects import CATALOGUE, build_effects
 from sfem_filters.cardiac.measured import kinematics
+from sfem_filters.cardiac.specs import specs_from
 from sfem_filters.cardiac.myocardium import (
     contour_landmarks,
     lv_geometry,
@@ -99,13 +100,13 @@ def test_bad_effect_names_and_landmark_counts_fail_before_any_fit(monkeypatch):
         monkeypatch.setattr(part, "_fit", lambda *a, **k: fits.append(a[1]) or real_fit(*a, **k))
     for effects in ("active_polar,glue", ["glue"]):
         with pytest.raises(ValueError, match=r"effects: expected 'auto', 'none' or names from"):
-            closing.closing_the_loop(seq, effects=effects)
+            closing.closing_the_loop(seq, *specs_from(effects=effects))
     assert fits == []                                                    # refused before the baseline's fit
     short = make_sequence(**{**seq.to_dict(), "displacement": seq.displacement[:8],
                              "frame_masks": seq.frame_masks[:8]})
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
-        out = closing.closing_the_loop(short, effects=[], parameterisation="none")
+        out = closing.closing_the_loop(short, *specs_from(effects=[], parameterisation="none"))
     assert [v.effects for v in fits] == [()] and out.as_json()["stop_reason"] == "none"   # [] is "none"
     proc = subprocess.run([sys.executable, "-m", "sfem_filters.cli", "dense", "example", "--landmarks", "2"],
                           capture_output=True, text=True, timeout=120)
@@ -148,7 +149,7 @@ def test_set_up_arguments_are_checked_by_name():
     with pytest.raises(TypeError, match="seq: expected a Sequence"):
         measured.prepare({"points": seq.points}, 8)
     with pytest.raises(ValueError, match="alpha: expected a number in the open interval"):
-        closing.closing_the_loop(seq, effects=(), alpha=np.float32(1.5))
+        closing.closing_the_loop(seq, *specs_from(effects=(), alpha=np.float32(1.5)))
     # one effect named by a string is that effect, not its letters
     setup = measured.prepare(seq, 8)
     model, _ = measured.build_model(setup, "active_polar", parameterisation="none")
@@ -326,7 +327,7 @@ def test_an_undefined_shear_correlation_is_null_not_zero(tmp_path):
     seq = dataclasses.replace(seq, displacement=np.repeat(shift[:, None, :], seq.points.shape[0], axis=1))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
-        out = closing.closing_the_loop(seq, effects="none", parameterisation="none")
+        out = closing.closing_the_loop(seq, *specs_from(effects="none", parameterisation="none"))
     report = json.loads(open(write_json(tmp_path / "r.json", out.as_json())).read())
     assert report["baseline"]["shear_strain_correlation_peak"] is None
     line = next(r for r in closing.format_report(out).splitlines() if r.startswith("  correlation with measured"))
@@ -345,7 +346,7 @@ def test_a_frame_without_data_is_null_in_the_json_and_metres_are_reported_in_mm(
                                  pixel_spacing=None)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
-        px, m = (closing.closing_the_loop(q, effects=(), parameterisation="none") for q in (seq, metres))
+        px, m = (closing.closing_the_loop(q, *specs_from(effects=(), parameterisation="none")) for q in (seq, metres))
     path = write_json(tmp_path / "r.json", px.as_json())
 
     def strict(token):
@@ -385,8 +386,8 @@ def test_the_measurement_noise_level_can_be_chosen_by_the_evidence():
                       ({"measurement_noise": "estimate", "estimator": "cyclic"}, "needs estimator='smoother'")):
         with pytest.raises(ValueError, match=match):
             measured.run(setup, (), parameterisation="none", **kw)
-    with pytest.raises(ValueError, match="measurement_noise: 'estimate' needs estimator='smoother' and criterion"):
-        closing.closing_the_loop(seq, effects=(), criterion="cv", measurement_noise="estimate")
+    with pytest.raises(ValueError, match="measurement_noise: 'estimate' needs criterion='evidence'"):
+        closing.closing_the_loop(seq, *specs_from(effects=(), criterion="cv", measurement_noise="estimate"))
 
 # ------------------------------------------------------------------ geometry
 def test_annulus_geometry_and_landmarks():
@@ -575,8 +576,8 @@ def test_undeclared_effect_is_flagged_ranked_first_and_fixed_by_declaring_it(eff
 @pytest.mark.slow
 def test_subject_a_extended_model_beats_baseline():
     """The issue's requirement on the measured slice, 8 landmarks per contour."""
-    out = closing.closing_the_loop(load_sequence(example_path()), effects="auto", landmarks=8, max_loops=2,
-                                   estimator="cyclic", max_rounds=1)
+    out = closing.closing_the_loop(load_sequence(example_path()), *specs_from(effects="auto", landmarks=8, max_loops=2,
+                                                                             estimator="cyclic", max_rounds=1))
     b, e = out.as_json()["baseline"], out.as_json()["extended"]
     assert e["effects"][0] == "active_polar"
     assert e["heldout_rmse_px"] < b["heldout_rmse_px"]
@@ -753,7 +754,7 @@ def test_dense_figures_show_the_material_with_its_sd_and_its_prior_check(tmp_pat
 
     from sfem_filters.plotting import measured as plots
     seq = annulus_sequence("active_polar", amplitude=(0.15, -0.3), seed=1, noise_px=NOISE, landmark_step_px=STEP)
-    out = closing.closing_the_loop(seq, effects="none", estimator="cyclic", max_loops=1, folds=9)
+    out = closing.closing_the_loop(seq, *specs_from(effects="none", estimator="cyclic", max_loops=1, folds=9))
     paths = plots.dense_figures(out, str(tmp_path))
     assert {p.split("/")[-1] for p in paths} >= {"material_maps.png", "residual_maps.png", "nis_trace.png"}
     assert all((tmp_path / p.split("/")[-1]).stat().st_size > 10_000 for p in paths)
@@ -781,7 +782,7 @@ def test_dense_final_model_can_report_the_exact_laplace():
     kw = dict(effects="none", parameterisation="basis", max_iterations=8, folds=9)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
-        ex = closing.closing_the_loop(seq, laplace="exact", **kw)
+        ex = closing.closing_the_loop(seq, *specs_from(laplace="exact", **kw))
     e = ex.rounds[-1].run
     assert e.metrics["material_covariance"] == "exact" and e.result.laplace == "exact"
     curv = e.result.curvature
@@ -799,11 +800,11 @@ def test_dense_final_model_can_report_the_exact_laplace():
     report = closing.format_report(ex)
     assert ex.config["laplace"] == "exact" and "final material covariance: the exact Laplace" in report
     with pytest.raises(ValueError, match="^laplace: 'exact' .* estimator='smoother'"):
-        closing.closing_the_loop(seq, estimator="cyclic", laplace="exact", **kw)
+        closing.closing_the_loop(seq, *specs_from(estimator="cyclic", laplace="exact", **kw))
     with pytest.raises(ValueError, match="^laplace: expected one of"):
-        closing.closing_the_loop(seq, laplace="newton", **kw)
+        closing.closing_the_loop(seq, *specs_from(laplace="newton", **kw))
     with pytest.raises(ValueError, match="^laplace: 'exact' needs a material map"):
-        closing.closing_the_loop(seq, laplace="exact", **{**kw, "parameterisation": "none"})
+        closing.closing_the_loop(seq, *specs_from(laplace="exact", **{**kw, "parameterisation": "none"}))
     with pytest.raises(ValueError, match="^r: expected a run of the iterated smoother"):
         measured.exact_posterior(ex.setup, dataclasses.replace(e, result=dataclasses.replace(e.result,
                                                                                              method="cyclic")))
@@ -813,7 +814,7 @@ def test_the_loop_records_and_reports_its_mesh():
     seq = annulus_sequence(None, n_frames=6, seed=1)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        out = closing.closing_the_loop(seq, effects="none", parameterisation="none", mesh="radial")
+        out = closing.closing_the_loop(seq, *specs_from(effects="none", parameterisation="none", mesh="radial"))
     assert out.config["mesh"] == "radial" and out.setup.mesh_kind == "radial"
     assert "triangles (radial)" in closing.format_report(out)
     assert json.loads(json.dumps(out.as_json()))["config"]["mesh"] == "radial"
@@ -847,11 +848,11 @@ def test_a_fit_stopped_short_of_the_stop_rule_is_reported_as_such(tmp_path, caps
     assert measured.default_max_iterations("pressure") == 80 and measured.default_max_iterations("penalty") == 20
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        out = closing.closing_the_loop(seq, effects="none", drive="pressure", parameterisation="none")
+        out = closing.closing_the_loop(seq, *specs_from(effects="none", drive="pressure", parameterisation="none"))
     assert out.config["max_iterations"] == 80
     assert "NOT CONVERGED" not in closing.format_report(out) and closing.not_converged_note(out.as_json()) == ""
     with pytest.raises(ValueError, match="^max_iterations: expected an integer >= 1"):
-        closing.closing_the_loop(seq, effects="none", max_iterations=0)
+        closing.closing_the_loop(seq, *specs_from(effects="none", max_iterations=0))
 
 
 @settings(max_examples=10, deadline=None)

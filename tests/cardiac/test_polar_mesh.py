@@ -3,7 +3,6 @@ points, and the model built on it against the node-per-point model it generalise
 from __future__ import annotations
 
 import dataclasses
-import inspect
 import warnings
 
 import numpy as np
@@ -15,6 +14,7 @@ from hypothesis import strategies as st
 from sfem_filters.cardiac import (NotStarShapedError, annulus_sequence, closing_the_loop, lv_geometry, polar_mesh,
                                    prepare)
 from sfem_filters.cardiac.measured import at_points, build_model, point_rows
+from sfem_filters.cardiac.specs import EstimatorSettings, LoopSettings, ModelSpec
 from sfem_filters.fem.observation import interpolation_matrix
 from sfem_filters.geometry import triangle_double_areas
 
@@ -123,16 +123,17 @@ def test_rounds_on_a_polar_mesh_with_warm_starts_and_screening_run_and_say_so(se
     seq, _, _ = sequences
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
-        out = closing_the_loop(seq, "auto", mesh="polar", max_iterations=3, max_rounds=1, warm_start=True,
-                               screen_iterations=1, corrections=False)
+        out = closing_the_loop(seq, ModelSpec(mesh="polar"), EstimatorSettings(max_iterations=3),
+                               LoopSettings(max_rounds=1, warm_start=True, screen_iterations=1, corrections=False))
     cfg = out.as_json()["config"]
     assert cfg["mesh"] == "polar" and cfg["element_px"] == 2.0 and cfg["warm_start"] is True
     assert cfg["screen_iterations"] == 1 and cfg["mesh_nodes"] == out.setup.mesh.n_nodes
     assert np.isfinite(out.extended.metrics["heldout_rmse_px"])
     with pytest.raises(ValueError, match="screen_iterations"):
-        closing_the_loop(seq, "none", estimator="cyclic", screen_iterations=2)
+        closing_the_loop(seq, estimator=EstimatorSettings(estimator="cyclic"),
+                         loop=LoopSettings(effects="none", screen_iterations=2))
     with pytest.raises(ValueError, match="warm_start"):
-        closing_the_loop(seq, "none", warm_start="yes")
+        LoopSettings(effects="none", warm_start="yes")
 
 
 @pytest.mark.needs_data("subject_a")
@@ -141,18 +142,18 @@ def test_the_command_line_searches_and_each_option_overrides_its_search(monkeypa
     from sfem_filters.cli import main
     seen = {}
 
-    def fake(seq, **config):                            # the rounds themselves are tested above
+    def fake(seq, model, estimator, loop, **how):       # the rounds themselves are tested above
         seen.clear()
-        seen.update(config)
+        seen.update({**model.to_json(), **estimator.to_json(), **loop.to_json(), **how})
         raise SystemExit(0)
 
-    defaults = inspect.signature(closing.closing_the_loop).parameters
+    defaults = {**ModelSpec().to_json(), **EstimatorSettings().to_json(), **LoopSettings().to_json()}
     monkeypatch.setattr(closing, "closing_the_loop", fake)
     with pytest.raises(SystemExit):
         main(["dense", "example", "--search", "full", "--no-progress"])
     # the full search: the library's defaults, every one passed (a batch fingerprint hashes them all)
     for key in ("mesh", "warm_start", "screen_iterations", "stiff_springs", "laplace", "measurement_noise"):
-        assert seen[key] == defaults[key].default, key
+        assert seen[key] == defaults[key], key
     assert seen["max_iterations"] == 20
     with pytest.raises(SystemExit):
         main(["dense", "example", "--search", "fast", "--no-progress"])
@@ -191,7 +192,8 @@ def test_a_search_on_a_polar_mesh_falls_back_to_the_points_mesh_where_the_wall_i
     from sfem_filters.cli import main
     calls = []
 
-    def fake(seq, **config):
+    def fake(seq, model, estimator, loop, **how):
+        config = {**model.to_json(), **estimator.to_json(), **loop.to_json(), **how}
         calls.append(config)
         if config.get("mesh") == "polar":
             raise NotStarShapedError("epi_xy: expected a contour star-shaped about the cavity centre")

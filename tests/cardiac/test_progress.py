@@ -14,6 +14,7 @@ from sfem_filters.benchmark import comparison
 from sfem_filters.batch import split_timing
 from sfem_filters.cardiac import annulus_sequence, closing, sequence
 from sfem_filters.cardiac.sequence import save_sequence
+from sfem_filters.cardiac.specs import specs_from
 from sfem_filters.cli import main
 
 #: the smallest case of tests/cardiac/test_rounds.py with two rounds: two effects to find, 5 frames,
@@ -43,7 +44,7 @@ def test_a_line_as_each_round_ends_and_the_report_unchanged(capsys, monkeypatch)
     seq = _sequence()
     real, names = closing.run, []
     monkeypatch.setattr(closing.workers, "run", lambda *a, **kw: (names.append(kw["name"]), real(*a, **kw))[1])
-    out = closing.closing_the_loop(seq, progress=True, **KW)
+    out = closing.closing_the_loop(seq, *specs_from(**KW), progress=True)
     monkeypatch.setattr(closing.workers, "run", real)
     err = capsys.readouterr().err
     lines = [ln for ln in re.split(r"[\r\n]", err) if ln.startswith(("baseline (", "round "))
@@ -71,7 +72,7 @@ def test_a_line_as_each_round_ends_and_the_report_unchanged(capsys, monkeypatch)
     assert set(names[1:4]) == {f"round 1: + {e}" for e in KW["candidates"]}
     assert "round 2: + active_polar" in names
     assert out.rounds[0].run.name == "none" and out.rounds[1].run.name == out.rounds[1].added
-    quiet = closing.closing_the_loop(seq, progress=False, **KW)
+    quiet = closing.closing_the_loop(seq, *specs_from(**KW), progress=False)
     assert capsys.readouterr().err == ""
     assert split_timing(quiet.as_json())[0] == split_timing(out.as_json())[0]
 
@@ -79,8 +80,8 @@ def test_a_line_as_each_round_ends_and_the_report_unchanged(capsys, monkeypatch)
 def test_a_round_that_keeps_nothing_says_why_it_stopped(capsys):
     """No candidate is significant and corrections are off: the round's line says it tried nothing
     and why the rounds stopped, with the baseline's held-out error."""
-    out = closing.closing_the_loop(annulus_sequence(None, n_frames=4, seed=0), progress=True, alpha=1e-12,
-                                   **{**KW, "max_rounds": 1})
+    out = closing.closing_the_loop(annulus_sequence(None, n_frames=4, seed=0),
+                                   *specs_from(**{**KW, "max_rounds": 1, "alpha": 1e-12}), progress=True)
     assert out.stop_reason == "no significant candidate"
     line = next(ln for ln in capsys.readouterr().err.splitlines() if ln.startswith("round 1 ("))
     assert "tried nothing" in line and "stopped: no significant candidate" in line

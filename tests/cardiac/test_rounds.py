@@ -12,6 +12,7 @@ from scipy.sparse.linalg import spsolve
 
 from sfem_filters.batch import split_timing
 from sfem_filters.cardiac import annulus_sequence, closing, measured
+from sfem_filters.cardiac.specs import EstimatorSettings, LoopSettings, ModelSpec, specs_from
 from hypothesis import given, settings, strategies as st
 
 from sfem_filters.cardiac.effects import (CATALOGUE, EXPLICIT_ONLY, angular_basis, build_effects,
@@ -221,13 +222,14 @@ def test_rounds_default_candidates_leave_out_the_explicit_only_effects(capsys):
 def test_the_command_line_passes_the_selection_and_rejects_an_unknown_one(capsys, monkeypatch):
     seen = {}
 
-    def fake(seq, **config):                            # the rounds themselves are tested below
-        seen.update(config)
+    def fake(seq, model, estimator, loop, **how):       # the rounds themselves are tested below
+        seen.update({**model.to_json(), **estimator.to_json(), **loop.to_json(), **how})
         raise SystemExit(0)
 
-    defaults = inspect.signature(closing.closing_the_loop).parameters
-    assert defaults["selection"].default == "best" and defaults["max_tries"].default == 3
-    assert defaults["prune"].default is True
+    defaults = {**ModelSpec().to_json(), **EstimatorSettings().to_json(), **LoopSettings().to_json(),
+                "workers": inspect.signature(closing.closing_the_loop).parameters["workers"].default}
+    assert defaults["selection"] == "best" and defaults["max_tries"] == 3
+    assert defaults["prune"] is True
     monkeypatch.setattr(closing, "closing_the_loop", fake)
     with pytest.raises(SystemExit):
         main(["dense", "example", "--selection", "first", "--max-tries", "2", "--no-prune", "--no-progress"])
@@ -237,8 +239,8 @@ def test_the_command_line_passes_the_selection_and_rejects_an_unknown_one(capsys
         main(["dense", "example", "--no-progress"])
     assert seen["selection"] == "best" and seen["max_tries"] == 3 and seen["prune"] is True
     # the command's default search meshes the wall apart from the points; the library's default is a node per point
-    assert seen["mesh"] == "polar" and defaults["mesh"].default == "delaunay"
-    assert seen["stiff_springs"] == defaults["stiff_springs"].default == "contour"
+    assert seen["mesh"] == "polar" and defaults["mesh"] == "delaunay"
+    assert seen["stiff_springs"] == defaults["stiff_springs"] == "contour"
     seen.clear()
     with pytest.raises(SystemExit):
         main(["dense", "example", "--stiff-springs", "any", "--no-progress"])
@@ -250,8 +252,8 @@ def test_the_command_line_passes_the_selection_and_rejects_an_unknown_one(capsys
     seen.clear()
     with pytest.raises(SystemExit):                     # --angle-origin reaches prepare through the loop
         main(["dense", "example", "--angle-origin", "-37.5", "--no-progress"])
-    assert seen["angle_origin_deg"] == -37.5 and defaults["angle_origin_deg"].default == 0.0
-    assert seen["workers"] is None and defaults["workers"].default == 1     # the command: one per core
+    assert seen["angle_origin_deg"] == -37.5 and defaults["angle_origin_deg"] == 0.0
+    assert seen["workers"] is None and defaults["workers"] == 1     # the command: one per core
     seen.clear()
     with pytest.raises(SystemExit):                     # with one file, --workers runs the rounds' fits side by side
         main(["dense", "example", "--workers", "2", "--no-progress"])
@@ -271,7 +273,7 @@ def test_rounds_reject_bad_settings():
                       ({"min_evidence": -1.0}, "min_evidence"), ({"candidates": ["nope"]}, "candidates"),
                       ({"selection": "greedy"}, "selection")):
         with pytest.raises(ValueError, match=match):
-            closing.closing_the_loop(seq, **kw)
+            closing.closing_the_loop(seq, *specs_from(**kw))
 
 
 @pytest.mark.parametrize("selection", ["first", "best"])
@@ -279,9 +281,10 @@ def test_a_round_keeps_the_first_passing_candidate_or_the_best_of_those_fitted(s
     """``first``: the first significant candidate that raises the evidence ends the round's fits;
     ``best``: every significant candidate up to ``max_tries`` is fitted and the largest gain wins."""
     seq = annulus_sequence(["active_polar", "cavity_pressure"], amplitude=[(0.15, -0.3), (0.5,)], n_frames=5, seed=1)
-    out = closing.closing_the_loop(seq, candidates=["active_polar", "cavity_pressure", "active_radial"],
-                                   parameterisation="none", max_rounds=1, max_iterations=3, corrections=False,
-                                   selection=selection, max_tries=3, folds=9)     # no CV: 9 folds of 8 landmarks
+    out = closing.closing_the_loop(seq, ModelSpec(parameterisation="none"), EstimatorSettings(max_iterations=3),
+                                   LoopSettings(candidates=["active_polar", "cavity_pressure", "active_radial"],
+                                                max_rounds=1, corrections=False, selection=selection, max_tries=3,
+                                                folds=9))     # no CV: 9 folds of 8 landmarks
     assert out.config["selection"] == selection
     tried = out.rounds[1].tried if len(out.rounds) > 1 else out.last_attempt["tried"]
     passed = [t for t in tried if t["evidence_gain"] > 0]
@@ -303,7 +306,7 @@ def test_fits_side_by_side_take_the_same_path_and_give_the_same_figures(selectio
     seq = annulus_sequence(["active_polar", "cavity_pressure"], amplitude=[(0.15, -0.3), (0.5,)], n_frames=5, seed=1)
     kw = dict(candidates=["active_polar", "cavity_pressure", "active_radial"], parameterisation="none", max_rounds=2,
               max_iterations=3, corrections=False, selection=selection, max_tries=3, folds=9)
-    one, two = (closing.closing_the_loop(seq, workers=w, **kw) for w in (1, 2))
+    one, two = (closing.closing_the_loop(seq, *specs_from(**kw), workers=w) for w in (1, 2))
     assert [r.added for r in two.rounds] == [r.added for r in one.rounds]
     assert len(two.rounds) > 2 or two.rounds[1].backward        # a round and a backward step (or its try)
     # every figure but the wall times (the one thing that depends on the run, not the data)
@@ -317,7 +320,7 @@ def test_variances_made_only_for_the_fits_kept_give_the_same_report(monkeypatch)
     seq = annulus_sequence(["active_polar", "cavity_pressure"], amplitude=[(0.15, -0.3), (0.5,)], n_frames=5, seed=1)
     kw = dict(candidates=["active_polar", "cavity_pressure", "active_radial"], max_rounds=2, max_iterations=3,
               corrections=False, folds=9)
-    lean = closing.closing_the_loop(seq, **kw)
+    lean = closing.closing_the_loop(seq, *specs_from(**kw))
     made = []
 
     def full(*args, covariance=True, **options):      # every fit with its variances, as before
@@ -325,7 +328,7 @@ def test_variances_made_only_for_the_fits_kept_give_the_same_report(monkeypatch)
         return measured.run(*args, **options)
 
     monkeypatch.setattr(closing.workers, "run", full)
-    rich = closing.closing_the_loop(seq, **kw)
+    rich = closing.closing_the_loop(seq, *specs_from(**kw))
     assert False in made                                # the rounds did ask for lean fits
     assert len(rich.rounds) > 1 and "strain_polar_sd" in rich.extended.metrics
     assert split_timing(lean.as_json())[0] == split_timing(rich.as_json())[0]
@@ -356,7 +359,7 @@ def test_with_covariance_completes_a_lean_fit_exactly():
 def test_a_pool_that_cannot_start_or_breaks_leaves_the_fits_to_this_process(monkeypatch):
     """No process semaphores, or a worker killed midway: a warning, and the fits not yet returned
     are made here, in order (an error of a fit itself is not caught: it is the fit's)."""
-    monkeypatch.setattr(closing.workers, "_fit_job", lambda setup, v, opts, cv: (v, None))
+    monkeypatch.setattr(closing.workers, "_fit_job", lambda setup, v, estimator, cv, **how: (v, None))
 
     class NoPool:
         def __init__(self, *args, **kw):
@@ -364,14 +367,14 @@ def test_a_pool_that_cannot_start_or_breaks_leaves_the_fits_to_this_process(monk
 
     monkeypatch.setattr(closing.workers, "process_pool", NoPool)
     with pytest.warns(RuntimeWarning, match="one after the other"):
-        fits = closing._Fits(None, {}, 2, None, False)
+        fits = closing._Fits(None, EstimatorSettings(), 2, None, False)
     assert fits.pool is None and [r for r, _ in fits.run(["a", "b", "c"])] == ["a", "b", "c"]
 
     class Broken:                                       # the first fit returns, then a worker dies
         def __init__(self, *args, **kw):
             pass
 
-        def submit(self, fn, setup, v, opts, cv):
+        def submit(self, fn, setup, v, estimator, cv, **how):
             f = Future()
             if v == "a":
                 f.set_result((v, None))
@@ -383,7 +386,7 @@ def test_a_pool_that_cannot_start_or_breaks_leaves_the_fits_to_this_process(monk
             pass
 
     monkeypatch.setattr(closing.workers, "process_pool", Broken)
-    fits = closing._Fits(None, {}, 2, None, False)
+    fits = closing._Fits(None, EstimatorSettings(), 2, None, False)
     with pytest.warns(RuntimeWarning, match="BrokenProcessPool"):
         assert [r for r, _ in fits.run(["a", "b", "c"])] == ["a", "b", "c"]
     assert fits.pool is None
@@ -408,8 +411,8 @@ def _scale_run(E_kpa, seed=0, measurement_noise="fixed"):
     mesh = measured.prepare(seq0, 8).mesh
     mat = Material.uniform(mesh.n_elements, E_kpa * 1e3, measured.NOMINAL["nu"])
     seq = annulus_sequence(None, seed=seed, drive="pressure", material=mat, peak_pressure=2e3 * E_kpa / 10)
-    return closing.closing_the_loop(seq, effects="auto", drive="pressure", max_iterations=80,
-                                    measurement_noise=measurement_noise)
+    return closing.closing_the_loop(seq, ModelSpec(drive="pressure"),
+                                    EstimatorSettings(max_iterations=80, measurement_noise=measurement_noise))
 
 
 @pytest.mark.slow
@@ -469,7 +472,7 @@ def test_without_pressure_the_stiffness_stays_relative():
 # ------------------------------------------------------------------ rounds on data with a known answer
 def _rounds(effect, amplitude, seed=0, **kw):
     seq = annulus_sequence(effect, amplitude=amplitude, seed=seed)
-    return closing.closing_the_loop(seq, effects="auto", max_iterations=6, **kw)
+    return closing.closing_the_loop(seq, *specs_from(effects="auto", max_iterations=6, **kw))
 
 
 @pytest.mark.slow
@@ -531,8 +534,9 @@ def _harmonic_rounds(**kw):
     amp[[0, 1]], amp[[2, 3]] = 0.15, 0.10              # circumferential: uniform + cos(theta)
     amp[[10, 11]], amp[[12, 13]] = -0.3, -0.2          # radial: uniform + cos(theta)
     seq = annulus_sequence("active_harmonic", amplitude=tuple(amp), seed=0)
-    return closing.closing_the_loop(seq, effects="auto", max_iterations=6,
-                                    candidates=list(closing.DEFAULT_CANDIDATES) + ["active_harmonic"], **kw)
+    return closing.closing_the_loop(seq, *specs_from(effects="auto", max_iterations=6,
+                                                     candidates=list(closing.DEFAULT_CANDIDATES) + ["active_harmonic"],
+                                                     **kw))
 
 
 @pytest.fixture(scope="module")
@@ -618,9 +622,9 @@ def test_removals_take_out_one_term_at_a_time(annulus):
     mesh, geometry = annulus
     su = SimpleNamespace(mesh=mesh, geometry=geometry, angle_origin_deg=0.0)
     loads = dict(closing.candidate_loads(su))
-    start = closing.Variant()
+    start = ModelSpec()
     assert closing.removals(start, start, loads) == []
-    v = closing.Variant(("active_segments", "active_helical"), drive="contour", drive_trend=True, effect_rates=True,
+    v = ModelSpec(("active_segments", "active_helical"), drive="contour", drive_trend=True, effect_rates=True,
                         process_scale=4.0, spring_scale=100.0)
     steps = dict(closing.removals(v, start, loads))
     # the segments contain the uniform, radial, isotropic and circumferential stresses, but the
@@ -628,7 +632,7 @@ def test_removals_take_out_one_term_at_a_time(annulus):
     nested = {"active_segments->active_polar", "active_segments->active_radial", "active_segments->dilatation"}
     assert set(steps) == {"active_segments", "active_helical", "drive:contour", "drive:trend", "effects:trend",
                           "springs:x10", "noise:x2"} | nested
-    alone = dict(closing.removals(closing.Variant(("active_segments",)), start, loads))
+    alone = dict(closing.removals(ModelSpec(("active_segments",)), start, loads))
     assert set(alone) == {"active_segments", "active_segments->active_circumferential"} | nested
     assert steps["active_segments"] == v.with_(effects=("active_helical",))
     assert steps["active_segments->active_polar"] == v.with_(effects=("active_polar", "active_helical"))
@@ -636,8 +640,8 @@ def test_removals_take_out_one_term_at_a_time(annulus):
     assert steps["springs:x10"].spring_scale == 10.0 and steps["noise:x2"].process_scale == 2.0
     assert not steps["effects:trend"].effect_rates and not steps["drive:trend"].drive_trend
     # the last effect out takes its trend with it (no amplitudes left to follow one)
-    alone = closing.Variant(("active_polar",), effect_rates=True)
-    assert dict(closing.removals(alone, start, loads))["active_polar"] == closing.Variant()
+    alone = ModelSpec(("active_polar",), effect_rates=True)
+    assert dict(closing.removals(alone, start, loads))["active_polar"] == ModelSpec()
 
 
 #: the metrics a report reads (the scripted fits give them all 0)
@@ -652,7 +656,7 @@ def _scripted_rounds(monkeypatch, evidence, scores, candidates=("active_polar", 
     seq = annulus_sequence(None, n_frames=4, seed=0)
     fitted = []
 
-    def fit(setup, variant, opts):
+    def fit(setup, variant, estimator, **how):
         fitted.append(variant)
         U = np.zeros((setup.seq.n_frames, setup.seq.n_points, 2))
         return SimpleNamespace(model=variant, result=SimpleNamespace(history=None), U=U,
@@ -670,8 +674,8 @@ def _scripted_rounds(monkeypatch, evidence, scores, candidates=("active_polar", 
     monkeypatch.setattr(closing.diagnostics, "rank_effects", rank)
     monkeypatch.setattr(closing.rounds, "time_courses", lambda r: None)
     # the scripts' detours go through springs:x10 on the landmark springs (drive penalty): offered with "any"
-    out = closing.closing_the_loop(seq, candidates=list(candidates), folds=9,
-                                   **{"stiff_springs": "any", **kw})  # 9 folds of 8 landmarks: no cross-validation
+    out = closing.closing_the_loop(seq, *specs_from(candidates=list(candidates), folds=9,
+                                                    **{"stiff_springs": "any", **kw}))  # 9 folds of 8 landmarks: no CV
     return out, fitted
 
 
@@ -681,17 +685,17 @@ def test_stiff_springs_are_offered_only_along_the_contours_by_default():
     unless ``stiff_springs="any"``; the penalty drive's way to stiff springs is ``drive:contour``
     first. An unknown value is an error naming the argument."""
     metrics = {"lag1_z": 0.0, "nis_z": 0.0}
-    cur = lambda drive: SimpleNamespace(variant=closing.Variant(drive=drive),   # noqa: E731
+    cur = lambda drive: SimpleNamespace(variant=ModelSpec(drive=drive),   # noqa: E731
                                         run=SimpleNamespace(metrics=metrics))
-    assert "springs:x10" not in dict(closing._corrections(cur("penalty"), "region"))
-    assert "drive:contour" in dict(closing._corrections(cur("penalty"), "region"))
-    found = dict(closing._corrections(cur("contour"), "region"))
-    assert found["springs:x10"] == closing.Variant(drive="contour", spring_scale=10.0)
-    assert "springs:x10" in dict(closing._corrections(cur("penalty"), "region", "any"))
+    assert "springs:x10" not in dict(closing._corrections(cur("penalty")))
+    assert "drive:contour" in dict(closing._corrections(cur("penalty")))
+    found = dict(closing._corrections(cur("contour")))
+    assert found["springs:x10"] == ModelSpec(drive="contour", spring_scale=10.0)
+    assert "springs:x10" in dict(closing._corrections(cur("penalty"), "any"))
     for drive in ("pressure", "none"):
-        assert "springs:x10" not in dict(closing._corrections(cur(drive), "region", "any"))
+        assert "springs:x10" not in dict(closing._corrections(cur(drive), "any"))
     with pytest.raises(ValueError, match="stiff_springs"):
-        closing.closing_the_loop(annulus_sequence(None, n_frames=4, seed=0), "none", stiff_springs="landmarks")
+        LoopSettings(effects="none", stiff_springs="landmarks")
 
 
 def _greedy_trap():
@@ -721,7 +725,7 @@ def test_backward_steps_undo_a_greedy_detour(monkeypatch):
     changes = [r.change for r in out.rounds]
     assert changes == ["baseline", "+ active_segments", "+ springs:x10", "+ active_helical", "- springs:x10",
                        "- active_segments->active_polar"], changes
-    assert out.rounds[-1].variant == closing.Variant(("active_polar", "active_helical"))
+    assert out.rounds[-1].variant == ModelSpec(("active_polar", "active_helical"))
     ev = [r.log_evidence for r in out.rounds]
     assert np.all(np.diff(ev) > 0), ev                          # every step, forward or backward, gains
     assert [r.number for r in out.rounds] == [0, 1, 2, 3, 3, 3]
@@ -730,7 +734,7 @@ def test_backward_steps_undo_a_greedy_detour(monkeypatch):
     assert {b["removed"] for b in first} == {"active_segments", "active_segments->active_polar", "springs:x10"}
     assert [b["removed"] for b in first if b["accepted"]] == ["springs:x10"]
     loads = dict(closing.candidate_loads(out.setup, ["active_polar", "active_segments", "active_helical"]))
-    steps = dict(closing.removals(out.rounds[3].variant, closing.Variant(), loads))
+    steps = dict(closing.removals(out.rounds[3].variant, ModelSpec(), loads))
     assert all(np.isclose(b["evidence_gain"], evidence(steps[b["removed"]]) - ev[3]) for b in first)
     keys = [closing._key(v) for v in fitted]        # no model fitted twice, forward or backward, in any order
     assert len(keys) == len(set(keys)), keys
@@ -747,7 +751,7 @@ def test_without_backward_steps_the_detour_stays(monkeypatch):
     assert [r.change for r in out.rounds] == ["baseline", "+ active_segments", "+ springs:x10", "+ active_helical"]
     assert all(not r.backward for r in out.rounds)
     with pytest.raises(ValueError, match="prune"):
-        closing.closing_the_loop(annulus_sequence(None, n_frames=4, seed=0), prune="yes")
+        LoopSettings(prune="yes")
 
 
 def test_an_effect_rejected_beside_a_stand_in_is_tried_again_once_the_stand_in_is_out(monkeypatch):
@@ -783,24 +787,24 @@ def test_the_material_map_is_a_correction_and_a_backward_step(annulus, monkeypat
     mesh, geometry = annulus
     loads = dict(closing.candidate_loads(SimpleNamespace(mesh=mesh, geometry=geometry, angle_origin_deg=0.0)))
     metrics = {"lag1_z": 0.0, "nis_z": 0.0}
-    cur = SimpleNamespace(variant=closing.Variant(), run=SimpleNamespace(metrics=metrics))
     for configured, expected in (("region", "basis"), ("element", "basis"), ("basis", None), ("none", None)):
-        found = dict(closing._corrections(cur, configured))
+        cur = SimpleNamespace(variant=ModelSpec(parameterisation=configured), run=SimpleNamespace(metrics=metrics))
+        found = dict(closing._corrections(cur))
         assert ("material:basis" in found) == (expected is not None), configured
         if expected:
-            assert found["material:basis"] == closing.Variant(material="basis")
-    moved = SimpleNamespace(variant=closing.Variant(material="basis"), run=cur.run)
-    assert "material:basis" not in dict(closing._corrections(moved, "region"))   # already smooth
-    v = closing.Variant(("active_polar",), material="basis")
-    back = dict(closing.removals(v, closing.Variant(), loads))
-    assert back["material:basis"] == closing.Variant(("active_polar",))
-    assert "material:basis" not in dict(closing.removals(closing.Variant(("active_polar",)), closing.Variant(), loads))
+            assert found["material:basis"] == ModelSpec(material="basis", parameterisation=configured)
+    moved = SimpleNamespace(variant=ModelSpec(material="basis"), run=cur.run)
+    assert "material:basis" not in dict(closing._corrections(moved))   # already smooth
+    v = ModelSpec(("active_polar",), material="basis")
+    back = dict(closing.removals(v, ModelSpec(), loads))
+    assert back["material:basis"] == ModelSpec(("active_polar",))
+    assert "material:basis" not in dict(closing.removals(ModelSpec(("active_polar",)), ModelSpec(), loads))
     assert "[material basis]" in v.label("penalty") and closing._variant(v.as_json()) == v
     calls = []
     monkeypatch.setattr(closing.workers, "run",
                         lambda setup, effects, drive, **kw: calls.append(kw["parameterisation"]))
-    closing._fit(None, v, {"parameterisation": "region"})
-    closing._fit(None, closing.Variant(), {"parameterisation": "region"})
+    closing._fit(None, v, EstimatorSettings())
+    closing._fit(None, ModelSpec(), EstimatorSettings())
     assert calls == ["basis", "region"]
 
 
@@ -813,7 +817,7 @@ def test_the_rounds_smooth_the_material_when_the_evidence_prefers_it(monkeypatch
 
     out, fitted = _scripted_rounds(monkeypatch, evidence, lambda v: {})
     assert [r.change for r in out.rounds] == ["baseline", "+ material:basis"]
-    assert out.rounds[-1].variant == closing.Variant(material="basis")
+    assert out.rounds[-1].variant == ModelSpec(material="basis")
     assert out.config["final"]["material"] == "basis"
     assert out.stop_reason == "no significant candidate"
     keys = [closing._key(v) for v in fitted]

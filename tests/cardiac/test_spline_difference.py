@@ -6,7 +6,7 @@ import pytest
 from hypothesis import given, settings, strategies as st
 from scipy.stats import t as student_t
 
-from sfem_filters.cardiac import annulus_sequence, closing
+from sfem_filters.cardiac import EstimatorSettings, LoopSettings, ModelSpec, annulus_sequence, closing
 from sfem_filters.cardiac.reference import angular_sectors, rmse_difference, spline_reference
 
 
@@ -105,8 +105,9 @@ def test_angular_sectors_cut_the_circle_evenly():
 
 def test_the_rounds_report_each_difference_from_the_spline_with_its_interval():
     seq = annulus_sequence("active_polar", n_frames=4, seed=2)
-    out = closing.closing_the_loop(seq, effects=["active_polar"], parameterisation="none", max_iterations=2,
-                                   corrections=False, folds=9)     # 9 folds of 8 landmarks: no CV, quicker
+    out = closing.closing_the_loop(seq, ModelSpec(parameterisation="none"), EstimatorSettings(max_iterations=2),
+                                   LoopSettings(effects=["active_polar"], corrections=False,
+                                                folds=9))     # 9 folds of 8 landmarks: no CV, quicker
     js = out.as_json()
     setup = out.setup
     held = setup.node_of_point[setup.heldout]

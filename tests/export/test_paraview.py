@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from sfem_filters.benchmark.comparison import run_comparison
-from sfem_filters.cardiac import annulus_sequence, closing_the_loop
+from sfem_filters.cardiac import EstimatorSettings, LoopSettings, annulus_sequence, closing_the_loop
 from sfem_filters.export import export_comparison, export_dense, read_series, write_series
 
 
@@ -29,8 +29,8 @@ def test_write_series_round_trip_and_bad_input(tmp_path):
 
 
 def test_export_dense_fields_match_the_result(tmp_path):
-    out = closing_the_loop(annulus_sequence("active_polar", n_frames=6, seed=0), effects="active_polar",
-                           max_iterations=2)
+    out = closing_the_loop(annulus_sequence("active_polar", n_frames=6, seed=0),
+                           estimator=EstimatorSettings(max_iterations=2), loop=LoopSettings(effects="active_polar"))
     tissue, points = export_dense(out, tmp_path)
     ext, setup = out.extended, out.setup
     series = read_series(tissue)

@@ -27,6 +27,7 @@ from sfem_filters.benchmark.comparison import (LABELS, ROWS, Comparison, Strateg
                                                 evaluate, pinned_benchmark, run_strategy)
 from sfem_filters.benchmark.summary import summarise  # noqa: E402
 from sfem_filters.cardiac import annulus, closing  # noqa: E402
+from sfem_filters.cardiac.specs import specs_from  # noqa: E402
 from sfem_filters.filtering.iterated import IteratedSmoother  # noqa: E402
 from sfem_filters.imaging.phase_contrast import VelocityData  # noqa: E402
 from sfem_filters.imaging.tracking import track_masks  # noqa: E402
@@ -60,7 +61,8 @@ def loop():
     seq = annulus.annulus_sequence("active_polar", n_frames=4, seed=0, amplitude=(0.3, -0.6))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
-        return closing.closing_the_loop(seq, effects="none", estimator="smoother", max_iterations=2, folds=9)
+        return closing.closing_the_loop(seq, *specs_from(effects="none", estimator="smoother", max_iterations=2,
+                                                             folds=9))
 
 
 @pytest.fixture(scope="module")

@@ -8,15 +8,17 @@ the model's drive and priors when no effect passes, and steps backward after eve
 The search and its criteria are told in the module docstring of :mod:`.rounds` and in the docs'
 explanation page "Closing the loop and its criteria" (``docs/explanation/closing_loop.md``).
 
-A round's model is a :class:`Variant`: the effects and corrections beyond the set-up. The search
-moves between variants, forward by an effect or a correction and backward by :func:`removals`;
-a fit of a variant is judged by :func:`log_evidence` (or :func:`round_cross_validation`):
+A round's model is a :class:`~sfem_filters.cardiac.specs.ModelSpec`: the settings' model with the
+effects and corrections the rounds made. The search moves between models, forward by an effect or a
+correction and backward by :func:`removals`; a fit of a model is judged by :func:`log_evidence` (or
+:func:`round_cross_validation`):
 
->>> from sfem_filters.cardiac.closing import SEARCHES, Variant, removals
->>> v = Variant(("active_segments",), effect_rates=True, spring_scale=10.0)   # two rounds' additions
+>>> from sfem_filters.cardiac import ModelSpec
+>>> from sfem_filters.cardiac.closing import SEARCHES, removals
+>>> v = ModelSpec(("active_segments",), effect_rates=True, spring_scale=10.0)   # two rounds' additions
 >>> v.label("penalty")
 'active_segments [effect trend] [springs x10]'
->>> [name for name, _ in removals(v, Variant(), loads={})]      # the backward steps from v
+>>> [name for name, _ in removals(v, ModelSpec(), loads={})]      # the backward steps from v
 ['active_segments', 'effects:trend', 'springs:x10']
 >>> SEARCHES["fast"].max_iterations("penalty")                  # the default search's iteration limit
 40
@@ -25,8 +27,8 @@ A whole run (:func:`closing_the_loop`) is in the walk-through of :mod:`sfem_filt
 
 The package's parts, each importing only those before it:
 
-* :mod:`.records`: the searches and settings (:data:`SEARCHES`, :data:`CRITERIA`, ...), a round's
-  model (:class:`Variant`), a round (:class:`Round`) and the outcome (:class:`LoopResult`);
+* :mod:`.records`: the searches (:data:`SEARCHES`), a round (:class:`Round`) and the outcome
+  (:class:`LoopResult`); the settings are the specs of :mod:`sfem_filters.cardiac.specs`;
 * :mod:`.criteria`: :func:`log_evidence`, :func:`round_cross_validation`, :func:`time_courses`
   (the tied score test's shapes) and :func:`versus_spline`;
 * :mod:`.progress`: the progress lines (:func:`progress_line`) and :class:`RoundsInterrupted`;
@@ -53,13 +55,13 @@ from .moves import (_SPAN_TOL, CHECK_Z, DRIVE_CORRECTIONS, MATERIAL_CORRECTIONS,
                     STIFF_SPRINGS, _corrections, _key, candidate_loads, removals, spans)
 from .progress import RoundsInterrupted, _duration, _gain_text, _Progress, progress_line
 from .records import (_ROUND_KEYS, CRITERIA, DEFAULT_CANDIDATES, LAPLACE, SEARCHES, SELECTIONS, LoopResult, Round,
-                      Search, Variant, _ranking_json)
+                      Search, _ranking_json)
 from .report import (_VERSUS_LENGTHS, _format_report, _lengths_scaled, _number, _round_label, _variant,
                      format_report, length_display, not_converged_note)
 from .rounds import _rounds, closing_the_loop
 from .workers import _fit, _Fits, _fit_job, fit_workers
 
-__all__ = ["LoopResult", "Round", "Variant", "closing_the_loop", "candidate_loads", "spans", "log_evidence",
+__all__ = ["LoopResult", "Round", "closing_the_loop", "candidate_loads", "spans", "log_evidence",
            "format_report", "removals", "fit_workers", "usable_cores", "versus_spline", "SELECTIONS",
            "DRIVE_CORRECTIONS", "time_courses", "CRITERIA", "round_cross_validation", "DEFAULT_CANDIDATES", "LAPLACE",
            "length_display", "not_converged_note", "progress_line", "RoundsInterrupted", "STIFF_SPRINGS"]

@@ -7,7 +7,7 @@ import numpy as np
 from ..crossval import DEFAULT_FOLDS, cross_validate
 from ..measured import Run, Setup, angle_from_origin, kriged_heldout
 from ..reference import angular_sectors, rmse_difference
-from .records import Variant
+from ..specs import ModelSpec
 
 __all__ = ["time_courses", "log_evidence", "round_cross_validation", "versus_spline"]
 
@@ -48,7 +48,8 @@ def log_evidence(r: Run) -> float:
     return float(r.metrics["log_evidence"])
 
 
-def round_cross_validation(setup: Setup, variant: Variant, r: Run, folds: int = DEFAULT_FOLDS) -> dict:
+def round_cross_validation(setup: Setup, variant: ModelSpec, r: Run,
+                           folds: int = DEFAULT_FOLDS) -> dict:
     """Cross-validation over the observed points of a round's model (:func:`sfem_filters.cardiac.crossval.cross_validate`)
     with its material at the run's estimate; plain values (no predictions), data units, and the
     same for the model plus the spline of its residual (``residual_spline``)."""

@@ -6,7 +6,8 @@ import numpy as np
 
 from ..effects import build_effects
 from ..measured import NOMINAL, Setup
-from .records import DEFAULT_CANDIDATES, Round, Variant
+from ..specs import DEFAULT_CANDIDATES, STIFF_SPRINGS, ModelSpec
+from .records import Round
 
 __all__ = ["candidate_loads", "spans", "removals", "DRIVE_CORRECTIONS", "STIFF_SPRINGS"]
 
@@ -42,19 +43,18 @@ MATERIAL_CORRECTIONS = {"region": "basis", "element": "basis"}
 #: much larger (``noise:x2``); a backward step (:func:`removals`) divides by the same factor.
 SPRING_FACTOR, NOISE_FACTOR = 10.0, 2.0
 
-#: Which drives the correction ``springs:x10`` is offered to (``stiff_springs=``,
-#: ``--stiff-springs``): ``"contour"``, springs spread along the whole contour only (the default);
-#: ``"any"``, the isolated landmarks' springs (``drive="penalty"``) too.
+#: The drives the correction ``springs:x10`` is offered to, by :data:`STIFF_SPRINGS`
+#: (``LoopSettings.stiff_springs``, ``--stiff-springs``): ``"contour"``, springs spread along the whole
+#: contour only (the default); ``"any"``, the isolated landmarks' springs (``drive="penalty"``) too.
 SPRING_DRIVES = {"contour": ("contour",), "any": ("penalty", "contour")}
-STIFF_SPRINGS = tuple(SPRING_DRIVES)
 
 #: |z| of the innovations' checks (NIS, lag-1 whiteness; each ~N(0, 1) for a consistent model)
 #: beyond which the residual points to a correction of the model's noise or dynamics.
 CHECK_Z = 3.0
 
 
-def _corrections(cur: Round, material: str | None = None, stiff_springs: str = "contour") -> list:
-    """(name, Variant) of the corrections the current round's residual points to.
+def _corrections(cur: Round, stiff_springs: str = "contour") -> list:
+    """(name, ModelSpec) of the corrections the current round's residual points to.
 
     ``drive:<new>``: the drive's correction (:data:`DRIVE_CORRECTIONS`), always a candidate.
     When the innovations are correlated in time (whiteness z above :data:`CHECK_Z`), the model
@@ -75,7 +75,7 @@ def _corrections(cur: Round, material: str | None = None, stiff_springs: str = "
     from the process noise (a model that is right everywhere gives NIS/dof 0.5-0.8 on the
     synthetic checks), so it is no evidence that the noise is too large.
     ``material:<map>``: the material's prior made smoother (:data:`MATERIAL_CORRECTIONS`, from the
-    map in use, ``material`` unless the rounds changed it), always a candidate: independent
+    map in use, :attr:`~sfem_filters.cardiac.specs.ModelSpec.material_map`), always a candidate: independent
     regions or elements let the stiffness absorb a misfit of the border that a smooth field
     cannot.
     """
@@ -95,19 +95,19 @@ def _corrections(cur: Round, material: str | None = None, stiff_springs: str = "
         out.append(("springs:x10", v.with_(spring_scale=v.spring_scale * SPRING_FACTOR)))
     if m["nis_z"] > CHECK_Z:
         out.append(("noise:x2", v.with_(process_scale=v.process_scale * NOISE_FACTOR)))
-    smoother = MATERIAL_CORRECTIONS.get(v.material if v.material is not None else material)
+    smoother = MATERIAL_CORRECTIONS.get(v.material_map)
     if smoother is not None:
         out.append((f"material:{smoother}", v.with_(material=smoother)))
     return out
 
 
-def _key(variant: Variant) -> Variant:
-    """A model's identity for the rounds: its variant with the effects in a fixed order."""
+def _key(variant: ModelSpec) -> ModelSpec:
+    """A model's identity for the rounds: its spec with the effects in a fixed order."""
     return variant.with_(effects=tuple(sorted(variant.effects)))
 
 
-def removals(variant: Variant, start: Variant, loads: dict) -> list:
-    """(name, Variant) of the backward steps from ``variant``: every term it holds beyond ``start``,
+def removals(variant: ModelSpec, start: ModelSpec, loads: dict) -> list:
+    """(name, ModelSpec) of the backward steps from ``variant``: every term it holds beyond ``start``,
     taken out one at a time.
 
     An effect is removed (``name``: the effect; the last one out takes ``effects:trend`` with it),
@@ -123,9 +123,9 @@ def removals(variant: Variant, start: Variant, loads: dict) -> list:
 
     Parameters
     ----------
-    variant : Variant
+    variant : ModelSpec
         The current model.
-    start : Variant
+    start : ModelSpec
         The rounds' starting model (its drive and scales are not terms).
     loads : dict
         Catalogue effect name -> load matrix (``candidate_loads``: (n_dofs, k) nodal loads per
@@ -134,7 +134,7 @@ def removals(variant: Variant, start: Variant, loads: dict) -> list:
 
     Returns
     -------
-    list of (str, Variant)
+    list of (str, ModelSpec)
         Each backward step's name and the model it leads to, effects first (in ``variant``'s
         order), then the corrections.
     """

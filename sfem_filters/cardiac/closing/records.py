@@ -1,22 +1,23 @@
-"""What the rounds are made of: the searches and settings, a round's model (:class:`Variant`), a
-round (:class:`Round`) and the outcome (:class:`LoopResult`)."""
+"""What the rounds are made of: the searches, a round (:class:`Round`, its model a
+:class:`~sfem_filters.cardiac.specs.ModelSpec`) and the outcome (:class:`LoopResult`); the settings'
+choices (:data:`CRITERIA`, :data:`SELECTIONS`, ...) are those of :mod:`sfem_filters.cardiac.specs`."""
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..effects import CATALOGUE, EXPLICIT_ONLY
 from ..measured import ELEMENT_PX, NOMINAL, Run, Setup, default_max_iterations
+from ..specs import CRITERIA, DEFAULT_CANDIDATES, LAPLACE, SELECTIONS, ModelSpec
 
-__all__ = ["Search", "SEARCHES", "SELECTIONS", "CRITERIA", "LAPLACE", "DEFAULT_CANDIDATES", "Variant", "Round",
-           "LoopResult"]
+__all__ = ["Search", "SEARCHES", "SELECTIONS", "CRITERIA", "LAPLACE", "DEFAULT_CANDIDATES", "Round", "LoopResult"]
 
 
 @dataclass(frozen=True)
 class Search:
-    """How thoroughly the rounds search, and on what mesh (:func:`closing_the_loop`'s settings of the
-    same names; ``max_iterations`` None: :func:`~sfem_filters.cardiac.measured.default_max_iterations`
+    """How thoroughly the rounds search, and on what mesh (the settings of the same names of
+    :class:`~sfem_filters.cardiac.specs.ModelSpec` and :class:`~sfem_filters.cardiac.specs.LoopSettings`;
+    ``max_iterations`` None: :func:`~sfem_filters.cardiac.measured.default_max_iterations`
     of the drive, at least ``min_iterations``)."""
 
     mesh: str = "delaunay"
@@ -30,7 +31,10 @@ class Search:
         return max(default_max_iterations(drive), self.min_iterations)
 
     def settings(self) -> dict:
-        """The :func:`closing_the_loop` keywords of this search (beside ``max_iterations``)."""
+        """This search's settings by their specs' field names (beside ``max_iterations``; ``mesh`` and
+        ``element_px`` of :class:`~sfem_filters.cardiac.specs.ModelSpec`, the others of
+        :class:`~sfem_filters.cardiac.specs.LoopSettings`; :func:`~sfem_filters.cardiac.specs.specs_from`
+        sorts them)."""
         return {"mesh": self.mesh, "element_px": self.element_px, "warm_start": self.warm_start,
                 "screen_iterations": self.screen_iterations}
 
@@ -50,81 +54,6 @@ SEARCHES = {"fast": Search(warm_start=True, screen_iterations=3, min_iterations=
             "full": Search()}
 
 
-
-#: How a round picks among significant candidates (``selection=``, ``--selection``): the first by
-SELECTIONS = ("first", "best")
-
-#: What decides whether a candidate is kept (``criterion=``, ``--criterion``): the evidence
-#: ``log p(y)`` of the observed points, or K-fold cross-validation over them
-#: (:mod:`sfem_filters.cardiac.crossval`).
-CRITERIA = ("evidence", "cv")
-
-#: The final model's material covariance (``laplace=``, ``--laplace``): the smoother's inverse
-#: Gauss-Newton Hessian, or the inverse exact Hessian of the MAP cost at the mode.
-LAPLACE = ("gauss-newton", "exact")
-
-#: The candidates of the rounds when none are given: the catalogue without the effects that are
-#: tried only by name (:data:`~sfem_filters.cardiac.effects.EXPLICIT_ONLY`).
-DEFAULT_CANDIDATES = tuple(sorted(n for n in CATALOGUE if n not in EXPLICIT_ONLY))
-
-
-@dataclass(frozen=True)
-class Variant:
-    """What a round's model is, beyond the set-up: its effects and the corrections made so far.
-
-    Attributes
-    ----------
-    effects : tuple of str
-        Catalogue effects (:data:`~sfem_filters.cardiac.effects.CATALOGUE`).
-    drive : str
-        The drive (:data:`~sfem_filters.cardiac.measured.DRIVES`).
-    drive_trend : bool
-        Spring targets extrapolated from the two previous frames instead of held.
-    effect_rates : bool
-        Effect amplitudes with rate states (integrated random walks).
-    process_scale : float
-        Scale of every process noise.
-    spring_scale : float
-        Scale of the drive's spring stiffness.
-    material : str, optional
-        The material map (:data:`~sfem_filters.cardiac.measured.PARAMETERISATIONS`) when the rounds
-        have changed it; None: the one the rounds were configured with.
-    """
-
-    effects: tuple = ()
-    drive: str = "penalty"
-    drive_trend: bool = False
-    effect_rates: bool = False
-    process_scale: float = 1.0
-    spring_scale: float = 1.0
-    material: str | None = None
-
-    def with_(self, **change) -> "Variant":
-        return replace(self, **change)
-
-    def label(self, drive: str) -> str:
-        """Short text: the effects, and what differs from the configured ``drive`` and defaults."""
-        out = ",".join(self.effects) or "none"
-        if self.drive != drive:
-            out += f" [drive {self.drive}]"
-        if self.drive_trend:
-            out += " [drive trend]"
-        if self.effect_rates:
-            out += " [effect trend]"
-        if self.process_scale != 1.0:
-            out += f" [noise x{self.process_scale:g}]"
-        if self.spring_scale != 1.0:
-            out += f" [springs x{self.spring_scale:g}]"
-        if self.material is not None:
-            out += f" [material {self.material}]"
-        return out
-
-    def as_json(self) -> dict:
-        return {"effects": list(self.effects), "drive": self.drive, "drive_trend": self.drive_trend,
-                "effect_rates": self.effect_rates, "process_scale": self.process_scale,
-                "spring_scale": self.spring_scale, "material": self.material}
-
-
 @dataclass(eq=False)
 class Round:
     """One round of :func:`closing_the_loop`.
@@ -133,8 +62,8 @@ class Round:
     ----------
     number : int
         0 for the baseline.
-    variant : Variant
-        The round's model.
+    variant : ModelSpec
+        The round's model (:class:`~sfem_filters.cardiac.specs.ModelSpec`).
     added : str or None
         The effect or correction this round added (None for the baseline and for a removal).
     replaced : tuple of str
@@ -164,7 +93,7 @@ class Round:
     """
 
     number: int
-    variant: Variant
+    variant: ModelSpec
     added: str | None
     replaced: tuple
     run: Run
@@ -235,7 +164,7 @@ class LoopResult:
         and, when the observed points can be split into folds, its ``cross_validation`` on the
         rounds' folds, whose point indices are ``cv_folds``.
     config : dict
-        The settings of the workflow.
+        The settings of the workflow, as the report records them.
     """
 
     setup: Setup

@@ -7,15 +7,18 @@ import re
 import numpy as np
 
 from ..measured import equivalent_eigenstrain
-from .records import LoopResult, Variant
+from ..specs import ModelSpec
+from .records import LoopResult
 
 __all__ = ["format_report", "length_display", "not_converged_note"]
 
 
-def _variant(js: dict) -> Variant:
-    """The :class:`Variant` of a round's JSON."""
-    return Variant(tuple(js["effects"]), js["drive"], js["drive_trend"], js["effect_rates"], js["process_scale"],
-                   js["spring_scale"], js.get("material"))
+def _variant(js: dict) -> ModelSpec:
+    """The model of a round's JSON (:meth:`~sfem_filters.cardiac.specs.ModelSpec.as_json`; the set-up's
+    fields at their defaults)."""
+    return ModelSpec(tuple(js["effects"]), drive=js["drive"], drive_trend=js["drive_trend"],
+                     effect_rates=js["effect_rates"], process_scale=js["process_scale"],
+                     spring_scale=js["spring_scale"], material=js.get("material"))
 
 
 def _round_label(r: dict) -> str:

@@ -98,127 +98,50 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..._validate import integer, non_negative, probability
+from ..._validate import integer
 from ...filtering import diagnostics
-from ...filtering.iterated import NOISE_LEVELS
 from ...resources import blas_threads
-from ..crossval import DEFAULT_FOLDS, observation_folds, spline_cross_validation
-from ..effects import CATALOGUE
-from ..measured import (ELEMENT_PX, Run, default_max_iterations, exact_posterior, measured_wall_kinematics,
-                        prepare, with_covariance)
+from ..crossval import observation_folds, spline_cross_validation
+from ..measured import Run, exact_posterior, measured_wall_kinematics, prepare, with_covariance
 from ..reference import spline_reference
 from ..sequence import Sequence
+from ..specs import EstimatorSettings, LoopSettings, ModelSpec, check_specs
 from .criteria import log_evidence, round_cross_validation, time_courses, versus_spline
-from .moves import STIFF_SPRINGS, _corrections, _key, candidate_loads, removals, spans
+from .moves import _corrections, _key, candidate_loads, removals, spans
 from .progress import RoundsInterrupted, _Progress
-from .records import CRITERIA, DEFAULT_CANDIDATES, LAPLACE, SELECTIONS, LoopResult, Round, Variant
+from .records import LoopResult, Round
 from .workers import _Fits, _fit, fit_workers
 
 __all__ = ["closing_the_loop"]
 
 
-def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", landmarks: int = 8,
-                     observe: str = "boundary", holdout_seed: int = 0, parameterisation: str = "region",
-                     max_loops: int = 5, progress: bool = False, estimator: str = "smoother",
-                     max_iterations: int | None = None, max_rounds: int = 5, alpha: float = 0.01,
-                     min_evidence: float = 0.0, max_tries: int = 3, candidates=None,
-                     corrections: bool = True, criterion: str = "evidence", folds: int = DEFAULT_FOLDS,
-                     min_cv_gain: float = 0.01, selection: str = "best", prune: bool = True,
-                     laplace: str = "gauss-newton", measurement_noise: str = "fixed",
-                     mesh: str = "delaunay", angle_origin_deg: float = 0.0, workers: int | None = 1,
-                     element_px: float = ELEMENT_PX, warm_start: bool = False,
-                     screen_iterations: int | None = None, stiff_springs: str = "contour") -> LoopResult:
+def closing_the_loop(seq: Sequence, model: ModelSpec = ModelSpec(), estimator: EstimatorSettings = EstimatorSettings(),
+                     loop: LoopSettings = LoopSettings(), *, workers: int | None = 1,
+                     progress: bool = False) -> LoopResult:
     """Baseline run, then rounds of ranking and adding effects (module docstring), with the spline
     reference.
 
     Parameters
     ----------
-    effects : "auto", "none" or a sequence (or comma-separated string) of effect names
-        ``auto`` runs the rounds; ``none`` only the baseline; names: the baseline and one run with
-        exactly those effects (no test); an empty sequence is ``none``. Unknown names are an error
-        before any fit.
-    drive, parameterisation : str
-        See :func:`sfem_filters.cardiac.measured.build_model`.
-    landmarks, observe, holdout_seed, mesh, element_px, angle_origin_deg :
-        See :func:`sfem_filters.cardiac.measured.prepare` (``mesh="radial"``: every diagonal of the
-        pixel lattice towards the cavity centre, so that the heart's position and orientation in
-        the image do not change the mesh; ``mesh="polar"``: a mesh of the wall apart from the
-        points, edges of about ``element_px`` point spacings, the points observed through its shape
-        functions, at a cost set by the element size; ``angle_origin_deg``: where landmark 0,
-        sector 0 and segment 0 start, degrees from the image's +x axis towards +y).
-    warm_start : bool
-        Start each fit of a round (candidates, corrections, backward steps) from the material mode
-        of the model it extends or prunes instead of the prior mean (smoother only; a fit of
-        another parameterisation starts from the prior). The MAP cost is the same; fewer
-        Gauss-Newton iterations reach its stop rule (measured in the docs' how-to on run time).
-    screen_iterations : int, optional
-        Screening (smoother only): every fit of a round (candidates, corrections, backward steps)
-        is first made with at most this many Gauss-Newton iterations and judged by the criterion
-        there; only the one that would be kept is then fitted to the full limit (from the
-        screening fit's material with ``warm_start``) and kept if it still improves the criterion.
-        Warm-started from the current model's mode, where the smoother has already re-estimated
-        every trajectory and effect amplitude (they are linear in the data given the material), a
-        few iterations move the evidence most of its way. ``None`` (default): every fit to the
-        full limit.
-    estimator : {"smoother", "cyclic", "roukf"}
-        The iterated smoother (at most ``max_iterations`` Gauss-Newton steps; default
-        :func:`~sfem_filters.cardiac.measured.default_max_iterations` of the drive: 20, 80 under a measured pressure) or the
-        paper's cyclic joint EKF (at most ``max_loops`` loops); see
-        :func:`sfem_filters.cardiac.measured.run`. A fit stopped by its limit is marked not
-        converged in the report: its material is where it stopped, not the posterior's mode.
-    max_rounds : int
-        Most forward rounds, each adding an effect or a correction (>= 1); backward steps are not
-        counted.
-    alpha : float
-        Family-wise level of the score tests, in (0, 1).
-    min_evidence : float
-        Least rise of ``log p(y)`` (nats, >= 0) for an effect to be kept (``criterion="evidence"``).
-    max_tries : int
-        Most significant candidates fitted per round (>= 1).
-    selection : {"best", "first"}
-        :data:`SELECTIONS`: fit the significant candidates (at most ``max_tries``) and keep the one
-        that improves the criterion most (the default), or keep the first significant candidate
-        (by score) that improves it (module docstring).
-    candidates : sequence of str, optional
-        The catalogue names to consider (default: :data:`DEFAULT_CANDIDATES`, the catalogue
-        without :data:`~sfem_filters.cardiac.effects.EXPLICIT_ONLY`).
-    corrections : bool
-        Also try corrections of the drive and of the effects' dynamics (:func:`_corrections`)
-        when no effect passes a round.
-    stiff_springs : {"contour", "any"}
-        :data:`STIFF_SPRINGS`: which drives the correction ``springs:x10`` (springs ten times
-        stiffer) is offered to. ``"contour"`` (default): only to springs spread along the whole
-        contour (``drive="contour"``); on isolated landmarks stiff springs pull tents in the wall
-        that the evidence can reward while the held-out error grows (the docs' validation page
-        "Stiff springs only along the contours" measures both). ``"any"``: to the landmark
-        springs of ``drive="penalty"`` too (what the rounds did before).
-    criterion : {"evidence", "cv"}
-        What a candidate must improve to be kept (:data:`CRITERIA`): ``log p(y)`` by more than
-        ``min_evidence`` nats, or the ``folds``-fold cross-validation RMSE over the observed
-        points by more than the fraction ``min_cv_gain`` of its current value. Either way every
-        round's model is also cross-validated, and the report gives both (with the evidence,
-        only when the landmarks can be split into ``folds`` folds: at most the landmarks per
-        contour, leaving at least 3 per contour outside each).
-    folds : int
-        Folds of the cross-validation (>= 2, :func:`sfem_filters.cardiac.crossval.observation_folds`).
-    min_cv_gain : float
-        Least relative fall of the cross-validation RMSE (>= 0) with ``criterion="cv"``.
-    prune : bool
-        After every round that adds a term, try taking out each earlier term (:func:`removals`)
-        and take out the one that improves the criterion most, as long as one does (each such
-        backward step is a row of the rounds, numbered with the round it followed). The
-        criterion rises strictly at every step, forward or backward, so the search cannot cycle.
-    laplace : {"gauss-newton", "exact"}
-        The final model's material covariance: the smoother's inverse Gauss-Newton Hessian (free),
-        or the exact Laplace, the inverse exact Hessian of the MAP cost at the final mode
-        (:func:`sfem_filters.cardiac.measured.exact_posterior`, 2 p + 1 more gradient passes; the
-        rounds' fits keep Gauss-Newton). Needs ``estimator="smoother"`` and a material map.
-    measurement_noise : {"fixed", "estimate"}
-        ``"estimate"``: every fit chooses the level of its measurement noise by type-II maximum
-        likelihood (:func:`sfem_filters.cardiac.measured.run`) instead of taking the noise floor,
-        so that the evidence compares each model at its own best level. Needs
-        ``estimator="smoother"`` and ``criterion="evidence"`` (the cross-validation's folds would
-        use the floor).
+    seq : Sequence
+        The measured motion (:func:`~sfem_filters.cardiac.load_sequence`).
+    model : ModelSpec
+        What model is fitted (:class:`~sfem_filters.cardiac.specs.ModelSpec`): the set-up (mesh,
+        landmarks, observed points, held-out split, angle origin; see
+        :func:`sfem_filters.cardiac.measured.prepare`), the drive and the material map the rounds start
+        from (:func:`sfem_filters.cardiac.measured.build_model`). The baseline is this model; it has
+        no effects and no material changed by the rounds (both an error): the rounds add them.
+    estimator : EstimatorSettings
+        How each model is fitted (:class:`~sfem_filters.cardiac.specs.EstimatorSettings`): the
+        iterated smoother or the cyclic filters, their limits, the final posterior and the
+        measurement noise; see :func:`sfem_filters.cardiac.measured.run`. A fit stopped by its limit
+        is marked not converged in the report: its material is where it stopped, not the posterior's
+        mode.
+    loop : LoopSettings
+        How the rounds search (:class:`~sfem_filters.cardiac.specs.LoopSettings`): which effects
+        (``"auto"``: the rounds; ``"none"``: the baseline only; names: the baseline and one fit with
+        exactly those, no test), the candidates, the score tests' level, the criterion, the
+        corrections, the backward steps, and the search's shortcuts (warm starts, screening).
     workers : int or None
         How many fits of a round (its candidates, corrections, backward steps) run side by side, each
         in its own process on one BLAS thread (:func:`fit_workers`; ``None``: one per core, as far as
@@ -235,66 +158,36 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
 
     Raises
     ------
+    TypeError
+        A setting that is not a spec of its kind (``model`` not a :class:`ModelSpec`, ...).
+    ValueError
+        Settings that ask something of each other they cannot have
+        (:func:`~sfem_filters.cardiac.specs.check_specs`), before any fit.
     RoundsInterrupted
         On Ctrl-C (KeyboardInterrupt, of which it is a kind): the fits not started are cancelled,
         the worker processes terminated and the pool shut down, and ``message`` says what had
         finished (the rounds keep no checkpoint: nothing of them is kept).
+
+    Examples
+    --------
+    >>> from sfem_filters.cardiac import EstimatorSettings, LoopSettings, ModelSpec, annulus_sequence
+    >>> seq = annulus_sequence(None, n_frames=4, seed=0)
+    >>> out = closing_the_loop(seq, ModelSpec(landmarks=6), EstimatorSettings(max_iterations=2),
+    ...                        LoopSettings(effects="none"))
+    >>> [r.change for r in out.rounds], out.config["landmarks"], out.config["max_iterations"]
+    (['baseline'], 6, 2)
     """
+    check_specs(model, estimator, loop)
     if workers is not None:
         workers = integer("workers", workers, 1)
-    max_iterations = default_max_iterations(drive) if max_iterations is None else integer("max_iterations",
-                                                                                          max_iterations, 1)
-    if measurement_noise not in NOISE_LEVELS:
-        raise ValueError(f"measurement_noise: expected one of {NOISE_LEVELS}, got {measurement_noise!r}")
-    if measurement_noise == "estimate" and (estimator != "smoother" or criterion != "evidence"):
-        raise ValueError("measurement_noise: 'estimate' needs estimator='smoother' and criterion='evidence', got "
-                         f"estimator={estimator!r}, criterion={criterion!r}")
-    if criterion not in CRITERIA:
-        raise ValueError(f"criterion: expected one of {CRITERIA}, got {criterion!r}")
-    if laplace not in LAPLACE:
-        raise ValueError(f"laplace: expected one of {LAPLACE}, got {laplace!r}")
-    if laplace == "exact" and estimator != "smoother":
-        raise ValueError(f"laplace: 'exact' refines the iterated smoother's posterior; expected estimator='smoother', "
-                         f"got estimator={estimator!r}")
-    if laplace == "exact" and parameterisation == "none":
-        raise ValueError("laplace: 'exact' needs a material map; the parameterisation is 'none' (material fixed)")
-    if selection not in SELECTIONS:
-        raise ValueError(f"selection: expected one of {SELECTIONS}, got {selection!r}")
-    min_cv_gain = non_negative("min_cv_gain", min_cv_gain)
-    folds = integer("folds", folds, 2)
-    max_rounds = integer("max_rounds", max_rounds, 1)
-    max_tries = integer("max_tries", max_tries, 1)
-    if not isinstance(prune, (bool, np.bool_)):
-        raise ValueError(f"prune: expected True or False, got {prune!r}")
-    min_evidence = non_negative("min_evidence", min_evidence)
-    alpha = probability("alpha", alpha)
-    names = list(DEFAULT_CANDIDATES) if candidates is None else list(candidates)
-    unknown = [n for n in names if n not in CATALOGUE]
-    if unknown:
-        raise ValueError(f"candidates: unknown effects {unknown}; expected names from {sorted(CATALOGUE)}")
-    if isinstance(effects, str) and effects not in ("auto", "none"):
-        effects = [e.strip() for e in effects.split(",") if e.strip()]
-    if not isinstance(effects, str):    # checked before any fit, not after the baseline's
-        effects = list(effects)
-        unknown = [e for e in effects if e not in CATALOGUE]
-        if unknown:
-            raise ValueError(f"effects: expected 'auto', 'none' or names from {sorted(CATALOGUE)}, got {unknown}")
-        effects = effects or "none"     # an empty sequence: no effect, as "none"
-    tracker = _Progress(bool(progress), max_rounds if effects == "auto" else 1, parameterisation)
+    estimator = estimator.with_(max_iterations=estimator.iteration_limit(model.drive))
+    effects, criterion, folds = loop.effects, loop.criterion, loop.folds
+    tracker = _Progress(bool(progress), loop.max_rounds if effects == "auto" else 1, model.parameterisation)
     tracker.say(f"closing the loop on {seq.n_points} points x {seq.n_frames} frames: mesh and baseline fit, then "
                 + ("at most {max_rounds} rounds" if effects == "auto" else "no rounds" if effects == "none"
-                   else "one fit with the given effects").format(max_rounds=max_rounds))
-    if stiff_springs not in STIFF_SPRINGS:
-        raise ValueError(f"stiff_springs: expected one of {STIFF_SPRINGS}, got {stiff_springs!r}")
-    if not isinstance(warm_start, (bool, np.bool_)):
-        raise ValueError(f"warm_start: expected True or False, got {warm_start!r}")
-    if screen_iterations is not None:
-        screen_iterations = integer("screen_iterations", screen_iterations, 1)
-        if estimator != "smoother":
-            raise ValueError(f"screen_iterations: screening stops the iterated smoother early; expected "
-                             f"estimator='smoother', got {estimator!r}")
-    setup = prepare(seq, landmarks, observe, holdout_seed, mesh=mesh, angle_origin_deg=angle_origin_deg,
-                    element_px=element_px)
+                   else "one fit with the given effects").format(max_rounds=loop.max_rounds))
+    setup = prepare(seq, model.landmarks, model.observe, model.holdout_seed, mesh=model.mesh,
+                    angle_origin_deg=model.angle_origin_deg, element_px=model.element_px)
     try:                                # before any fit: can the observed points be cross-validated?
         observation_folds(setup, folds)
         cv_possible = True
@@ -302,24 +195,18 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
         if criterion == "cv":
             raise
         cv_possible = False             # the evidence decides; rounds then report no CV
-    opts = {"parameterisation": parameterisation, "max_loops": max_loops, "progress": progress,
-            "estimator": estimator, "max_iterations": max_iterations, "measurement_noise": measurement_noise}
-    start = Variant(drive=drive)
+    start = model
+    parameterisation = model.parameterisation
     fits = None
     try:
-        base = _fit(setup, start, {**opts, "description": "baseline (" + ("material fixed" if parameterisation == "none"
-                                                                           else f"{parameterisation} map") + ")"})
-        fits = _Fits(setup, opts, 1 if effects != "auto" or workers == 1
+        base = _fit(setup, start, estimator, progress=progress,
+                    description="baseline (" + ("material fixed" if parameterisation == "none"
+                                                else f"{parameterisation} map") + ")")
+        fits = _Fits(setup, estimator, 1 if effects != "auto" or workers == 1
                      else fit_workers(workers, base.model.dim_state, seq.n_frames),
-                     folds if criterion == "cv" else None, progress, warm_start=warm_start)
-        return _rounds(seq, setup, start, base, fits, opts, effects=effects, drive=drive, landmarks=landmarks,
-                       observe=observe, holdout_seed=holdout_seed, parameterisation=parameterisation,
-                       max_loops=max_loops, progress=progress, estimator=estimator, max_iterations=max_iterations,
-                       max_rounds=max_rounds, alpha=alpha, min_evidence=min_evidence, max_tries=max_tries,
-                       names=names, corrections=corrections, criterion=criterion, folds=folds,
-                       min_cv_gain=min_cv_gain, selection=selection, prune=prune, laplace=laplace,
-                       measurement_noise=measurement_noise, mesh=mesh, cv_possible=cv_possible, tracker=tracker,
-                       warm_start=warm_start, screen_iterations=screen_iterations, stiff_springs=stiff_springs)
+                     folds if criterion == "cv" else None, progress, warm_start=loop.warm_start)
+        return _rounds(seq, setup, start, base, fits, estimator, loop, cv_possible=cv_possible, tracker=tracker,
+                       progress=progress)
     except KeyboardInterrupt:
         if fits is not None:
             fits.abort()
@@ -329,13 +216,14 @@ def closing_the_loop(seq: Sequence, effects="auto", drive: str = "penalty", land
             fits.close()
 
 
-def _rounds(seq, setup, start, base, fits, opts, *, effects, drive, landmarks, observe, holdout_seed,
-            parameterisation, max_loops, progress, estimator, max_iterations, max_rounds, alpha, min_evidence,
-            max_tries, names, corrections, criterion, folds, min_cv_gain, selection, prune, laplace,
-            measurement_noise, mesh, cv_possible, tracker, warm_start=False, screen_iterations=None,
-            stiff_springs="contour") -> LoopResult:
+def _rounds(seq, setup, start: ModelSpec, base, fits, estimator: EstimatorSettings, loop: LoopSettings, *,
+            cv_possible: bool, tracker, progress: bool = False) -> LoopResult:
     """The rounds of :func:`closing_the_loop` after its baseline fit (``fits`` makes the others;
-    ``tracker``, a :class:`_Progress`, writes a line as the baseline and each round end)."""
+    ``tracker``, a :class:`_Progress`, writes a line as the baseline and each round end; ``start``: the
+    baseline's model, ``estimator`` with its iteration limit resolved)."""
+    effects, drive, parameterisation, names = loop.effects, start.drive, start.parameterisation, list(loop.candidates)
+    criterion, folds, screen_iterations = loop.criterion, loop.folds, loop.screen_iterations
+    max_rounds = loop.max_rounds
     last = {}
     rounds = [Round(0, start, None, (), base, log_evidence=log_evidence(base),
                     cv=round_cross_validation(setup, start, base, folds) if cv_possible else None)]
@@ -354,9 +242,9 @@ def _rounds(seq, setup, start, base, fits, opts, *, effects, drive, landmarks, o
         if criterion == "cv":
             cv_gain = cur.cv["rmse_px"] - cv["rmse_px"]
             entry.update({"cv_rmse_px": cv["rmse_px"], "cv_gain_px": float(cv_gain)})
-            gain, ok = cv_gain, bool(np.isfinite(cv_gain) and cv_gain > min_cv_gain * cur.cv["rmse_px"])
+            gain, ok = cv_gain, bool(np.isfinite(cv_gain) and cv_gain > loop.min_cv_gain * cur.cv["rmse_px"])
         else:
-            ok = bool(np.isfinite(gain) and gain > min_evidence)
+            ok = bool(np.isfinite(gain) and gain > loop.min_evidence)
         return float(gain), ok, entry
 
     def confirmed(cur: Round, variant, trial: Run, cv, gain: float, label: str, entry: dict) -> tuple:
@@ -425,13 +313,13 @@ def _rounds(seq, setup, start, base, fits, opts, *, effects, drive, landmarks, o
                 cur.run.model, cur.run.result.history, pool, time_courses=time_courses(cur.run))
             ranking = [r for r in ranking if r["effect"] in dict(pool)]
             tests += sum(r.get("n_tests", 1) for r in ranking)
-            threshold = -np.log10(alpha / max(tests, 1))
+            threshold = -np.log10(loop.alpha / max(tests, 1))
             tried, accepted, best = [], None, None
             # the candidates the search fits, in its order: the significant ones not fitted before,
             # at most max_tries (with selection "first", only up to the first that is kept)
             plan, planned = [], set()
             for cand in ranking:
-                if cand["score"] <= threshold or len(plan) >= max_tries:
+                if cand["score"] <= threshold or len(plan) >= loop.max_tries:
                     break
                 replaced = tuple(e for e in cur.effects if spans(loads[cand["effect"]], loads[e]))
                 new = tuple(e for e in cur.effects if e not in replaced) + (cand["effect"],)
@@ -451,7 +339,7 @@ def _rounds(seq, setup, start, base, fits, opts, *, effects, drive, landmarks, o
                     rejected.add(cand["effect"])
                 elif best is None or gain > best[0]:
                     best = (gain, cand["effect"], replaced, variant, trial, len(tried) - 1, cv)
-                if best is not None and selection == "first":
+                if best is not None and loop.selection == "first":
                     outcomes.close()
                     break
             if best is not None:
@@ -462,12 +350,12 @@ def _rounds(seq, setup, start, base, fits, opts, *, effects, drive, landmarks, o
                     accepted = kept(number, variant, name, replaced, trial, ranking, threshold, tried, cv)
                 else:
                     rejected.add(name)
-            if corrections and accepted is None:
+            if loop.corrections and accepted is None:
                 # no effect passes: every correction of the model's own drive and priors that the
                 # residual points to is fitted, and the one with the largest gain of the criterion
                 # is kept if the criterion improves
                 # (a correction that fails here is tried again on a later round's model)
-                best = fitted_best(cur, _corrections(cur, parameterisation, stiff_springs),
+                best = fitted_best(cur, _corrections(cur, loop.stiff_springs),
                                    f"round {number}, corrections",
                                    "correction ", lambda name: {"effect": name, "score": None}, tried)
                 if best is not None:
@@ -486,7 +374,7 @@ def _rounds(seq, setup, start, base, fits, opts, *, effects, drive, landmarks, o
                                   .get(stop, stop))
                 break
             rounds.append(accepted)
-            while prune:
+            while loop.prune:
                 # backward steps: take out the earlier term whose removal improves the criterion most
                 cur = rounds[-1]
                 best = fitted_best(cur, removals(cur.variant, start, loads), f"round {number}, backward", "- ",
@@ -505,22 +393,25 @@ def _rounds(seq, setup, start, base, fits, opts, *, effects, drive, landmarks, o
                 rejected.clear()        # an effect rejected beside the term now gone may pass without it
             tracker.round_end(number, tried, rounds[n_before:],
                               f"max_rounds ({max_rounds}) reached" if number == max_rounds else None)
-    if laplace == "exact":
+    if estimator.laplace == "exact":
         rounds[-1].run = exact_posterior(setup, rounds[-1].run, progress)
-    config = {"drive": drive, "landmarks": landmarks, "observe": observe, "holdout_seed": holdout_seed,
-              "parameterisation": parameterisation, "estimator": estimator,
-              "max_iterations" if estimator == "smoother" else "max_loops":
-                  max_iterations if estimator == "smoother" else max_loops, "n_points": int(seq.n_points),
+    model, smoother = start, estimator.estimator == "smoother"
+    config = {"drive": drive, "landmarks": model.landmarks, "observe": model.observe,
+              "holdout_seed": model.holdout_seed, "parameterisation": parameterisation,
+              "estimator": estimator.estimator,
+              "max_iterations" if smoother else "max_loops": estimator.max_iterations if smoother
+              else estimator.max_loops, "n_points": int(seq.n_points),
               "n_frames": int(seq.n_frames), "n_observed": int(len(setup.observed)),
               "n_heldout": int(len(setup.heldout)), "mesh_nodes": int(setup.mesh.n_nodes),
-              "mesh_elements": int(setup.mesh.n_elements), "max_rounds": max_rounds, "alpha": float(alpha),
-              "min_evidence": min_evidence, "max_tries": max_tries, "candidates": names,
-              "corrections": bool(corrections), "stiff_springs": stiff_springs, "criterion": criterion,
-              "folds": folds,
-              "min_cv_gain": min_cv_gain, "selection": selection, "prune": bool(prune), "laplace": laplace,
-              "measurement_noise": measurement_noise, "mesh": mesh, "angle_origin_deg": setup.angle_origin_deg,
+              "mesh_elements": int(setup.mesh.n_elements), "max_rounds": max_rounds, "alpha": float(loop.alpha),
+              "min_evidence": loop.min_evidence, "max_tries": loop.max_tries, "candidates": names,
+              "corrections": loop.corrections, "stiff_springs": loop.stiff_springs, "criterion": criterion,
+              "folds": folds, "min_cv_gain": loop.min_cv_gain, "selection": loop.selection, "prune": loop.prune,
+              "laplace": estimator.laplace, "measurement_noise": estimator.measurement_noise, "mesh": model.mesh,
+              "angle_origin_deg": setup.angle_origin_deg,
+              # the report's record of the run (the batch fingerprint hashes the specs whole, dense_config)
               **({"element_px": setup.element_px} if setup.element_px is not None else {}),
-              **({"warm_start": True} if warm_start else {}),
+              **({"warm_start": True} if loop.warm_start else {}),
               **({"screen_iterations": screen_iterations} if screen_iterations is not None else {}),
               "innovation_whitening": diagnostics.DEFAULT_WHITENING,
               "final": rounds[-1].variant.as_json()}

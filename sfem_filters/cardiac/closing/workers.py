@@ -12,36 +12,41 @@ from ..._validate import integer
 from ...filtering.smoother import PEAK_FACTOR, WORKING
 from ...resources import available_memory, blas_threads, process_pool, starting_workers, usable_cores
 from ..measured import Run, run
+from ..specs import EstimatorSettings, ModelSpec
 from .criteria import round_cross_validation
 from .progress import progress_line
-from .records import Variant
 
 __all__ = ["fit_workers", "usable_cores"]
 
 
-def _fit(setup, variant: Variant, opts) -> Run:
-    """One fit of ``variant``; ``opts["description"]`` (optional) names it on its progress bar
-    (``"baseline (region map)"``, ``"round 2: + active_polar"``); the run's name is the variant's label."""
-    opts = dict(opts)
-    name = variant.label(variant.drive)
-    description = opts.pop("description", None) or name
-    if variant.material is not None:
-        opts = {**opts, "parameterisation": variant.material}
+def _fit(setup, spec: ModelSpec, estimator: EstimatorSettings, *, progress: bool = False,
+         description: str | None = None, covariance: bool = True, warm_start=None,
+         max_iterations: int | None = None) -> Run:
+    """One fit of the model ``spec`` with ``estimator`` (its ``max_iterations`` resolved);
+    ``description`` names it on its progress bar (``"baseline (region map)"``, ``"round 2: +
+    active_polar"``; default the spec's label), and the run's name is the spec's label.
+    ``covariance``, ``warm_start``: :func:`~sfem_filters.cardiac.measured.run`'s; ``max_iterations``:
+    a limit below the estimator's (a screening fit)."""
+    name = spec.label(spec.drive)
     # one BLAS thread per fit, whether the fits run one after the other or side by side: the
     # threads' order of summation is then the same, and so is every figure (measured: a second
     # BLAS thread does not make a fit of the shipped slice faster, benchmarks/blas_threads.py)
     with blas_threads(1):
-        out = run(setup, variant.effects, variant.drive, name=description,
-                  effect_rates=variant.effect_rates, drive_trend=variant.drive_trend,
-                  process_scale=variant.process_scale, spring_scale=variant.spring_scale, **opts)
+        out = run(setup, spec.effects, spec.drive, parameterisation=spec.material_map, name=description or name,
+                  effect_rates=spec.effect_rates, drive_trend=spec.drive_trend, process_scale=spec.process_scale,
+                  spring_scale=spec.spring_scale, estimator=estimator.estimator, max_loops=estimator.max_loops,
+                  max_iterations=estimator.max_iterations if max_iterations is None else max_iterations,
+                  measurement_noise=estimator.measurement_noise, progress=progress, covariance=covariance,
+                  warm_start=warm_start)
     return replace(out, name=name) if isinstance(out, Run) else out
 
 
-def _fit_job(setup, variant: Variant, opts, cv_folds) -> tuple:
-    """One fit of the rounds and, when the criterion is cross-validation, its cross-validation:
-    ``(run, cv or None)``. Module level, so that a worker process can run it."""
-    trial = _fit(setup, variant, opts)
-    return trial, (round_cross_validation(setup, variant, trial, cv_folds) if cv_folds else None)
+def _fit_job(setup, spec: ModelSpec, estimator: EstimatorSettings, cv_folds, **how) -> tuple:
+    """One fit of the rounds (``how``: :func:`_fit`'s keywords) and, when the criterion is
+    cross-validation, its cross-validation: ``(run, cv or None)``. Module level, so that a worker
+    process can run it."""
+    trial = _fit(setup, spec, estimator, **how)
+    return trial, (round_cross_validation(setup, spec, trial, cv_folds) if cv_folds else None)
 
 
 def fit_workers(workers, n_state: int, n_frames: int, available: float | None = None) -> int:
@@ -72,14 +77,14 @@ class _Fits:
     first accepted one, ``selection="first"``) may have run for nothing.
     """
 
-    def __init__(self, setup, opts, workers: int, cv_folds, progress: bool, warm_start: bool = False):
-        if opts.get("estimator") == "smoother":
-            # most fits are tried and let go: the variances of their kinematics and strains are
-            # made only for those kept (kept(), measured.with_covariance: the same figures)
-            opts = {**opts, "covariance": False}
-        self.setup, self.opts, self.workers, self.cv_folds = setup, opts, workers, cv_folds
-        self.progress, self.warm_start = progress, bool(warm_start) and opts.get("estimator") == "smoother"
-        self.quiet = {**opts, "progress": False}            # one bar for a batch of fits, not one per worker
+    def __init__(self, setup, estimator: EstimatorSettings, workers: int, cv_folds, progress: bool,
+                 warm_start: bool = False):
+        smoother = estimator.estimator == "smoother"
+        # most fits are tried and let go: the smoother makes the variances of their kinematics and
+        # strains only for those kept (kept(), measured.with_covariance: the same figures)
+        self.setup, self.estimator, self.covariance = setup, estimator, not smoother
+        self.workers, self.cv_folds = workers, cv_folds
+        self.progress, self.warm_start = progress, bool(warm_start) and smoother
         self.pool = None
         if workers > 1:
             try:
@@ -103,10 +108,11 @@ class _Fits:
         another parameterisation starts from the prior mean); ``iterations``: at most this many
         Gauss-Newton iterations instead of the rounds' limit (a screening fit)."""
         variants = list(variants)
-        extra = {"warm_start": warm.result.theta} if self.warm_start and warm is not None else {}
-        if iterations is not None:
-            extra["max_iterations"] = min(int(iterations), int(self.opts.get("max_iterations") or iterations))
-        names = [v.label(v.drive) if isinstance(v, Variant) else str(v) for v in variants] if names is None \
+        how = {"covariance": self.covariance,
+               "warm_start": warm.result.theta if self.warm_start and warm is not None else None,
+               "max_iterations": None if iterations is None else
+               min(int(iterations), int(self.estimator.max_iterations or iterations))}
+        names = [v.label(v.drive) if isinstance(v, ModelSpec) else str(v) for v in variants] if names is None \
             else list(names)
         done = 0
         if self.pool is not None and len(variants) > 1:
@@ -117,8 +123,9 @@ class _Fits:
             futures = []
             try:
                 with starting_workers():                # the workers start with Ctrl-C ignored: abort() stops them
-                    futures = [self.pool.submit(_fit_job, self.setup, v, {**self.quiet, **extra}, self.cv_folds)
-                               for v in variants]
+                    # one bar for a batch of fits, not one per worker
+                    futures = [self.pool.submit(_fit_job, self.setup, v, self.estimator, self.cv_folds, progress=False,
+                                                **how) for v in variants]
                 for i, f in enumerate(futures):
                     out = f.result()
                     futures[i] = None                       # a fit is held once, by whoever takes it
@@ -133,7 +140,8 @@ class _Fits:
                     if f is not None:
                         f.cancel()
         for v, name in zip(variants[done:], names[done:]):
-            yield _fit_job(self.setup, v, {**self.opts, **extra, "description": f"{label}: {name}"}, self.cv_folds)
+            yield _fit_job(self.setup, v, self.estimator, self.cv_folds, progress=self.progress,
+                           description=f"{label}: {name}", **how)
 
     def close(self) -> None:
         if self.pool is not None:
