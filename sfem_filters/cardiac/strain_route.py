@@ -27,9 +27,9 @@ The DENSE route of issue 42 (items 3 and 4), as a library function, :func:`dense
    the point-spread-weighted mean of the shape-function interpolation over sub-pixel samples
    around the pixel (Eq. 12 as a weighted average instead of a point interpolation,
    :func:`sfem_filters.fem.observation.blurred_observation_matrix`), and where the point spread
-   reaches outside the reference myocardium a static (zero-displacement) background enters the
-   normalisation with the signal the magnitude shows there
-   (:func:`sfem_filters.imaging.dense.background_signal`) and a factor ``sin(theta) / theta`` of
+   reaches outside the reference myocardium the background's coherent signal enters the
+   normalisation (one complex level per region and frame, zero where it is no more than the
+   region's incoherent floor: :func:`sfem_filters.imaging.dense.background_signal`) and a factor ``sin(theta) / theta`` of
    the datum's own phase (phasors add, phases do not). The width comes from the acquisition
    (:attr:`sfem_filters.imaging.DenseCase.resolution_px`: DENSE-Sim's ``N_im / N_im_pre_spiral``,
    a DICOM's matrix over its AcquisitionMatrix) or the user, never from a fit; the operator is one

@@ -54,7 +54,7 @@ __all__ = ["DenseCase", "make_dense_case", "read_dense_sim", "read_dense_dicom",
            "invert_eulerian", "estimate_noise_sd", "phase_quality", "phase_to_displacement", "reference_points",
            "tracks_on_pixel_grid", "truth_at_points", "PHASE_TOLERANCE", "DEFAULT_RESOLUTION_PX", "check_resolution_px",
            "dicom_resolution_px", "FWHM_PER_SD", "PSF_SAMPLES_PER_PX", "PSF_RADIUS_SD", "psf_sigma_px", "psf_samples",
-           "BackgroundSignal", "background_signal", "edge_spread_resolution"]
+           "BackgroundSignal", "background_signal", "BACKGROUND_COHERENCE_SE", "edge_spread_resolution"]
 
 _CHI2_1_MEDIAN = 0.45493642311957283     # median of a chi-square variable with one degree of freedom
 
@@ -705,6 +705,11 @@ class BackgroundSignal:
     phase_per_px: float
 
 
+#: How many standard errors of their mean a background region's complex signals must stand above zero to be read
+#: as a coherent level (:func:`background_signal`); below it the region's signal is incoherent and mixes in nothing.
+BACKGROUND_COHERENCE_SE = 3.0
+
+
 def background_signal(case: DenseCase, resolution_px=None) -> BackgroundSignal:
     """The complex signal around the myocardium that a border pixel's point spread mixes in, per frame and pixel.
 
@@ -713,13 +718,25 @@ def background_signal(case: DenseCase, resolution_px=None) -> BackgroundSignal:
     myocardium is the tissue's own signal blurred outwards, so the background is read where the
     myocardium's blur has faded: for each connected piece of a frame's non-myocardium (the
     cavity, the outside), its pixels between ``r`` and ``r + 2`` pixels from the frame's mask,
-    ``r`` the acquired resolution rounded up (or the piece's farthest distance if it is thinner);
-    there the complex signal ``m exp(i phi_j)`` of each encoding averaged over a 5 x 5 window (a
-    complex mean: the noise averages out without the magnitude's Rician bias), carried to every
-    pixel of the piece, and to the mask's pixels, from the nearest such pixel; divided by the
-    frame's median myocardial magnitude. Its phase is kept: what surrounds the heart need not be
-    static (DENSE-Sim's cavity early in the cycle is bright and carries a phase, the spiral's
-    interleaves mixing the moving wall's signal into it).
+    ``r`` the acquired resolution rounded up (or the piece's farthest distance if it is thinner).
+    There the piece has one level per encoding, the complex mean ``mu_j`` of ``m exp(i phi_j)``
+    over those pixels (a complex mean: noise averages out without the magnitude's Rician bias),
+    divided by the frame's median myocardial magnitude; it is carried to every pixel of the piece
+    and to the mask's pixels next to it. Its phase is kept: what surrounds the heart need not be
+    static (DENSE-Sim's cavity early in the cycle is bright and carries a phase).
+
+    Only a coherent signal mixes into a border pixel as a phase: a level is kept when it stands
+    above the piece's own incoherent spread, ``sum_j |mu_j|^2 > c^2 sum_j s_j^2 / n_eff`` with
+    ``s_j^2 = mean |z_j - mu_j|^2`` over the pixels, ``c`` =
+    :data:`BACKGROUND_COHERENCE_SE` standard errors and ``n_eff`` the pixels over the area of the
+    acquisition's point spread (``4 pi (w / 2.355)^2``, ``w`` the acquired resolution: pixels
+    closer than that share their signal); otherwise the level is zero (dark). Why: a background
+    of random phase (thermal noise, the incoherent floor of an image's reconstruction, which is
+    all that remains of DENSE-Sim's static cavity blood once its signal has decayed over the
+    cycle) sums to nearly nothing over a point spread, but its pixels' own values are large; read
+    pixel by pixel it would feed random phases into the border data as if they were the wall's
+    surroundings. The rule holds for any case: it asks only whether the signal is coherent, and
+    its threshold is a significance level, not a number fitted to data.
 
     Parameters
     ----------
@@ -733,6 +750,7 @@ def background_signal(case: DenseCase, resolution_px=None) -> BackgroundSignal:
     """
     w = check_resolution_px(case.resolution_px if resolution_px is None else resolution_px)
     reach = int(np.ceil(w))
+    psf_area = max(4.0 * np.pi * (w / FWHM_PER_SD) ** 2, 1.0)            # px^2 sharing one acquired sample
     masks = case.frame_masks
     out = np.zeros(case.magnitude.shape + (2,), complex)
     for f in range(case.n_frames):
@@ -751,18 +769,23 @@ def background_signal(case: DenseCase, resolution_px=None) -> BackgroundSignal:
             ring = sel & (dist >= r0) & (dist <= r0 + 2)
             if not ring.any():
                 continue
-            den = np.maximum(ndimage.uniform_filter(ring.astype(float), 5, mode="constant"), 1e-12)
-            vals = np.stack([(ndimage.uniform_filter(np.where(ring, z[..., j].real, 0.0), 5, mode="constant")
-                              + 1j * ndimage.uniform_filter(np.where(ring, z[..., j].imag, 0.0), 5, mode="constant"))
-                             / den for j in range(2)], axis=-1)
-            _, (ir, ic) = ndimage.distance_transform_edt(~ring, return_indices=True)
-            level[sel] = vals[ir, ic][sel]
+            level[sel] = _coherent_level(z[ring], psf_area)
             rings |= ring
         if rings.any():
             _, (ir, ic) = ndimage.distance_transform_edt(~rings, return_indices=True)
             level[k] = level[ir, ic][k]
         out[f] = level
     return BackgroundSignal(signal=out, phase_per_px=float(2 * np.pi * case.ke_per_m * case.pixel_size_m))
+
+
+def _coherent_level(z, psf_area: float):
+    """(2,) complex: the mean of ``z`` (n, 2) if it stands above its standard error's
+    :data:`BACKGROUND_COHERENCE_SE` times (``n / psf_area`` independent samples), else zero."""
+    mu = z.mean(axis=0)
+    spread2 = np.mean(np.abs(z - mu) ** 2, axis=0)
+    n_eff = max(len(z) / psf_area, 1.0)
+    coherent = np.sum(np.abs(mu) ** 2) > BACKGROUND_COHERENCE_SE ** 2 * np.sum(spread2) / n_eff
+    return mu if coherent else np.zeros_like(mu)
 
 
 def edge_spread_resolution(case: DenseCase, frames=None, band_px: float = 4.0) -> dict:

@@ -7,14 +7,15 @@ against their magnitude images' edge spread.
 import numpy as np
 import pytest
 import yaml
+from scipy import ndimage
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from pydicom.dataset import Dataset
 
 from sfem_filters.cardiac.strain_route import StrainRouteSettings
-from sfem_filters.imaging.dense import (DEFAULT_RESOLUTION_PX, FWHM_PER_SD, add_complex_noise, dicom_resolution_px,
-                                        edge_spread_resolution, make_dense_case, psf_samples, psf_sigma_px,
-                                        read_dense_sim)
+from sfem_filters.imaging.dense import (DEFAULT_RESOLUTION_PX, FWHM_PER_SD, add_complex_noise, background_signal,
+                                        dicom_resolution_px, edge_spread_resolution, make_dense_case, psf_samples,
+                                        psf_sigma_px, read_dense_sim)
 from test_dense import DENSE_SIM, needs_data, write_case_folder
 
 
@@ -83,3 +84,52 @@ def test_the_magnitudes_edge_spread_agrees_with_the_configs_acquisition(name):
     est = edge_spread_resolution(case, frames=range(0, case.n_frames, 4))
     assert abs(est["resolution_px"] - case.resolution_px) < 0.25 * case.resolution_px
     assert est["resolution_px"] > 1.5                                     # the images are blurred beyond the pixel
+
+
+def _ring_with_background(background, rng, resolution_px=2.13, frames=3):
+    """A static ring of unit magnitude and zero phase on a background of the complex field ``background(rng)``
+    (H, W, 2), blurred by the point spread of ``resolution_px``, with white complex noise of sd 0.02."""
+    yy, xx = np.mgrid[0:64, 0:64].astype(float)
+    r = np.hypot(xx - 31.6, yy - 32.3)
+    ring = (r >= 10.0) & (r <= 19.0)                     # thick: the median of its magnitude is the tissue's
+    sd = psf_sigma_px(resolution_px)
+    phases, mags = [], []
+    for _ in range(frames):
+        bg = background(rng)
+        enc = []
+        for j in range(2):
+            z = np.where(ring, 1.0 + 0j, bg[..., j])
+            z = ndimage.gaussian_filter(z.real, sd) + 1j * ndimage.gaussian_filter(z.imag, sd)
+            enc.append(z + 0.02 * (rng.standard_normal(z.shape) + 1j * rng.standard_normal(z.shape)) / np.sqrt(2))
+        phases.append([np.angle(e) for e in enc])
+        mags.append(np.abs(enc[0]))
+    return make_dense_case(np.transpose(np.array(phases), (1, 0, 2, 3)), np.array(mags),
+                           np.stack([ring] * (frames + 1)), 1.75, 0.1, 0.02 * (1 + np.arange(frames)),
+                           resolution_px=resolution_px)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_an_incoherent_background_mixes_in_nothing(seed):
+    # random phase in every pixel (correlated over the acquired resolution, as a reconstruction's floor is),
+    # its magnitude 0.3 of the tissue's: large pixel by pixel, no coherent level
+    def incoherent(rng):
+        z = rng.standard_normal((64, 64, 2)) + 1j * rng.standard_normal((64, 64, 2))
+        z = ndimage.gaussian_filter(z.real, (0.8, 0.8, 0)) + 1j * ndimage.gaussian_filter(z.imag, (0.8, 0.8, 0))
+        return 0.3 * z / np.sqrt(np.mean(np.abs(z) ** 2))
+    case = _ring_with_background(incoherent, np.random.default_rng(seed))
+    outside = ~ndimage.binary_dilation(case.frame_masks, iterations=3)
+    assert np.median(case.magnitude[outside]) > 0.15                       # the floor is there, pixel by pixel
+    assert np.array_equal(background_signal(case).signal, np.zeros_like(background_signal(case).signal))
+
+
+@settings(max_examples=10, deadline=None)
+@given(st.floats(0.1, 0.6), st.floats(-np.pi, np.pi), st.integers(0, 2 ** 16))
+def test_a_coherent_background_is_read_back_with_its_amplitude_and_phase(amplitude, phase, seed):
+    # one level of known amplitude and phase (the second encoding static) in the cavity and outside
+    def coherent(rng):
+        return np.stack([np.full((64, 64), amplitude * np.exp(1j * phase)), np.full((64, 64), amplitude + 0j)], -1)
+    case = _ring_with_background(coherent, np.random.default_rng(seed))
+    b = background_signal(case).signal
+    outside = ~case.frame_masks
+    assert np.allclose(b[..., 0][outside], amplitude * np.exp(1j * phase), atol=0.03)
+    assert np.allclose(b[..., 1][outside], amplitude, atol=0.03)
