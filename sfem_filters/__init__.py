@@ -9,15 +9,10 @@ protocol), :mod:`~sfem_filters.imaging` (images to contours and velocities),
 :mod:`~sfem_filters.cardiac` (the measured-data workflow), :mod:`~sfem_filters.benchmark`
 (the paper's pinned experiment); :mod:`~sfem_filters.model` bridges fem and filtering.
 """
-from .fem.material import Material, Parameterisation
-from .fem.mesh import TriMesh, delaunay_mesh, rectangle_mesh
-from .filtering.cyclic import CyclicEKF, cyclic_estimate
-from .filtering.ekf import SFEMExtendedKalmanFilter
-from .filtering.iterated import IteratedSmoother, iterated_smoother
-from .model import SFEMModel
-from .resources import blas_threads
+import lazy_loader as _lazy
 
-__all__ = ["SFEMModel", "SFEMExtendedKalmanFilter", "CyclicEKF", "cyclic_estimate", "IteratedSmoother",
-           "iterated_smoother", "Material", "Parameterisation",
-           "TriMesh", "rectangle_mesh", "delaunay_mesh", "blas_threads"]
+# The names below are loaded on first use: ``import sfem_filters`` (and the console script, which
+# says it has started before anything heavy loads) costs milliseconds, not the 1-2 s of numpy,
+# scipy and filterpy. The names and their modules are written once, as imports, in __init__.pyi.
+__getattr__, __dir__, __all__ = _lazy.attach_stub(__name__, __file__)
 __version__ = "0.1.0"

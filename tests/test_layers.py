@@ -71,7 +71,9 @@ def _imports():
         for fn in ast.walk(tree):
             if isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef)):
                 inside.update(id(n) for n in ast.walk(fn))
-        for n in ast.walk(tree):
+        stub = f.with_suffix(".pyi")              # a lazily loaded package's names (lazy_loader.attach_stub)
+        nodes = [*ast.walk(tree), *(ast.walk(ast.parse(stub.read_text())) if stub.exists() else [])]
+        for n in nodes:
             if isinstance(n, ast.ImportFrom) and (n.level or (n.module or "").startswith("sfem_filters")):
                 out.extend((m, t, id(n) in inside) for t in _resolve(m, n))
             elif isinstance(n, ast.Import):

@@ -2,7 +2,8 @@
 
 Runs the console script exactly as a user types it (default settings, default workers and BLAS
 threads, progress on) and measures what the user meets: the wall time from the command to the
-report, the time to the first progress output on stderr, the peak memory of the largest process
+report, the time to the first line on stderr (the console script says it has started before the
+library loads) and to the run's own first progress line, the peak memory of the largest process
 (the command or one of its workers), and the model it ends with, against the thin-plate spline
 through the same points. Full tier: the bare default command. Quick tier: one baseline fit of the
 paper's cyclic filter (what the test suite can afford), to check the measurement itself.
@@ -19,6 +20,8 @@ import threading
 import time
 from pathlib import Path
 
+from sfem_filters.cli.starting import STARTING
+
 from ._core import fmt, md_table
 from .closing_loop import _model, command
 
@@ -32,12 +35,15 @@ BUDGET_S = 180.0
 TIERS = {"quick": {"args": ["--effects", "none", "--estimator", "cyclic", "--max-loops", "1", "--workers", "1"]},
          "full": {"args": []}}
 #: The command's JSON is deterministic; times and memory are not compared.
-TOLERANCES = {"*": (1e-6, 1e-9), "wall_s": None, "first_output_s": None, "peak_rss_gb": None}
+TOLERANCES = {"*": (1e-6, 1e-9), "wall_s": None, "first_output_s": None, "first_progress_s": None,
+              "peak_rss_gb": None}
+#: The goal for the first line on stderr (seconds from the command).
+FIRST_LINE_S = 1.0
 
 
 def _timed_run(argv: list, env: dict) -> dict:
-    """Run ``argv``; wall time, time to the first byte on stderr, stderr text, return code."""
-    first = {}
+    """Run ``argv``; wall time, stderr's lines each with the time it was complete (seconds from the
+    start; a progress bar's ``\r`` ends a line too), return code."""
     chunks = []
     start = time.perf_counter()
     proc = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env)
@@ -47,16 +53,27 @@ def _timed_run(argv: list, env: dict) -> dict:
             chunk = proc.stderr.read1(4096)
             if not chunk:
                 return
-            first.setdefault("t", time.perf_counter() - start)
-            chunks.append(chunk)
+            chunks.append((time.perf_counter() - start, chunk))
 
     reader = threading.Thread(target=read, daemon=True)
     reader.start()
     code = proc.wait()
     wall = time.perf_counter() - start
     reader.join(timeout=10)
-    return {"wall_s": wall, "first_output_s": first.get("t"), "returncode": code,
-            "stderr": b"".join(chunks).decode(errors="replace")}
+    return {"wall_s": wall, "lines": _timed_lines(chunks), "returncode": code,
+            "stderr": b"".join(c for _, c in chunks).decode(errors="replace")}
+
+
+def _timed_lines(chunks) -> list:
+    """``(seconds, line)`` of every non-empty line in the timed ``chunks`` of a stream."""
+    out, pending = [], b""
+    for t, chunk in chunks:
+        parts = (pending + chunk).replace(b"\r", b"\n").split(b"\n")
+        pending = parts.pop()
+        out.extend((t, p.decode(errors="replace").strip()) for p in parts if p.strip())
+    if pending.strip():
+        out.append((chunks[-1][0], pending.decode(errors="replace").strip()))
+    return out
 
 
 def compute(settings: dict, out_dir) -> dict:
@@ -74,10 +91,13 @@ def compute(settings: dict, out_dir) -> dict:
         report = json.load(f)
     path.unlink()
     final = report.get("extended") or report["baseline"]
-    lines = [ln.strip() for ln in run["stderr"].replace("\r", "\n").splitlines() if ln.strip()]
+    lines = run["lines"]
+    # the run's own progress: the first line after the console script's "starting" line
+    progress = next(((t, ln) for t, ln in lines if not STARTING.match(ln)), (None, None))
     return {"command": "sfem-filters " + " ".join(a for a in args if a not in ("--json", str(path))),
-            "wall_s": run["wall_s"], "first_output_s": run["first_output_s"],
-            "first_output_line": lines[0] if lines else None,
+            "wall_s": run["wall_s"], "first_output_s": lines[0][0] if lines else None,
+            "first_output_line": lines[0][1] if lines else None,
+            "first_progress_s": progress[0], "first_progress_line": progress[1],
             # ru_maxrss of the children is the largest single process (kB on Linux); a run before
             # this one in the same process could only raise it, so say when one did
             "peak_rss_gb": peak_kb / 1024 ** 2, "peak_rss_may_include_earlier_child": bool(before),
@@ -102,15 +122,18 @@ def _final_label(report: dict) -> str:
 
 def markdown(results: dict) -> str:
     within = results["wall_s"] <= results["budget_s"]
-    heads = ["command", "wall time [s]", "first output [s]", "peak memory [GB]", "final model",
+    heads = ["command", "wall time [s]", "first line [s]", "first progress [s]", "peak memory [GB]", "final model",
              "held-out: baseline [px]", "held-out: final [px]", "held-out: spline [px]"]
     row = [f"`{results['command']}`", fmt(results["wall_s"], ".0f"), fmt(results["first_output_s"], ".2f"),
+           fmt(results["first_progress_s"], ".2f"),
            fmt(results["peak_rss_gb"], ".2f"), results["final_model"] + ("" if results["final_converged"] else " *"),
            fmt(results["baseline_heldout_px"], ".3f"), fmt(results["final_heldout_px"], ".3f"),
            fmt(results["spline_heldout_px"], ".3f")]
     text = [md_table(heads, [row]), "",
-            f"Wall time from the command to the report, with the default workers and BLAS threads; first output: "
-            f"the first progress text on stderr (`{results['first_output_line']}`); peak memory: the largest "
+            f"Wall time from the command to the report, with the default workers and BLAS threads; first line: the "
+            f"first text on stderr (`{results['first_output_line']}`), goal {FIRST_LINE_S:.0f} s; first progress: "
+            f"the run's own first progress line, after the library has loaded "
+            f"(`{results['first_progress_line']}`); peak memory: the largest "
             f"single process (the command or a worker). Budget {results['budget_s']:.0f} s: "
             f"{'met' if within else 'not met'} on the machine and load of the header. Stop: "
             f"{results['stop_reason']}."]
@@ -120,11 +143,13 @@ def markdown(results: dict) -> str:
 
 
 def check(results: dict, tier: str) -> list:
-    """A first output within 5 s (progress from the start, allowing for a loaded machine), a finite
-    wall time, a final held-out error below the baseline's when rounds ran."""
+    """A first line within :data:`FIRST_LINE_S`, the run's own progress within 5 s (allowing for a
+    loaded machine), a finite wall time, a final held-out error below the baseline's when rounds ran."""
     problems = []
-    if results["first_output_s"] is None or not results["first_output_s"] < 5.0:
-        problems.append(f"first output after {results['first_output_s']} s")
+    if results["first_output_s"] is None or not results["first_output_s"] < FIRST_LINE_S:
+        problems.append(f"first line after {results['first_output_s']} s")
+    if results["first_progress_s"] is None or not results["first_progress_s"] < 5.0:
+        problems.append(f"first progress after {results['first_progress_s']} s")
     if not results["wall_s"] > 0:
         problems.append(f"wall time {results['wall_s']}")
     if results["rounds"] and not results["final_heldout_px"] <= results["baseline_heldout_px"]:

@@ -15,16 +15,23 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import sys
 import warnings
 
-from ..filtering.smoother import MEMORY_ADVICE, InsufficientMemory
-from ..resources import blas_threads
-from . import compare, dense, observe, strain
-from ._common import _message, _positive_int
-from .compare import cmd_compare
-from .dense import cmd_dense
-from .observe import cmd_observe
-from .strain import cmd_strain
+from .starting import announce
+
+# The console script's first line comes before the imports below (numpy, scipy, filterpy: a second
+# or two on a small machine); ``starting`` imports nothing of ours and is silent outside the script.
+announce(sys.argv)
+
+from ..filtering.smoother import MEMORY_ADVICE, InsufficientMemory  # noqa: E402
+from ..resources import blas_threads  # noqa: E402
+from . import compare, dense, observe, strain  # noqa: E402
+from ._common import _message, _positive_int  # noqa: E402
+from .compare import cmd_compare  # noqa: E402
+from .dense import cmd_dense  # noqa: E402
+from .observe import cmd_observe  # noqa: E402
+from .strain import cmd_strain  # noqa: E402
 
 __all__ = ["build_parser", "main"]
 
