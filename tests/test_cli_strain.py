@@ -81,3 +81,40 @@ def test_strain_argument_errors_say_what_was_expected(capsys):
     with pytest.raises(SystemExit):
         main(["strain", "x", "--json", "y", "--conventional-sigma", "-1"])
     assert "a number >= 0" in capsys.readouterr().err
+
+
+# --with-masks: the DENSE route fused with each frame's myocardium mask
+
+@pytest.mark.needs_data(CASE)
+def test_with_masks_stacks_the_case_folders_masks_with_the_phase(short_case, tmp_path):
+    out = tmp_path / "fused.json"
+    assert main(["strain", str(short_case), "--json", str(out), "--with-masks", "--snr", "30", "--quiet"]) == 0
+    d = json.loads(out.read_text())
+    s = d["settings"]
+    assert d["route"] == "dense" and s["border_masks"] is True and s["phase_noise_level"] == "stated"
+    assert s["border_rows"] == s["border_nodes"] > 20 and s["border_landmarks"] > s["border_nodes"]
+    assert np.array(d["global"]["Err"], float).shape == (6,)
+    assert np.all(np.isfinite(np.array(d["strain"]["Err"], float)))
+    assert s["phase_noise_scale"] == 1.0
+    ev = tmp_path / "evidence.json"
+    assert main(["strain", str(short_case), "--json", str(ev), "--with-masks", "--phase-noise-level", "evidence",
+                 "--snr", "30", "--quiet"]) == 0
+    e = json.loads(ev.read_text())["settings"]
+    assert e["phase_noise_level"] == "evidence" and e["phase_noise_scale"] > 0 and e["border_rows"] == s["border_rows"]
+
+
+@pytest.mark.needs_data(CASE)
+def test_with_masks_errors_name_the_argument(short_case, tmp_path, capsys):
+    out = str(tmp_path / "x.json")
+    assert main(["strain", str(short_case), "--json", out, "--with-masks", "--route", "contours"]) == 2
+    assert "--with-masks: is for the dense route" in capsys.readouterr().err
+    yy, xx = np.mgrid[0:20, 0:20]
+    ring = (np.hypot(xx - 9.5, yy - 9.5) >= 4) & (np.hypot(xx - 9.5, yy - 9.5) <= 7)
+    rows, cols = np.nonzero(ring)
+    pts = np.column_stack([cols, rows]).astype(float)
+    disp = 0.02 * np.arange(4)[:, None, None] * (pts - 9.5)[None]
+    np.savez(tmp_path / "seq.npz", points=pts, displacement=disp, pixel_spacing=1.5e-3, frame_interval=0.02)
+    assert main(["strain", str(tmp_path / "seq.npz"), "--json", out, "--with-masks", "--quiet"]) == 2
+    assert "--with-masks: expected the myocardium mask of every frame, got none" in capsys.readouterr().err
+    assert main(["strain", str(short_case), "--json", out, "--phase-noise-level", "evidence"]) == 2
+    assert "--phase-noise-level: weighs the phase data against the masks; give --with-masks" in capsys.readouterr().err

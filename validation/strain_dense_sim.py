@@ -13,14 +13,17 @@ shared by every method (:func:`sfem_filters.imaging.phase_to_displacement`), the
   process noise 0.1 of the noise floor, the linear smoother, Green-Lagrange strain of the
   recovered gradient with delta-method sd, the maximum-likelihood noise scale and the excess-error
   term in the 95% bands);
-* at the first seed of each case and SNR, three ablations of the route (the error budget): the
+* at the first seed of each case and SNR, five ablations of the route (the error budget): the
   nodal least-squares fit of each frame alone (no dynamics, no bands); the route with the
   process noise chosen by its evidence (``process_fraction=None``, type-II maximum likelihood,
   instead of the default 0.1 of the noise floor); and the route whose observation operator
   blurs the model by the acquisition's point spread (``resolution_px`` from the case's
   acquisition, :attr:`sfem_filters.imaging.DenseCase.resolution_px`, with the complex signal around
   the myocardium from the images, :func:`sfem_filters.imaging.dense.background_signal`), instead of
-  observing it at the pixel centre;
+  observing it at the pixel centre; the same with the case's myocardium masks of every frame fused
+  in (``border_masks=True``: each border node's motion across the border, the contours route's data
+  and sd, stacked with the phase data in one model), with the phase data at their stated sd and at
+  their own maximum-likelihood level (``phase_noise_level="evidence"``);
 
 each scored by :func:`sfem_filters.benchmark.score_strain` (pixel RMSE, global and segment peak
 errors in percentage points; coverage of the true segment curves by the 95% bands, with their mean
@@ -54,7 +57,7 @@ from ._core import fmt, md_table
 NAME = "strain_dense_sim"
 NEEDS_DATA = True
 TITLE = "Strain against DENSE-Sim's ground truth"
-FULL_COST = "about 20-30 minutes on 2 cores (12 runs of our route)"
+FULL_COST = "about 20-35 minutes on 2 cores (12 runs of our route, 20 of its ablations)"
 TIERS = {"quick": {"cases": ["phantom_subject_1"], "snr": [30.0], "seeds": [0], "frames": 8, "route": True},
          "full": {"cases": None, "snr": [30.0, 8.0], "seeds": [0, 1, 2], "frames": None, "route": True}}
 #: Noise draws are seeded, our route is deterministic; timings are not compared.
@@ -71,7 +74,11 @@ METRICS = ("pixel_rmse_Ecc", "pixel_rmse_Err", "global_peak_error_Ecc", "global_
 OURS = "ours (DENSE route)"
 #: ``resolution_px="acquisition"``: the case's acquired resolution, with the background signal of its magnitude.
 ABLATIONS = {"ours, process noise by the evidence": {"process_fraction": None},
-             "ours, acquisition PSF in the observation": {"resolution_px": "acquisition"}}
+             "ours, acquisition PSF in the observation": {"resolution_px": "acquisition"},
+             "ours, PSF + mask borders": {"resolution_px": "acquisition", "border_masks": True},
+             "ours, PSF + mask borders, phase level by evidence": {"resolution_px": "acquisition",
+                                                                  "border_masks": True,
+                                                                  "phase_noise_level": "evidence"}}
 NODAL_FIT = "nodal fit per frame (no dynamics)"
 
 
@@ -148,14 +155,16 @@ def run_case(folder: Path, snr: float, seed: int, frames=None, route: bool = Tru
         if kw.get("resolution_px") == "acquisition":
             kw = {**kw, "resolution_px": noisy.resolution_px}
             background = background_signal(noisy)
-        r = dense_strain(tracks, noisy.reference_mask, noisy.pixel_size_m, StrainRouteSettings(**kw),
-                         background=background)
+        cfg = StrainRouteSettings(**kw)
+        r = dense_strain(tracks, noisy.reference_mask, noisy.pixel_size_m, cfg, background=background,
+                         masks=noisy.masks if cfg.border_masks else None)
         sc = score_strain(r.Ecc, r.Err, t_ecc, t_err, r.points, r.centre, start_deg=r.start_deg,
                           ecc_band=r.band("Ecc"), err_band=r.band("Err"),
                           pixel_bands={q: r.band(q, "pixels") for q in ("Ecc", "Err")},
                           global_bands={q: r.band(q, "global") for q in ("Ecc", "Err")})
         rows.append(_row(base, method, sc, t_tracks + time.perf_counter() - t1, c_tracks + time.process_time() - c1,
                          {"noise_scale_ml": r.settings.get("noise_scale_ml"),
+                          "phase_noise_scale": r.settings.get("phase_noise_scale"),
                           "process_fraction": r.settings.get("process_fraction"),
                           "resolution_px": r.settings.get("resolution_px")}))
     if ablations:
@@ -247,7 +256,10 @@ def markdown(results: dict) -> str:
              "chosen by its evidence (type-II maximum likelihood) instead of 0.1 of the noise floor; the route whose "
              "observation operator blurs the model by the acquisition's point spread (a Gaussian of FWHM the "
              "acquired pixel, from the case's config) over the tissue, with the complex signal the images show "
-             "around the myocardium mixed in at the borders, instead of observing it at the pixel centre; and each "
+             "around the myocardium mixed in at the borders, instead of observing it at the pixel centre; the PSF "
+             "route with the case's myocardium masks of every frame fused in (each border node's motion across the "
+             "border, the contours route's data and sd), the phase data at their stated sd or at their own "
+             "maximum-likelihood level; and each "
              "frame's nodal "
              "least-squares fit alone. Process fraction: the route's process noise per frame over the noise floor "
              "(mean over the seeds). Resolution: the acquired resolution (reconstructed pixels) the observation "

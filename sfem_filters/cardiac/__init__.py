@@ -34,7 +34,8 @@ the spline of its residual, and intervals for a difference of held-out errors),
 :mod:`~sfem_filters.cardiac.strain_route` (DENSE displacements to Green strain with its sd and banded curves;
 its mesh and model in :mod:`~sfem_filters.cardiac.dense_model`, its gradients and bands in
 :mod:`~sfem_filters.cardiac.strain_bands`),
-:mod:`~sfem_filters.cardiac.contours_route` (the same from myocardium masks alone: tracked borders, elastic interior).
+:mod:`~sfem_filters.cardiac.contours_route` (the same from myocardium masks alone: tracked borders, elastic interior;
+the masks' border data, which the DENSE route can also fuse, in :mod:`~sfem_filters.cardiac.border_data`).
 """
 from .annulus import annulus_mask, annulus_sequence, deformed_masks
 from .closing import (

@@ -27,7 +27,9 @@ The contours route of issue 42 (item 2), Shi & Liu (2003) section 2.6 as a strai
    own normal displacement, the hat-weighted mean of its landmarks' motion across the border
    (:func:`border_node_data`). Fitting the points to the polygon's nodes instead would read the
    small angle between adjacent edges as information about the nodes' sliding and amplify the
-   normals' noise about tenfold into it.
+   normals' noise about tenfold into it. Steps 1-3 are :func:`mask_border_data` of
+   :mod:`sfem_filters.cardiac.border_data` (re-exported here), which the DENSE route also stacks
+   with its phase data (``StrainRouteSettings.border_masks``).
 4. **The interior from the physics.** No datum lies inside the wall. The prior says the wall
    moves as an elastic body: each frame's *change* of displacement is a Gaussian field whose
    precision is the stiffness (its log density minus the elastic energy, :func:`elastic_prior`;
@@ -91,22 +93,23 @@ from ..fem.observation import point_observation_matrix
 from ..filtering.iterated import IteratedSmoother
 from ..filtering.linearised import linearise
 from ..filtering.smoother import smooth
-from ..imaging.contours import check_myocardium_mask, mask_borders
+from ..imaging.contours import check_myocardium_mask
 from ..imaging.spline_strain import SplineStrain, spline_strain
 from ..imaging.strain import N_SEGMENTS, mask_centre, segment_labels
-from ..imaging.tracking import BoundaryTracks, TrackingOptions, track_masks
+from ..imaging.tracking import BoundaryTracks
+# the masks' data on the border nodes live in border_data (the DENSE route fuses them too): re-exported here
+from .border_data import (LANDMARK_SPACING_PX, MIN_LANDMARKS, QUANTISATION_SD_PX, border_node_data,
+                          contour_landmark_tracks, landmark_sd, mask_border_data)
 from .measured import NOMINAL
 from .strain_route import (Z95, DenseStrain, NodalFitModel, compliant_modulus, element_gradient_operator,
-                           linearised_rows, observation_points, reference_mesh, strain_and_sd, temporal_noise_floor)
+                           linearised_rows, observation_points, reference_mesh, strain_and_sd)
 # the DENSE route's rows of the element gradients and curves for the smoother's variances (the same maths here)
 from .strain_route import _covariance_from_rows, _curve_rows, _element_of, _gradient_rows
 
 __all__ = ["ContourRouteSettings", "ContourStrain", "contour_strain", "contour_landmark_tracks", "elastic_extension",
-           "elastic_prior", "border_node_data", "landmark_sd", "contour_spline_strain", "QUANTISATION_SD_PX",
-           "INTERIOR_FREEDOM"]
+           "elastic_prior", "border_node_data", "landmark_sd", "mask_border_data", "contour_spline_strain",
+           "QUANTISATION_SD_PX", "INTERIOR_FREEDOM"]
 
-#: Sd (px) of a border placed by a binary mask: uniform within one pixel, ``1 / sqrt(12)``.
-QUANTISATION_SD_PX = 1.0 / np.sqrt(12.0)
 #: White process noise on every dof, relative to the border's: only keeps Q invertible.
 INTERIOR_FREEDOM = 1e-3
 
@@ -158,13 +161,13 @@ class ContourRouteSettings:
         the reference mask.
     """
 
-    landmark_spacing_px: float = 1.0
+    landmark_spacing_px: float = LANDMARK_SPACING_PX
     element_px: float = 2.5
     nu: float = NOMINAL["nu"]
     plane: str = "stress"
     normal_sd_px: float = QUANTISATION_SD_PX
     process_fraction: float = 0.1
-    min_landmarks: int = 16
+    min_landmarks: int = MIN_LANDMARKS
     along_border: str = "none"
     process_noise: str = "estimate"
     start_deg: float = 0.0
@@ -240,126 +243,6 @@ def _check_inputs(masks, pixel_size_m, frame_times_s) -> tuple:
     if np.any(np.diff(t) <= 0) or t[0] <= 0:
         raise ValueError("frame_times_s: expected strictly increasing times (s) after the reference at t = 0")
     return m, s, t
-
-
-# ----------------------------------------------------------------------------- the landmarks
-def contour_landmark_tracks(masks, spacing_px: float = 1.0, min_landmarks: int = 16) -> BoundaryTracks:
-    """Endo- and epicardial landmarks of ``masks[0]``, tracked through the masks (Eqs. 35-37).
-
-    The number of landmarks of each contour is its length (pixels) over ``spacing_px``, at least
-    ``min_landmarks``; the tracker's other options are its defaults
-    (:class:`sfem_filters.imaging.tracking.TrackingOptions`).
-
-    Parameters
-    ----------
-    masks : (F + 1, H, W) bool array
-        Myocardium masks, index 0 the reference.
-    """
-    m = np.asarray(masks, bool)
-    b = mask_borders(m[0], 64, 96)
-    lengths = [float(np.sum(np.linalg.norm(np.diff(np.vstack([c, c[:1]]), axis=0), axis=1))) for c in (b.endo, b.epi)]
-    n = [max(int(min_landmarks), int(round(L / positive("spacing_px", spacing_px, "pixels")))) for L in lengths]
-    return track_masks(m, TrackingOptions(n_endo=n[0], n_epi=n[1]))
-
-
-def _normals(tracks: BoundaryTracks) -> np.ndarray:
-    """Outward-or-inward unit normals (L, 2) of the reference contours at the landmarks (the sign is irrelevant)."""
-    out = []
-    for k in (0, 1):
-        p = tracks.points[tracks.contour == k]
-        tg = np.roll(p, -1, axis=0) - np.roll(p, 1, axis=0)
-        tg /= np.linalg.norm(tg, axis=1, keepdims=True)
-        out.append(np.column_stack([tg[:, 1], -tg[:, 0]]))
-    return np.concatenate(out)
-
-
-def landmark_sd(tracks: BoundaryTracks, normal_sd_px: float) -> tuple:
-    """Normal and tangential sd (F, L) in pixels of the landmarks' displacement (frames after the reference).
-
-    Tangential: the tracker's accumulated sd. Normal: the larger of ``normal_sd_px`` and the
-    temporal noise floor of the displacement's normal component (second differences in time).
-    """
-    n = _normals(tracks)
-    d = tracks.displacement[1:]
-    dn = np.einsum("fpk,pk->fp", d, n)[..., None]
-    floor = temporal_noise_floor(dn) if len(d) >= 3 else 0.0
-    s_n = np.full(d.shape[:2], max(float(normal_sd_px), floor))
-    s_t = np.maximum(tracks.sigma[1:], s_n)
-    return s_n, s_t, floor
-
-
-def border_node_data(mesh: TriMesh, D, displacement_px, sd_normal_px, sd_tangent_px, pixel_size_m: float) -> tuple:
-    """The landmarks' motion as data on the border nodes: each node's normal and tangential displacement.
-
-    A tracked border point tells how the *curve* moved across itself; along a smooth curve it says
-    little. Fitting point displacements to the polygon's nodes would read the small angle between
-    adjacent edges as information about the nodes' sliding (``sin`` of half the angle between two
-    edges, ~0.1), amplifying the normals' noise tenfold into tangential motion. So each border node
-    ``a`` gets its own two data, in its own frame (outward normal ``n_a``: the mean of its two
-    boundary edges' normals; tangent ``t_a``): the hat-weighted mean over the landmarks on its two
-    edges (weights ``w_aj``, the landmark's shape-function weight on node ``a``) of ``n_a . d_j``
-    and ``t_a . d_j``, with variance ``sum_j w_aj^2 s_j^2 / (sum_j w_aj)^2`` (independent
-    landmarks; ``s_j`` the landmark's normal or tangential sd). The normal datum is a local mean of
-    the curve's motion over the node's two elements; a node no landmark touches has no datum.
-    Variance: the hat-weighted mean of the landmarks' variances, ``sum_j w_aj s_j^2 / sum_j w_aj``,
-    not the smaller variance of a mean of independent data: landmarks a pixel apart on a binary
-    border share its staircase, so their quantisation errors are correlated over a node's support.
-    With ``sd_tangent_px=None`` only the normal data are returned (one row per node).
-
-    Parameters
-    ----------
-    mesh : TriMesh
-        The mesh (m).
-    D : (2L, n_dofs) sparse matrix
-        The landmarks' point observation operator.
-    displacement_px : (F, L, 2) array
-        The landmarks' displacements (pixels).
-    sd_normal_px, sd_tangent_px : (F, L) arrays
-        Their sd across and along the border (pixels); ``sd_tangent_px`` None: no tangential data.
-    pixel_size_m : float
-
-    Returns
-    -------
-    H : (m, n_dofs) sparse matrix
-        Rows ``n_a`` (and ``t_a``) on node a's dofs, node by node.
-    y : (F, m) array
-        The data (m).
-    R : (F, m, m) array
-        Their (diagonal) covariance (m^2).
-    nodes : (k,) int array
-        The border nodes with data.
-    """
-    s = positive("pixel_size_m", pixel_size_m, "m")
-    edges = mesh.boundary_edges()
-    e = mesh.nodes[edges[:, 1]] - mesh.nodes[edges[:, 0]]
-    out = np.column_stack([e[:, 1], -e[:, 0]]) / np.linalg.norm(e, axis=1, keepdims=True)   # tissue on the left
-    normal = np.zeros((mesh.n_nodes, 2))
-    np.add.at(normal, edges[:, 0], out)
-    np.add.at(normal, edges[:, 1], out)
-    Wx = sp.csr_matrix(D)[0::2, 0::2].toarray()                          # (L, n_nodes) hat weights
-    Wx[Wx < 1e-6] = 0.0
-    total = Wx.sum(axis=0)
-    nodes = np.flatnonzero((total > 0) & (np.linalg.norm(normal, axis=1) > 0))
-    n = normal[nodes] / np.linalg.norm(normal[nodes], axis=1, keepdims=True)
-    t = np.column_stack([-n[:, 1], n[:, 0]])
-    W = Wx[:, nodes] / total[nodes]                                      # (L, k), columns sum to 1
-    d = np.asarray(displacement_px, float)
-    F = d.shape[0]
-    dirs = [n] if sd_tangent_px is None else [n, t]
-    sds = [sd_normal_px] if sd_tangent_px is None else [sd_normal_px, sd_tangent_px]
-    k, c = len(nodes), len(dirs)
-    y = np.empty((F, c * k))
-    R = np.zeros((F, c * k, c * k))
-    for f in range(F):
-        mean = W.T @ d[f]                                                # (k, 2) hat-weighted mean motion
-        for j, (e, sd) in enumerate(zip(dirs, sds)):
-            y[f, j::c] = np.sum(mean * e, axis=1)
-            R[f, np.arange(j, c * k, c), np.arange(j, c * k, c)] = W.T @ np.asarray(sd, float)[f] ** 2
-    rows = np.repeat(np.arange(c * k), 2)
-    cols = np.repeat(np.column_stack([2 * nodes, 2 * nodes + 1]), c, axis=0).ravel()
-    vals = np.stack(dirs, axis=1).reshape(-1)
-    H = sp.csr_matrix((vals, (rows, cols)), shape=(c * k, mesh.n_dofs))
-    return H, y * s, R * s * s, nodes
 
 
 def elastic_extension(mesh: TriMesh, boundary_dofs, nu: float) -> np.ndarray:
@@ -440,14 +323,12 @@ def contour_strain(masks, pixel_size_m: float, frame_times_s, settings: ContourR
     tracks = contour_landmark_tracks(m, cfg.landmark_spacing_px, cfg.min_landmarks)
     F = len(times)
     L = len(tracks.points)
-    s_n, s_t, floor_n = landmark_sd(tracks, cfg.normal_sd_px)
     say(f"{L} landmarks ({int(np.sum(tracks.contour == 0))} endo, {int(np.sum(tracks.contour == 1))} epi); "
         f"meshing the reference myocardium (gmsh, {cfg.element_px:g} px)")
     mesh = reference_mesh(mask, s, "gmsh", cfg.element_px)
-    Lin, moved = observation_points(mesh, tracks.points * s)
-    D = point_observation_matrix(mesh, Lin)
-    H, y, R, bnodes = border_node_data(mesh, D, tracks.displacement[1:], s_n,
-                                       s_t if cfg.along_border == "tracked" else None, s)
+    bd = mask_border_data(mesh, tracks, s, cfg.normal_sd_px, tangential=cfg.along_border == "tracked")
+    H, y, R, bnodes = bd.H, bd.y, bd.R, bd.nodes
+    s_n, s_t, floor_n, moved = bd.sd_normal_px, bd.sd_tangent_px, bd.floor_px, bd.moved_m
     bdofs = np.sort(np.concatenate([2 * bnodes, 2 * bnodes + 1]))
     T = float(np.median(np.diff(times)))
     alpha = NOMINAL["alpha"]

@@ -31,7 +31,7 @@ from .myocardium import lv_geometry, tissue_mesh
 __all__ = ["MESHES", "INFORMATION_FLOOR", "RELAXATION_CYCLES", "PROCESS_FRACTIONS", "reference_mesh",
            "observation_points", "nodal_fit", "NodalFitModel", "compliant_modulus", "temporal_noise_floor",
            "build_dense_model", "concentrated_log_evidence", "process_fraction_ml", "observation_operator",
-           "ObservationScaling"]
+           "ObservationScaling", "phase_noise_level"]
 
 #: How the reference myocardium is meshed (``mesh=``).
 MESHES = ("gmsh", "pixels")
@@ -332,7 +332,7 @@ def temporal_noise_floor(displacement) -> float:
 
 
 def build_dense_model(mesh: TriMesh, tracks: LagrangianDisplacement, pixel_size_m: float,
-                      settings: StrainRouteSettings, background=None) -> tuple:
+                      settings: StrainRouteSettings, background=None, border=None, phase_scale: float = 1.0) -> tuple:
     """The filter model of dense displacement data and its observations (module docstring, steps 2-3).
 
     Noise, by the data's own level: each datum's sd is the tracks' ``sd`` scaled up (never
@@ -344,8 +344,20 @@ def build_dense_model(mesh: TriMesh, tracks: LagrangianDisplacement, pixel_size_
     Observations through :func:`observation_operator` with ``settings.resolution_px`` and
     ``background`` (a :class:`~sfem_filters.imaging.dense.BackgroundSignal`, or None: a dark background).
 
-    Returns ``(model, y, info, points)``: a :class:`NodalFitModel`, the observations (F, n_dofs)
-    in m, a dict of what was derived, and the observed points (m, moved into the mesh).
+    ``border`` (a :class:`sfem_filters.cardiac.border_data.BorderData` on this mesh, or None): the
+    myocardium masks' data, each border node's motion across the border with the contours route's
+    sd (quantisation or their own temporal noise floor), stacked below the nodal fit in one model
+    (Shi & Liu's fusion of shape tracking with phase data): ``H = [I; H_b]``, ``y_t = [U^_t;
+    y_b,t]``, ``R_t = blockdiag(J_t^-1, R_b,t)``. The two are independent data of the same
+    displacement, so their log-likelihoods add; the phase data's noise rules above do not touch
+    the masks' rows (the masks carry no phase noise), and the process noise stays the phase
+    data's. ``phase_scale`` multiplies every covariance set from the phase data's noise (the nodal
+    fit's ``R``, the process and the initial covariance; 1: as stated), the masks' rows excepted:
+    :func:`phase_noise_level` gives it.
+
+    Returns ``(model, y, info, points)``: a :class:`NodalFitModel`, the observations (F, n_dofs),
+    or (F, n_dofs + m_b) with ``border``, in m, a dict of what was derived, and the observed
+    points (m, moved into the mesh).
     """
     s = positive("pixel_size_m", pixel_size_m, "m")
     X = tracks.points * s
@@ -372,12 +384,19 @@ def build_dense_model(mesh: TriMesh, tracks: LagrangianDisplacement, pixel_size_
     ground = NOMINAL["foundation"] * float(np.median(stiffness_matrix(mesh, material.E, material.nu).diagonal()))
     penalty = penalty_stiffness(mesh.n_dofs, np.arange(mesh.n_dofs), ground)
     H = sp.identity(mesh.n_dofs, format="csr")
+    # the initial state's sd from the phase data's nodal fit (before any border rows join y)
+    u0_sd = max(float(np.sqrt(np.mean(y[0] ** 2))), floor_px * s)
+    c = positive("phase_scale", phase_scale)
+    R = R * c
+    u0_sd *= np.sqrt(c)
+    border_info = {}
+    if border is not None:
+        H, y, R, border_info = _stack_border(H, y, R, border, mesh, s)
     if settings.process_fraction is None:
         raise ValueError("settings: expected a process_fraction (None is resolved by process_fraction_ml)")
-    q = settings.process_fraction * floor_px * s
+    q = settings.process_fraction * floor_px * s * np.sqrt(c)
     # the initial state: at rest in the reference configuration (encoding time, t = 0), uncertain
-    # by the first frame's displacement (frame 0 is 22.5 ms after the encoding, already moved)
-    u0_sd = max(float(np.sqrt(np.mean(y[0] ** 2))), floor_px * s)
+    # by the first frame's displacement (frame 0 is 22.5 ms after the encoding, already moved): u0_sd above
     model = NodalFitModel(mesh, material, np.zeros((F, mesh.n_dofs)), H, T, (), density=NOMINAL["density"],
                           alpha=alpha, beta=NOMINAL["beta"], measurement_std=1.0,
                           process_std=(q, q / T), initial_std=(u0_sd, u0_sd / T), effects=effs, penalty=penalty,
@@ -387,8 +406,62 @@ def build_dense_model(mesh: TriMesh, tracks: LagrangianDisplacement, pixel_size_
             "process_std_px": q / s, "frame_interval_s": T, "E_Pa": E, "alpha_per_s": alpha,
             "wall_thickness_px": _wall_thickness(mesh) / s,
             "initial_std_px": u0_sd / s, "observation_tissue_weight_mean": float(scaling.tissue.mean()),
-            "observation_background_offset_rms_px": float(np.sqrt(np.mean(scaling.offset ** 2)))}
+            "observation_background_offset_rms_px": float(np.sqrt(np.mean(scaling.offset ** 2))),
+            "phase_noise_scale": c, **border_info}
     return model, y, info, Xin
+
+
+def _stack_border(H, y, R, border, mesh: TriMesh, pixel_size_m: float) -> tuple:
+    """``[H; H_b]``, ``[y, y_b]`` and ``blockdiag(R, R_b)`` per frame, and what the border rows are."""
+    for name in ("H", "y", "R", "nodes", "tracks", "floor_px"):
+        if not hasattr(border, name):
+            raise TypeError(f"border: expected a BorderData (sfem_filters.cardiac.border_data.mask_border_data), "
+                            f"got {type(border).__name__}")
+    Hb = sp.csr_matrix(border.H)
+    yb = np.asarray(border.y, float)
+    Rb = np.asarray(border.R, float)
+    F, n = y.shape
+    m = Hb.shape[0]
+    if Hb.shape[1] != mesh.n_dofs:
+        raise ValueError(f"border: expected rows on this mesh's {mesh.n_dofs} dofs, got H of shape {Hb.shape}")
+    if yb.shape != (F, m) or Rb.shape != (F, m, m):
+        raise ValueError(f"border: expected the data of F = {F} frames, got y {yb.shape} and R {Rb.shape} for "
+                         f"{m} rows")
+    if not (np.all(np.isfinite(yb)) and np.all(np.isfinite(Rb))):
+        raise ValueError("border: expected finite data and covariances")
+    Rs = np.zeros((F, n + m, n + m))
+    Rs[:, :n, :n] = R
+    Rs[:, n:, n:] = Rb
+    sd = np.sqrt(np.diagonal(Rb, axis1=1, axis2=2))
+    info = {"border_rows": int(m), "border_nodes": int(len(border.nodes)),
+            "border_landmarks": int(len(border.tracks.points)),
+            "border_sd_px_range": [float(sd.min() / pixel_size_m), float(sd.max() / pixel_size_m)],
+            "border_normal_noise_floor_px": float(border.floor_px)}
+    return sp.vstack([H, Hb], format="csr"), np.hstack([y, yb]), Rs, info
+
+
+def phase_noise_level(mesh: TriMesh, tracks: LagrangianDisplacement, pixel_size_m: float,
+                      settings: StrainRouteSettings, background=None) -> float:
+    """The phase data's own noise level by type-II maximum likelihood, from one filter pass without the masks.
+
+    The phase-only model (:func:`build_dense_model`) sets R, the process and the initial
+    covariance from the phase data's noise floor; scaling all three by one factor leaves its
+    estimate unchanged, and the factor of largest evidence is the mean normalised innovation
+    squared per observed row (closed form, Harvey 1989 sec. 3.4; the DENSE route's step 6 a). So
+    a model that fuses the masks can take the phase data at their *own* level (this factor, the
+    masks' rows at theirs: the quantisation or their temporal floor) instead of at the stated one:
+    then the two sources are weighed by the noise each shows, not by the phase data's nominal sd
+    (which holds neither the phase texture's correlation nor the tracks' bias, and so comes out
+    several times too small on DENSE-Sim: the route's ``noise_scale_ml``).
+    """
+    model, y, _, _ = build_dense_model(mesh, tracks, pixel_size_m, settings, background)
+    fw = kalman_forward(linearise(model, np.zeros((y.shape[0], model.dim_x))), y, store=False,
+                        check_every_frame=False)
+    nis, n = np.asarray(fw.nis, float), np.asarray(fw.n_obs, float)
+    ok = np.isfinite(nis) & (n > 0)
+    if not ok.any():
+        raise ValueError("tracks: expected some observed frame for the phase data's noise level, got none")
+    return float(np.sum(nis[ok]) / np.sum(n[ok]))
 
 
 def _wall_thickness(mesh: TriMesh) -> float:
@@ -419,7 +492,7 @@ def concentrated_log_evidence(log_likelihood: float, nis_sum: float, n_obs: int)
 
 def process_fraction_ml(mesh: TriMesh, tracks: LagrangianDisplacement, pixel_size_m: float,
                         settings: StrainRouteSettings, candidates=PROCESS_FRACTIONS, progress=None,
-                        background=None) -> tuple:
+                        background=None, border=None) -> tuple:
     """The process noise fraction of largest evidence (type-II maximum likelihood), from the data alone.
 
     For each candidate, one Kalman filter pass (no smoothing, nothing stored) of the route's
@@ -438,6 +511,9 @@ def process_fraction_ml(mesh: TriMesh, tracks: LagrangianDisplacement, pixel_siz
     pixel's noise is partly predictable from its neighbours and the cross-validation error keeps
     falling as the smoothing weakens.
 
+    ``background`` and ``border`` as :func:`build_dense_model`'s (the masks' border rows, when given,
+    are part of the data whose evidence is compared).
+
     Returns ``(q, table)``: the chosen fraction and ``{candidate: [log-evidence, c]}``.
     """
     say = progress if progress is not None else (lambda msg: None)
@@ -447,7 +523,7 @@ def process_fraction_ml(mesh: TriMesh, tracks: LagrangianDisplacement, pixel_siz
     table, evid = {}, []
     for q in qs:
         model, y, _, _ = build_dense_model(mesh, tracks, pixel_size_m, replace(settings, process_fraction=q),
-                                           background)
+                                           background, border)
         fw = kalman_forward(linearise(model, np.zeros((y.shape[0], model.dim_x))), y, store=False,
                             check_every_frame=False)
         ev, c = concentrated_log_evidence(fw.log_likelihood, float(np.nansum(fw.nis)), int(np.sum(fw.n_obs)))

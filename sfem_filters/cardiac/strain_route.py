@@ -37,6 +37,29 @@ The DENSE route of issue 42 (items 3 and 4), as a library function, :func:`dense
    :func:`observation_operator`) and the frame's background rescales each datum (``n y = D U``,
    so :func:`nodal_fit` is unchanged). Default 1: the point interpolation above; the validation
    page's ablation row reports the operator at the acquisition's width and what it trades.
+
+   *Fused with the masks* (``border_masks=True``, ``masks=`` of every frame; Shi & Liu's fusion
+   of shape tracking with phase-contrast data in one filter): the endocardial border of a mask
+   shows the wall's thickening directly, free of the cavity signal that leaks into the
+   endocardial pixels' phase through the point spread. The masks' data are the contours route's,
+   exactly (:func:`border_masks_data`, :mod:`sfem_filters.cardiac.border_data`): landmarks of
+   the reference mask's borders tracked through the masks by bending-energy matching, each
+   border node's motion *across* the border (the masks do not see the sliding along it), sd the
+   larger of the mask's quantisation ``1 / sqrt(12)`` px and the landmarks' own temporal noise
+   floor across the border. They are stacked below the nodal fit (``H = [I; H_b]``, ``R_t =
+   blockdiag(J_t^-1, R_b,t)``, :func:`build_dense_model`): independent data of the same
+   displacement, so the two likelihoods add and the smoother weighs each by its own noise. The
+   masks are of the current frame and the landmarks are Lagrangian, so no Eulerian inversion is
+   involved. Step 6 is unchanged (the excess error is still measured against the phase tracks'
+   finite differences, so where the masks pull the estimate away from biased tracks the bands
+   widen). At their stated levels the phase data, many pixels a node, outweigh the masks' one
+   datum a border node several times over; the route's own ML noise scale (step 6 a) says the
+   phase data's stated sd is several times too small, and the masks' has no such factor. So
+   ``phase_noise_level="evidence"`` first scales the phase data's covariances (R, process,
+   initial) by their own type-II ML level from one filter pass without the masks
+   (:func:`phase_noise_level`; alone this factor changes no estimate), then stacks the masks at
+   theirs: each source weighed by the noise it shows. Which to use is an empirical question the
+   masks' own accuracy decides (masks that under-report the thickening pull the estimate down).
 3. **Estimator.** :class:`sfem_filters.model.SFEMModel` (plane-strain linear elasticity, Eq. 19)
    estimated by :class:`sfem_filters.filtering.iterated.IteratedSmoother`; with the material
    fixed the model is linear and its MAP is one Kalman-RTS pass. The configuration is chosen for
@@ -145,7 +168,7 @@ from typing import ClassVar
 import numpy as np
 import scipy.sparse as sp
 
-from .._validate import as_float_array, positive
+from .._validate import as_float_array, as_mask, positive
 from ..imaging.dense import check_resolution_px
 from ..fem.mesh import TriMesh
 from ..fem.observation import point_observation_matrix
@@ -155,9 +178,11 @@ from ..filtering.smoother import smooth
 from ..imaging.dense import LagrangianDisplacement
 from ..imaging.strain import N_SEGMENTS, Z95, StrainEstimate, displacement_gradient, global_curve, green_strain, \
     json_list, mask_centre, project_strain, segment_labels
+from .border_data import BorderData, contour_landmark_tracks, mask_border_data
 from .dense_model import INFORMATION_FLOOR, MESHES, PROCESS_FRACTIONS, RELAXATION_CYCLES, NodalFitModel, \
     build_dense_model, compliant_modulus, concentrated_log_evidence, nodal_fit, observation_points, \
-    ObservationScaling, observation_operator, process_fraction_ml, reference_mesh, temporal_noise_floor
+    ObservationScaling, observation_operator, phase_noise_level, process_fraction_ml, reference_mesh, \
+    temporal_noise_floor
 from .measured import NOMINAL
 from .strain_bands import STRAINS, _component_rows, _covariance_from_blocks, curve_noise_variance, \
     discrepancy_variance, element_gradient_operator, gradient_operators, linearised_disagreement, linearised_rows, \
@@ -171,7 +196,11 @@ __all__ = ["StrainRouteSettings", "DenseStrain", "NodalFitModel", "reference_mes
            "RELAXATION_CYCLES", "Z95", "STRAINS", "gradient_operators", "point_variance", "discrepancy_variance",
            "noise_scale", "DenseRouteStrain", "linearised_disagreement", "curve_noise_variance", "curve_discrepancy",
            "PROCESS_FRACTIONS", "process_fraction_ml", "concentrated_log_evidence", "observation_operator",
-           "ObservationScaling"]
+           "ObservationScaling", "border_masks_data", "phase_noise_level", "PHASE_NOISE_LEVELS"]
+
+
+#: How the phase data's noise level is set beside the masks (``StrainRouteSettings.phase_noise_level``).
+PHASE_NOISE_LEVELS = ("stated", "evidence")
 
 
 @dataclass(frozen=True)
@@ -225,6 +254,17 @@ class StrainRouteSettings:
         (:func:`observation_operator`, step 2). 1 (default): no blur beyond the pixel, point
         interpolation. Callers with images take it from the acquisition
         (:attr:`sfem_filters.imaging.DenseCase.resolution_px`), never from a fit to a case.
+    border_masks : bool
+        Also observe the myocardium masks of every frame (:func:`dense_strain` ``masks``): each
+        border node's motion across the border, from landmarks tracked through the masks by
+        bending-energy matching, with the contours route's sd, stacked with the phase data in one
+        model (module docstring, step 2, *fused with the masks*). Default False: the phase alone.
+    phase_noise_level : {"stated", "evidence"}
+        With ``border_masks``: the level at which the phase data join the masks. ``"stated"``
+        (default): the phase data's sd as the route states it (step 3), the masks' by the contours
+        route's rule. ``"evidence"``: the phase data's covariances (R, process, initial) times
+        their own maximum-likelihood level from one filter pass of the phase data alone
+        (:func:`phase_noise_level`), so that each source is weighed by the noise it shows.
     """
 
     mesh: str = "gmsh"
@@ -240,15 +280,22 @@ class StrainRouteSettings:
     noise_scale: bool = True
     discrepancy: bool = True
     resolution_px: float = 1.0
+    border_masks: bool = False
+    phase_noise_level: str = "stated"
 
     def __post_init__(self):
         if self.mesh not in MESHES:
             raise ValueError(f"mesh: expected one of {MESHES}, got {self.mesh!r}")
         if self.strain not in STRAINS:
             raise ValueError(f"strain: expected one of {STRAINS}, got {self.strain!r}")
-        for name in ("noise_scale", "discrepancy"):
+        for name in ("noise_scale", "discrepancy", "border_masks"):
             if not isinstance(getattr(self, name), (bool, np.bool_)):
                 raise TypeError(f"{name}: expected True or False, got {getattr(self, name)!r}")
+        if self.phase_noise_level not in PHASE_NOISE_LEVELS:
+            raise ValueError(f"phase_noise_level: expected one of {PHASE_NOISE_LEVELS}, got {self.phase_noise_level!r}")
+        if self.phase_noise_level == "evidence" and not self.border_masks:
+            raise ValueError("phase_noise_level: 'evidence' weighs the phase data against the masks; it needs "
+                             "border_masks=True (alone, a common level changes no estimate: noise_scale does that)")
         positive("element_px", self.element_px, "pixels")
         object.__setattr__(self, "resolution_px", check_resolution_px(self.resolution_px))
         if self.E is not None:
@@ -326,8 +373,48 @@ def curve_discrepancy(diffs, estimates) -> np.ndarray:
     return tau
 
 
+def border_masks_data(masks, reference_mask, n_frames: int, mesh: TriMesh, pixel_size_m: float) -> BorderData:
+    """The myocardium masks as border-node data on the DENSE route's mesh (module docstring, step 2).
+
+    The contours route's data exactly (:func:`sfem_filters.cardiac.border_data.mask_border_data`,
+    its default landmark spacing, least landmarks and sd rule: the larger of the mask's
+    quantisation and the landmarks' own temporal noise floor across the border; no number chosen
+    here).
+
+    Parameters
+    ----------
+    masks : (F + 1, H, W) or (F, H, W) bool array
+        Myocardium masks: the reference (``reference_mask``) then each frame's, or each frame's
+        alone (the reference is then prepended).
+    reference_mask : (H, W) bool array
+        The reference myocardium, meshed into ``mesh``.
+    n_frames : int
+        F, the frames of the phase data.
+    mesh : TriMesh
+        The route's mesh of ``reference_mask`` (m).
+    pixel_size_m : float
+    """
+    ref = as_mask("reference_mask", reference_mask, 2, nonempty=True)
+    F = int(n_frames)
+    m = as_mask("masks", masks, 3)
+    if m.shape[1:] != ref.shape or m.shape[0] not in (F, F + 1):
+        raise ValueError(f"masks: expected the myocardium masks of the {F} frames, (F + 1, H, W) = ({F + 1}, "
+                         f"{ref.shape[0]}, {ref.shape[1]}) with the reference first or (F, H, W) = ({F}, "
+                         f"{ref.shape[0]}, {ref.shape[1]}), got shape {m.shape}")
+    if m.shape[0] == F + 1 and not np.array_equal(m[0], ref):
+        raise ValueError("masks: expected masks[0] to be the reference mask (the one whose pixels are the tracks' "
+                         "points), got a different mask")
+    if m.shape[0] == F:
+        m = np.concatenate([ref[None], m])
+    empty = np.flatnonzero(~m.any(axis=(1, 2)))
+    if empty.size:
+        raise ValueError(f"masks: expected myocardium in every frame's mask, got none in mask(s) {empty.tolist()}")
+    return mask_border_data(mesh, contour_landmark_tracks(m), pixel_size_m)
+
+
 def dense_strain(tracks: LagrangianDisplacement, reference_mask, pixel_size_m: float,
-                 settings: StrainRouteSettings | None = None, progress=None, background=None) -> DenseRouteStrain:
+                 settings: StrainRouteSettings | None = None, progress=None, background=None,
+                 masks=None) -> DenseRouteStrain:
     """The DENSE route: tracks in, Green-Lagrange strain with sd and curves with 95% bands out.
 
     Parameters
@@ -346,6 +433,10 @@ def dense_strain(tracks: LagrangianDisplacement, reference_mask, pixel_size_m: f
         The complex signal around the myocardium at each frame
         (:func:`sfem_filters.imaging.dense.background_signal`), for the observation operator when
         ``settings.resolution_px > 1``; None: a dark background.
+    masks : (F + 1, H, W) or (F, H, W) bool array, optional
+        The myocardium masks of the reference and every frame (or of every frame), required with
+        ``settings.border_masks`` (and only then): their border nodes' motion across the border
+        is stacked with the phase data (:func:`border_masks_data`).
 
     Returns
     -------
@@ -363,16 +454,31 @@ def dense_strain(tracks: LagrangianDisplacement, reference_mask, pixel_size_m: f
     X = tracks.points
     if len(rows) != len(X) or not np.array_equal(np.column_stack([cols, rows]).astype(float), X):
         raise ValueError("reference_mask: expected the mask whose pixels (row-major) are tracks.points")
+    if cfg.border_masks and masks is None:
+        raise ValueError("masks: expected the myocardium masks of the reference and every frame, (F + 1, H, W), with "
+                         "settings.border_masks=True, got None")
+    if masks is not None and not cfg.border_masks:
+        raise ValueError("masks: given, but settings.border_masks is False; set border_masks=True to observe them "
+                         "(or leave masks out)")
     centre = mask_centre(mask) if cfg.centre is None else np.asarray(cfg.centre, float)
     say(f"meshing the reference myocardium ({cfg.mesh}, {cfg.element_px:g} px)")
     mesh = reference_mesh(mask, s, cfg.mesh, cfg.element_px)
+    border = None
+    if cfg.border_masks:
+        say("tracking the myocardium masks' borders (bending energy, Eqs. 35-37): their motion across the border "
+            "joins the phase data")
+        border = border_masks_data(masks, mask, tracks.displacement.shape[0], mesh, s)
     q_table = None
     if cfg.process_fraction is None:
         say(f"choosing the process noise by its evidence ({len(PROCESS_FRACTIONS)} filter passes)")
-        q_ml, q_table = process_fraction_ml(mesh, tracks, s, cfg, progress=say, background=background)
+        q_ml, q_table = process_fraction_ml(mesh, tracks, s, cfg, progress=say, background=background, border=border)
         cfg = replace(cfg, process_fraction=q_ml)
+    c_phase = 1.0
+    if cfg.phase_noise_level == "evidence":
+        say("the phase data's own noise level by its evidence (one filter pass without the masks)")
+        c_phase = phase_noise_level(mesh, tracks, s, cfg, background)
     say(f"mesh: {mesh.n_nodes} nodes, {mesh.n_elements} triangles; building the model")
-    model, y, info, Xin = build_dense_model(mesh, tracks, s, cfg, background)
+    model, y, info, Xin = build_dense_model(mesh, tracks, s, cfg, background, border, phase_scale=c_phase)
     F, P = tracks.displacement.shape[:2]
     say(f"smoothing {F} frames ({model.dim_state} states)")
     result = IteratedSmoother(covariance=False).run(model, y)

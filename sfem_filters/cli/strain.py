@@ -81,6 +81,19 @@ def add_parser(sub) -> None:
                         "Rows and Columns over its AcquisitionMatrix; 1 when they say nothing). Default 1: point "
                         "observation at the pixel centres (the validated default; the docs' validation page reports "
                         "both)")
+    s.add_argument("--with-masks", action="store_true",
+                   help="dense route: also observe the myocardium masks of every frame (Shi & Liu's fusion of shape "
+                        "tracking with phase data in one model): the endo- and epicardial borders tracked through the "
+                        "masks by bending-energy matching, each border node's motion across the border with the "
+                        "contours route's sd (the mask's quantisation or the borders' own temporal noise floor), "
+                        "stacked with the phase data. Needs each frame's mask: DENSE-Sim folders carry them; a DICOM "
+                        "folder's --masks (F, H, W) or (F + 1, H, W); a sequence file's reference_mask and "
+                        "frame_masks. Default: the phase alone")
+    s.add_argument("--phase-noise-level", choices=("stated", "evidence"), default=None,
+                   help="with --with-masks: the level at which the phase data join the masks. stated (default): the "
+                        "phase data's sd as the route states it (their sd scaled to their temporal noise floor); "
+                        "evidence: that times the phase data's own maximum-likelihood noise level from one filter "
+                        "pass without the masks (each source weighed by the noise it shows; one pass more)")
     s.add_argument("--csv", metavar="PATH",
                    help="also write the report as one tidy CSV table (one row per method, region = pixel, global "
                         "or segment, frame and component; PATH ending .gz is compressed); see the how-to page "
@@ -99,6 +112,17 @@ def cmd_strain(args) -> int:
     case, tracks = src["case"], src["tracks"]
     if args.route == "contours" and getattr(args, "resolution_px", None) is not None:
         _observation_inputs(args, case)                          # says --resolution-px is for the dense route
+    with_masks = bool(getattr(args, "with_masks", False))
+    phase_level = getattr(args, "phase_noise_level", None)
+    if phase_level is not None and not with_masks:
+        raise ValueError("--phase-noise-level: weighs the phase data against the masks; give --with-masks too")
+    if with_masks and args.route != "dense":
+        raise ValueError("--with-masks: is for the dense route (it adds the masks to the phase data); the contours "
+                         "route observes the masks alone")
+    if with_masks and (src["masks"] is None or not src.get("frame_masks_given", False)):
+        raise ValueError("--with-masks: expected the myocardium mask of every frame, got "
+                         + ("none (the sequence file has no reference_mask and frame_masks)" if src["masks"] is None
+                            else "one mask for every frame (--masks (H, W)); give --masks (F, H, W) or (F + 1, H, W)"))
     if args.route == "contours":       # the masks alone (no phase): tracked borders, interior from the physics
         if src["masks"] is None:
             raise ValueError("--route contours: expected the myocardium masks of the reference and of every frame; the "
@@ -108,8 +132,10 @@ def cmd_strain(args) -> int:
     else:
         resolution, background = _observation_inputs(args, case)
         ours = dense_strain(tracks, src["reference_mask"], src["pixel_size_m"],
-                            StrainRouteSettings(start_deg=args.segment_start, resolution_px=resolution), progress=say,
-                            background=background)
+                            StrainRouteSettings(start_deg=args.segment_start, resolution_px=resolution,
+                                                border_masks=with_masks,
+                                                phase_noise_level=phase_level or "stated"), progress=say,
+                            background=background, masks=src["masks"] if with_masks else None)
     centre = ours.centre if ours.centre is not None else mask_centre(src["reference_mask"])
     conv = conventional_from_displacement(tracks, centre, sigma=args.conventional_sigma, start_deg=args.segment_start)
     out = ours.to_dict()

@@ -27,8 +27,10 @@ def _strain_input(args, say) -> dict:
 
     Returns a dict: ``case`` (the :class:`~sfem_filters.imaging.DenseCase`, ``None`` for a
     sequence), ``tracks`` (Lagrangian, pixels), ``reference_mask``, ``masks`` ((F + 1, H, W) for
-    the contours route, or ``None``), ``pixel_size_m``, ``frame_times_s``, ``conventional`` (what
-    the conventional analysis is) and ``input`` (the settings block that says what was read)."""
+    the contours route and ``--with-masks``, or ``None``; ``frame_masks_given``: whether they are
+    each frame's own, not the reference repeated), ``pixel_size_m``, ``frame_times_s``,
+    ``conventional`` (what the conventional analysis is) and ``input`` (the settings block that
+    says what was read)."""
     path = args.path
     if os.path.isfile(path):
         return _sequence_input(args, say)
@@ -43,8 +45,10 @@ def _strain_input(args, say) -> dict:
                              f"(config.yaml), masks and directions")
         case = read_dense_sim(path)
         info = {"kind": "DENSE-Sim case folder", "path": path}
+        per_frame = True
     elif _has_dicom_file(path):
         case, info = _dicom_case(args, path)
+        per_frame = info["masks_shape"] is not None and len(info["masks_shape"]) == 3
     else:
         raise ValueError(f"path: expected a DENSE-Sim case folder with {_CASE_FILES}, a folder of DENSE DICOM files or "
                          f"a sequence .npz, got {path!r}")
@@ -54,7 +58,8 @@ def _strain_input(args, say) -> dict:
     say("phase to Lagrangian displacement")
     tracks = phase_to_displacement(case)
     return {"case": case, "tracks": tracks, "reference_mask": case.reference_mask, "masks": case.masks,
-            "pixel_size_m": case.pixel_size_m, "frame_times_s": case.frame_times_s, "input": info,
+            "frame_masks_given": per_frame, "pixel_size_m": case.pixel_size_m, "frame_times_s": case.frame_times_s,
+            "input": info,
             "conventional": "finite-difference Green-Lagrange strain on the reference pixel grid of the Lagrangian "
                             "tracks from the unwrapped phase (the same tracks the DENSE route observes)"}
 
@@ -139,7 +144,7 @@ def _dicom_case(args, path: str) -> tuple:
         raise ValueError(re.sub(r"\b(ke_cycles_per_mm|phase_range)\b", lambda m: _DICOM_ARGUMENTS[m.group(1)],
                                 text)) from None
     info = {"kind": "DENSE DICOM folder", "path": path, "provenance": case.provenance, "ke_cycles_per_mm": args.ke,
-            "masks": args.masks, "directions": case.directions.tolist(),
+            "masks": args.masks, "masks_shape": list(np.shape(masks)), "directions": case.directions.tolist(),
             "phase_range": None if args.phase_range is None else list(args.phase_range)}
     return case, info
 
@@ -187,6 +192,7 @@ def _sequence_input(args, say) -> dict:
             "sd": sd_source, "reference_mask": "reference_mask" if seq.reference_mask is not None else
             "the points' pixels", "points_reordered": bool(not np.array_equal(tracks.points, seq.points))}
     return {"case": None, "tracks": tracks, "reference_mask": mask, "masks": masks,
-            "pixel_size_m": seq.pixel_spacing, "frame_times_s": times, "input": info,
+            "frame_masks_given": masks is not None, "pixel_size_m": seq.pixel_spacing, "frame_times_s": times,
+            "input": info,
             "conventional": "finite-difference Green-Lagrange strain of the sequence's tracks on the reference pixel "
                             "grid (no images: the tracks are the data)"}

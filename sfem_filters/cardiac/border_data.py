@@ -1,0 +1,237 @@
+"""Myocardium masks as data on a mesh's border nodes: each border node's motion across the border.
+
+Shared by the contours route (:mod:`sfem_filters.cardiac.contours_route`, whose only data these are;
+its module docstring, steps 1-3, says why each rule) and the DENSE route
+(:mod:`sfem_filters.cardiac.strain_route`, ``border_masks=True``: these rows stacked with the phase
+data in one model, Shi & Liu's fusion of shape tracking with phase-contrast data):
+
+1. the reference mask's endo- and epicardial contours, one landmark per
+   :data:`LANDMARK_SPACING_PX` of border (at least :data:`MIN_LANDMARKS` a contour), tracked
+   frame to frame through the masks by bending-energy matching (Eqs. 35-37,
+   :func:`contour_landmark_tracks`);
+2. their sd across the border: the larger of a binary border's quantisation
+   (:data:`QUANTISATION_SD_PX`, uniform within a pixel) and the data's own temporal noise floor
+   across the border (:func:`landmark_sd`); along it, the tracker's accumulated sd;
+3. each border node of the mesh observes its own normal displacement, the hat-weighted mean of its
+   landmarks' motion across the border (:func:`border_node_data`); :func:`mask_border_data` does
+   1-3 on a given mesh.
+
+No number here is fitted to a case: the spacing is the mask's resolution, the sd the mask's
+quantisation or the data's own noise. Units: pixels at the interface, metres in ``H``, ``y``, ``R``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+
+from .._validate import positive
+from ..fem.mesh import TriMesh
+from ..fem.observation import point_observation_matrix
+from ..imaging.contours import mask_borders
+from ..imaging.tracking import BoundaryTracks, TrackingOptions, track_masks
+from .dense_model import observation_points, temporal_noise_floor
+
+__all__ = ["QUANTISATION_SD_PX", "LANDMARK_SPACING_PX", "MIN_LANDMARKS", "contour_landmark_tracks", "landmark_sd",
+           "border_node_data", "BorderData", "mask_border_data"]
+
+#: Sd (px) of a border placed by a binary mask: uniform within one pixel, ``1 / sqrt(12)``.
+QUANTISATION_SD_PX = 1.0 / np.sqrt(12.0)
+#: Border length (px) per tracked landmark: the mask's resolution (denser points add no information).
+LANDMARK_SPACING_PX = 1.0
+#: Fewest landmarks per contour (a small ring still gets a smooth border).
+MIN_LANDMARKS = 16
+
+
+def contour_landmark_tracks(masks, spacing_px: float = LANDMARK_SPACING_PX,
+                            min_landmarks: int = MIN_LANDMARKS) -> BoundaryTracks:
+    """Endo- and epicardial landmarks of ``masks[0]``, tracked through the masks (Eqs. 35-37).
+
+    The number of landmarks of each contour is its length (pixels) over ``spacing_px``, at least
+    ``min_landmarks``; the tracker's other options are its defaults
+    (:class:`sfem_filters.imaging.tracking.TrackingOptions`).
+
+    Parameters
+    ----------
+    masks : (F + 1, H, W) bool array
+        Myocardium masks, index 0 the reference.
+    """
+    m = np.asarray(masks, bool)
+    b = mask_borders(m[0], 64, 96)
+    lengths = [float(np.sum(np.linalg.norm(np.diff(np.vstack([c, c[:1]]), axis=0), axis=1))) for c in (b.endo, b.epi)]
+    n = [max(int(min_landmarks), int(round(L / positive("spacing_px", spacing_px, "pixels")))) for L in lengths]
+    return track_masks(m, TrackingOptions(n_endo=n[0], n_epi=n[1]))
+
+
+def _normals(tracks: BoundaryTracks) -> np.ndarray:
+    """Outward-or-inward unit normals (L, 2) of the reference contours at the landmarks (the sign is irrelevant)."""
+    out = []
+    for k in (0, 1):
+        p = tracks.points[tracks.contour == k]
+        tg = np.roll(p, -1, axis=0) - np.roll(p, 1, axis=0)
+        tg /= np.linalg.norm(tg, axis=1, keepdims=True)
+        out.append(np.column_stack([tg[:, 1], -tg[:, 0]]))
+    return np.concatenate(out)
+
+
+def landmark_sd(tracks: BoundaryTracks, normal_sd_px: float) -> tuple:
+    """Normal and tangential sd (F, L) in pixels of the landmarks' displacement (frames after the reference).
+
+    Tangential: the tracker's accumulated sd. Normal: the larger of ``normal_sd_px`` and the
+    temporal noise floor of the displacement's normal component (second differences in time).
+    """
+    n = _normals(tracks)
+    d = tracks.displacement[1:]
+    dn = np.einsum("fpk,pk->fp", d, n)[..., None]
+    floor = temporal_noise_floor(dn) if len(d) >= 3 else 0.0
+    s_n = np.full(d.shape[:2], max(float(normal_sd_px), floor))
+    s_t = np.maximum(tracks.sigma[1:], s_n)
+    return s_n, s_t, floor
+
+
+def border_node_data(mesh: TriMesh, D, displacement_px, sd_normal_px, sd_tangent_px, pixel_size_m: float) -> tuple:
+    """The landmarks' motion as data on the border nodes: each node's normal and tangential displacement.
+
+    A tracked border point tells how the *curve* moved across itself; along a smooth curve it says
+    little. Fitting point displacements to the polygon's nodes would read the small angle between
+    adjacent edges as information about the nodes' sliding (``sin`` of half the angle between two
+    edges, ~0.1), amplifying the normals' noise tenfold into tangential motion. So each border node
+    ``a`` gets its own two data, in its own frame (outward normal ``n_a``: the mean of its two
+    boundary edges' normals; tangent ``t_a``): the hat-weighted mean over the landmarks on its two
+    edges (weights ``w_aj``, the landmark's shape-function weight on node ``a``) of ``n_a . d_j``
+    and ``t_a . d_j`` (``s_j`` the landmark's normal or tangential sd). The normal datum is a local
+    mean of the curve's motion over the node's two elements; a node no landmark touches has no datum.
+    Variance: the hat-weighted mean of the landmarks' variances, ``sum_j w_aj s_j^2 / sum_j w_aj``,
+    not the smaller variance of a mean of independent data: landmarks a pixel apart on a binary
+    border share its staircase, so their quantisation errors are correlated over a node's support.
+    With ``sd_tangent_px=None`` only the normal data are returned (one row per node).
+
+    Parameters
+    ----------
+    mesh : TriMesh
+        The mesh (m).
+    D : (2L, n_dofs) sparse matrix
+        The landmarks' point observation operator.
+    displacement_px : (F, L, 2) array
+        The landmarks' displacements (pixels).
+    sd_normal_px, sd_tangent_px : (F, L) arrays
+        Their sd across and along the border (pixels); ``sd_tangent_px`` None: no tangential data.
+    pixel_size_m : float
+
+    Returns
+    -------
+    H : (m, n_dofs) sparse matrix
+        Rows ``n_a`` (and ``t_a``) on node a's dofs, node by node.
+    y : (F, m) array
+        The data (m).
+    R : (F, m, m) array
+        Their (diagonal) covariance (m^2).
+    nodes : (k,) int array
+        The border nodes with data.
+    """
+    s = positive("pixel_size_m", pixel_size_m, "m")
+    edges = mesh.boundary_edges()
+    e = mesh.nodes[edges[:, 1]] - mesh.nodes[edges[:, 0]]
+    out = np.column_stack([e[:, 1], -e[:, 0]]) / np.linalg.norm(e, axis=1, keepdims=True)   # tissue on the left
+    normal = np.zeros((mesh.n_nodes, 2))
+    np.add.at(normal, edges[:, 0], out)
+    np.add.at(normal, edges[:, 1], out)
+    Wx = sp.csr_matrix(D)[0::2, 0::2].toarray()                          # (L, n_nodes) hat weights
+    Wx[Wx < 1e-6] = 0.0
+    total = Wx.sum(axis=0)
+    nodes = np.flatnonzero((total > 0) & (np.linalg.norm(normal, axis=1) > 0))
+    n = normal[nodes] / np.linalg.norm(normal[nodes], axis=1, keepdims=True)
+    t = np.column_stack([-n[:, 1], n[:, 0]])
+    W = Wx[:, nodes] / total[nodes]                                      # (L, k), columns sum to 1
+    d = np.asarray(displacement_px, float)
+    F = d.shape[0]
+    dirs = [n] if sd_tangent_px is None else [n, t]
+    sds = [sd_normal_px] if sd_tangent_px is None else [sd_normal_px, sd_tangent_px]
+    k, c = len(nodes), len(dirs)
+    y = np.empty((F, c * k))
+    R = np.zeros((F, c * k, c * k))
+    for f in range(F):
+        mean = W.T @ d[f]                                                # (k, 2) hat-weighted mean motion
+        for j, (e, sd) in enumerate(zip(dirs, sds)):
+            y[f, j::c] = np.sum(mean * e, axis=1)
+            R[f, np.arange(j, c * k, c), np.arange(j, c * k, c)] = W.T @ np.asarray(sd, float)[f] ** 2
+    rows = np.repeat(np.arange(c * k), 2)
+    cols = np.repeat(np.column_stack([2 * nodes, 2 * nodes + 1]), c, axis=0).ravel()
+    vals = np.stack(dirs, axis=1).reshape(-1)
+    H = sp.csr_matrix((vals, (rows, cols)), shape=(c * k, mesh.n_dofs))
+    return H, y * s, R * s * s, nodes
+
+
+@dataclass(frozen=True)
+class BorderData:
+    """The masks' data on a mesh's border nodes (:func:`mask_border_data`).
+
+    Attributes
+    ----------
+    H : (m, n_dofs) sparse matrix
+        Row ``n_a`` (and ``t_a`` with tangential data) on border node a's dofs, node by node.
+    y : (F, m) array
+        The data (m): each node's hat-weighted mean landmark motion across (and along) the border.
+    R : (F, m, m) array
+        Their diagonal covariance (m^2).
+    nodes : (k,) int array
+        The border nodes with data.
+    tracks : BoundaryTracks
+        The landmarks tracked through the masks (index 0 the reference).
+    sd_normal_px, sd_tangent_px : (F, L) arrays
+        The landmarks' sd across and along the border (pixels).
+    floor_px : float
+        The temporal noise floor of the landmarks' motion across the border (pixels).
+    moved_m : (L,) array
+        How far each landmark was moved into the mesh (m, :func:`observation_points`).
+    """
+
+    H: sp.csr_matrix
+    y: np.ndarray
+    R: np.ndarray
+    nodes: np.ndarray
+    tracks: BoundaryTracks
+    sd_normal_px: np.ndarray
+    sd_tangent_px: np.ndarray
+    floor_px: float
+    moved_m: np.ndarray
+
+    @property
+    def n_frames(self) -> int:
+        """Frames after the reference."""
+        return int(self.y.shape[0])
+
+
+def mask_border_data(mesh: TriMesh, tracks: BoundaryTracks, pixel_size_m: float,
+                     normal_sd_px: float = QUANTISATION_SD_PX, tangential: bool = False) -> BorderData:
+    """Tracked border landmarks as data on ``mesh``'s border nodes (steps 2-3 of the module docstring).
+
+    Each landmark sits in a boundary element (moved into the mesh where the polygon cuts the
+    border's corners, :func:`sfem_filters.cardiac.dense_model.observation_points`) with its
+    shape-function weights (Eq. 12 as an interpolation); :func:`border_node_data` turns their
+    motion across the border (and along it with ``tangential``, at the tracker's sd) into one datum
+    per border node, with the sd of :func:`landmark_sd` (``normal_sd_px`` the least sd across).
+
+    Parameters
+    ----------
+    mesh : TriMesh
+        Mesh of the reference myocardium (m), the one the masks' ``masks[0]`` was meshed into.
+    tracks : BoundaryTracks
+        :func:`contour_landmark_tracks` of the masks (index 0 the reference, F frames after it).
+    pixel_size_m : float
+        Pixel size (m).
+    normal_sd_px : float
+        Least sd across the border (pixels): the binary mask's quantisation by default.
+    tangential : bool
+        Also the motion along the border, with the tracker's accumulated sd (Eq. 37).
+    """
+    s = positive("pixel_size_m", pixel_size_m, "m")
+    if not isinstance(tracks, BoundaryTracks):
+        raise TypeError(f"tracks: expected BoundaryTracks (contour_landmark_tracks), got {type(tracks).__name__}")
+    s_n, s_t, floor = landmark_sd(tracks, positive("normal_sd_px", normal_sd_px, "pixels"))
+    Lin, moved = observation_points(mesh, tracks.points * s)
+    D = point_observation_matrix(mesh, Lin)
+    H, y, R, nodes = border_node_data(mesh, D, tracks.displacement[1:], s_n, s_t if tangential else None, s)
+    return BorderData(H=H, y=y, R=R, nodes=nodes, tracks=tracks, sd_normal_px=s_n, sd_tangent_px=s_t,
+                      floor_px=float(floor), moved_m=moved)

@@ -1,0 +1,188 @@
+"""The DENSE route fused with the myocardium masks (``border_masks=True``): shape tracking and phase data in one model.
+
+Ground truth from an analytic deformation written here: a ring that thickens inwards keeping its area
+(reference radius R of what is now at r: R^2 = r^2 + A_t), so the exact Green-Lagrange radial strain of a
+reference pixel at radius R is ((R / r)^2 - 1) / 2 with r^2 = R^2 - A_t, and each frame's mask is exactly
+the pixels whose reference radius lies in the wall. The phase tracks are made to lag at the endocardium (the
+cavity's signal leaking into the first layers' phase, as in DENSE-Sim): the masks are not.
+"""
+import json
+from dataclasses import asdict, replace
+
+import numpy as np
+import pytest
+
+pytest.importorskip("gmsh", reason="gmsh (the optional mesher, GPL-2.0-or-later) is not installed")
+
+from sfem_filters.cardiac.border_data import (QUANTISATION_SD_PX, contour_landmark_tracks,  # noqa: E402
+                                              mask_border_data)
+from sfem_filters.cardiac.dense_model import build_dense_model, phase_noise_level  # noqa: E402
+from sfem_filters.cardiac.strain_route import (StrainRouteSettings, border_masks_data, dense_strain,  # noqa: E402
+                                               reference_mesh)
+from sfem_filters.filtering.iterated import IteratedSmoother  # noqa: E402
+from sfem_filters.filtering.linearised import linearise  # noqa: E402
+from sfem_filters.filtering.smoother import kalman_forward  # noqa: E402
+from sfem_filters.imaging.dense import LagrangianDisplacement, reference_points  # noqa: E402
+
+PX = 1.75e-3                                          # m
+R_IN, R_OUT, SIZE = 7.5, 12.5, 32                     # px
+CENTRE = np.array([15.3, 15.6])                       # px, off the pixel grid's symmetry
+AREAS = 30.0 * np.sin(np.pi * np.arange(1, 9) / 9)    # px^2: the wall thickens to mid-cycle and relaxes
+
+
+def _ring(lag=0.5, depth_px=1.5, noise_px=0.03, seed=0):
+    """Reference mask, tracks lagging by ``lag`` at the endocardium (decaying over ``depth_px``), exact masks
+    (F + 1, H, W), and the true Err (F, P)."""
+    yy, xx = np.mgrid[0:SIZE, 0:SIZE].astype(float)
+    r_px = np.hypot(xx - CENTRE[0], yy - CENTRE[1])
+    ref = (r_px >= R_IN) & (r_px <= R_OUT)
+    X = reference_points(ref)
+    d = X - CENTRE
+    R = np.linalg.norm(d, axis=1)
+    disp, masks, err = [], [ref], []
+    for A in AREAS:
+        r = np.sqrt(R ** 2 - A)
+        disp.append(((r - R) / R)[:, None] * d)
+        Rp = np.sqrt(r_px ** 2 + A)
+        masks.append((Rp >= R_IN) & (Rp <= R_OUT))
+        err.append(0.5 * ((R / r) ** 2 - 1))
+    disp = np.array(disp)
+    biased = disp * (1 - lag * np.exp(-(R - R_IN) / depth_px))[None, :, None]
+    rng = np.random.default_rng(seed)
+    tracks = LagrangianDisplacement(points=X, displacement=biased + noise_px * rng.standard_normal(disp.shape),
+                                    sd=np.full(disp.shape, noise_px), confidence=np.ones(disp.shape[:2]),
+                                    frame_times_s=0.0225 + 0.015 * np.arange(len(AREAS)), n_untracked=0,
+                                    noise_sd=np.array([1.0, 1.0]))
+    return ref, tracks, np.stack(masks), np.array(err)
+
+
+@pytest.fixture(scope="module")
+def ring():
+    return _ring()
+
+
+def test_the_masks_pull_the_lagging_endocardium_back_to_the_true_thickening(ring):
+    ref, tracks, masks, err = ring
+    cfg = StrainRouteSettings(element_px=2.0)
+    alone = dense_strain(tracks, ref, PX, cfg)
+    fused = dense_strain(tracks, ref, PX, replace(cfg, border_masks=True), masks=masks)
+    level = dense_strain(tracks, ref, PX, replace(cfg, border_masks=True, phase_noise_level="evidence"), masks=masks)
+    truth = err.mean(axis=1)
+    peak = int(np.argmax(truth))
+    e = [r.global_curves["Err"][peak] - truth[peak] for r in (alone, fused, level)]
+    rmse = [float(np.sqrt(np.mean((r.Err - err) ** 2))) for r in (alone, fused, level)]
+    # the lagging tracks under-estimate the thickening; the masks' borders move as the wall does
+    assert e[0] < -0.5 * truth[peak]
+    # at the stated levels the phase data (many pixels, 0.03 px) outweigh the masks (0.29 px a border node):
+    # closer, a little
+    assert abs(e[1]) < abs(e[0]) and rmse[1] < rmse[0]
+    # with the phase data at the level their innovations show (the bias is not white noise), the masks count
+    assert level.settings["phase_noise_scale"] > 1
+    assert abs(e[2]) < 0.8 * abs(e[1]) and rmse[2] < 0.8 * rmse[1]
+    s = fused.settings
+    assert s["border_masks"] is True and s["border_rows"] == s["border_nodes"] > 0
+    assert s["border_sd_px_range"][0] >= QUANTISATION_SD_PX - 1e-12          # the contours route's sd rule
+    json.dumps(fused.to_dict()["settings"])
+
+
+def test_exact_tracks_and_exact_masks_agree_so_fusion_changes_little():
+    ref, tracks, masks, err = _ring(lag=0.0)
+    cfg = StrainRouteSettings(element_px=2.0)
+    alone = dense_strain(tracks, ref, PX, cfg)
+    fused = dense_strain(tracks, ref, PX, replace(cfg, border_masks=True), masks=masks)
+    truth = err.mean(axis=1)
+    peak = int(np.argmax(truth))
+    assert abs(fused.global_curves["Err"][peak] - alone.global_curves["Err"][peak]) < 0.25 * truth[peak]
+
+
+def test_the_border_rows_are_the_contours_routes_own_and_frames_alone_get_the_reference_prepended(ring):
+    ref, tracks, masks, _ = ring
+    mesh = reference_mesh(ref, PX, "gmsh", 2.0)
+    F = tracks.displacement.shape[0]
+    a = border_masks_data(masks, ref, F, mesh, PX)
+    b = border_masks_data(masks[1:], ref, F, mesh, PX)
+    c = mask_border_data(mesh, contour_landmark_tracks(masks), PX)
+    for x in (b, c):
+        assert np.array_equal(a.nodes, x.nodes) and np.allclose(a.y, x.y) and np.allclose(a.R, x.R)
+        assert (a.H != x.H).nnz == 0
+    # stacked below the nodal fit: n_dofs + border rows, the border block of R the masks' own
+    model, y, info, _ = build_dense_model(mesh, tracks, PX, StrainRouteSettings(element_px=2.0), border=a)
+    n = mesh.n_dofs
+    assert y.shape == (F, n + len(a.nodes)) and np.allclose(y[:, n:], a.y)
+    assert np.allclose(model.R_at(3)[n:, n:], a.R[3]) and np.all(model.R_at(3)[:n, n:] == 0)
+    assert info["border_rows"] == len(a.nodes)
+
+
+def test_bad_masks_are_named(ring):
+    ref, tracks, masks, _ = ring
+    fused = StrainRouteSettings(element_px=2.0, border_masks=True)
+    with pytest.raises(ValueError, match="masks: expected the myocardium masks"):
+        dense_strain(tracks, ref, PX, fused)
+    with pytest.raises(ValueError, match="masks: given, but settings.border_masks is False"):
+        dense_strain(tracks, ref, PX, StrainRouteSettings(element_px=2.0), masks=masks)
+    with pytest.raises(ValueError, match=r"masks: expected the myocardium masks of the 8 frames"):
+        dense_strain(tracks, ref, PX, fused, masks=masks[:-2])
+    with pytest.raises(ValueError, match=r"masks: expected the myocardium masks of the 8 frames"):
+        dense_strain(tracks, ref, PX, fused, masks=masks[:, :-1])
+    with pytest.raises(ValueError, match="masks: expected masks\\[0\\] to be the reference mask"):
+        dense_strain(tracks, ref, PX, fused, masks=np.concatenate([masks[1:2], masks[1:]]))
+    empty = masks.copy()
+    empty[4] = False
+    with pytest.raises(ValueError, match=r"masks: expected myocardium in every frame's mask, got none in mask\(s\) \["):
+        dense_strain(tracks, ref, PX, fused, masks=empty)
+    with pytest.raises(ValueError, match="masks: expected a boolean mask"):
+        dense_strain(tracks, ref, PX, fused, masks=masks * 2)
+    with pytest.raises(TypeError, match="border_masks: expected True or False"):
+        StrainRouteSettings(border_masks="yes")
+    mesh = reference_mesh(ref, PX, "gmsh", 2.0)
+    b = border_masks_data(masks, ref, 8, mesh, PX)
+    short = replace(b, y=b.y[:-1], R=b.R[:-1])
+    with pytest.raises(ValueError, match="border: expected the data of F = 8 frames"):
+        build_dense_model(mesh, tracks, PX, StrainRouteSettings(element_px=2.0), border=short)
+    with pytest.raises(TypeError, match="border: expected a BorderData"):
+        build_dense_model(mesh, tracks, PX, StrainRouteSettings(element_px=2.0), border=(b.H, b.y, b.R))
+
+
+def test_the_settings_with_the_flag_survive_a_json_round_trip():
+    cfg = StrainRouteSettings(border_masks=True, resolution_px=2.13, start_deg=30.0, centre=(15.3, 15.6))
+    back = StrainRouteSettings(**json.loads(json.dumps(asdict(cfg))))
+    assert back == cfg and back.border_masks is True
+    assert StrainRouteSettings().border_masks is False
+
+
+def test_a_common_phase_level_changes_no_estimate_and_scales_every_phase_covariance(ring):
+    """``phase_scale`` multiplies R, Q and the initial covariance together (the phase data's own level,
+    :func:`phase_noise_level`): alone it moves no estimate, beside the masks it shifts their weight."""
+    ref, tracks, masks, _ = ring
+    mesh = reference_mesh(ref, PX, "gmsh", 2.0)
+    cfg = StrainRouteSettings(element_px=2.0)
+    m1, y1, _, _ = build_dense_model(mesh, tracks, PX, cfg)
+    m9, y9, info, _ = build_dense_model(mesh, tracks, PX, cfg, phase_scale=9.0)
+    assert info["phase_noise_scale"] == 9.0 and np.allclose(y1, y9)
+    assert np.allclose(m9.R_at(2), 9 * m1.R_at(2)) and np.allclose(m9.Q, 9 * m1.Q) and np.allclose(m9.P0, 9 * m1.P0)
+    x1 = IteratedSmoother(covariance=False).run(m1, y1).states
+    x9 = IteratedSmoother(covariance=False).run(m9, y9).states
+    assert np.allclose(x1, x9, rtol=1e-6, atol=1e-9 * np.abs(x1).max())
+    b = border_masks_data(masks, ref, 8, mesh, PX)
+    mb, yb, _, _ = build_dense_model(mesh, tracks, PX, cfg, border=b, phase_scale=9.0)
+    n = mesh.n_dofs
+    assert np.allclose(mb.R_at(2)[n:, n:], b.R[2]) and np.allclose(mb.R_at(2)[:n, :n], 9 * m1.R_at(2))
+
+
+def test_the_phase_level_by_evidence_needs_the_masks_and_is_the_mean_nis_of_the_phase_alone(ring):
+    ref, tracks, masks, _ = ring
+    with pytest.raises(ValueError, match="phase_noise_level: 'evidence' weighs the phase data against the masks"):
+        StrainRouteSettings(phase_noise_level="evidence")
+    with pytest.raises(ValueError, match="phase_noise_level: expected one of"):
+        StrainRouteSettings(border_masks=True, phase_noise_level="ml")
+    cfg = StrainRouteSettings(element_px=2.0, border_masks=True, phase_noise_level="evidence")
+    mesh = reference_mesh(ref, PX, "gmsh", 2.0)
+    c = phase_noise_level(mesh, tracks, PX, cfg)
+    # the closed form is the level of largest evidence: the phase-only model at c has its mean NIS at one
+    assert c > 0 and np.isfinite(c)
+    model, y, _, _ = build_dense_model(mesh, tracks, PX, cfg, phase_scale=c)
+    fw = kalman_forward(linearise(model, np.zeros((y.shape[0], model.dim_x))), y, store=False,
+                        check_every_frame=False)
+    assert np.nansum(fw.nis) / np.sum(fw.n_obs) == pytest.approx(1.0, rel=1e-6)
+    r = dense_strain(tracks, ref, PX, cfg, masks=masks)
+    assert r.settings["phase_noise_scale"] == pytest.approx(c)
