@@ -35,7 +35,7 @@ from .fem.restart_state import load_patterns, modal_coordinates, restart_outputs
 from .fem.statespace import ModalSystem
 from .filtering.linear import LinearObservation
 from .filtering.linearised import LinearisedModel, linearise_dense
-from .filtering.protocol import measurement_cov
+from .filtering.protocol import measurement_cov, process_profile
 
 __all__ = ["SFEMModel"]
 
@@ -548,7 +548,7 @@ class SFEMModel(LinearObservation):
         return LinearisedModel(A=base["A"], M=M, c=base["c"], H=base["H"], R=base["R"], Q=base["Q"],
                                xi0=base["xi0"], P0=base["P0"], theta_bar=theta[:p_out].copy(),
                                theta0=self.x0[nr:nr + p_out].copy(), P_theta0=P0[nr:nr + p_out, nr:nr + p_out].copy(),
-                               V=base["V"])
+                               V=base["V"], q_scale=process_profile(self))
 
     def _modal_coordinates(self, theta, system) -> dict:
         """The theta-dependent, trajectory-independent parts of :meth:`linearise` (cached)."""

@@ -118,3 +118,15 @@ def test_with_masks_errors_name_the_argument(short_case, tmp_path, capsys):
     assert "--with-masks: expected the myocardium mask of every frame, got none" in capsys.readouterr().err
     assert main(["strain", str(short_case), "--json", out, "--phase-noise-level", "evidence"]) == 2
     assert "--phase-noise-level: weighs the phase data against the masks; give --with-masks" in capsys.readouterr().err
+
+
+@pytest.mark.needs_data(CASE)
+def test_process_profile_reaches_the_route_and_is_refused_by_the_contours_route(short_case, tmp_path, capsys):
+    out = tmp_path / "profile.json"
+    assert main(["strain", str(short_case), "--json", str(out), "--process-profile", "data", "--snr", "30",
+                 "--quiet"]) == 0
+    s = json.loads(out.read_text())["settings"]
+    assert s["process_profile"] == "data"
+    assert main(["strain", str(short_case), "--json", str(tmp_path / "c.json"), "--route", "contours",
+                 "--process-profile", "data", "--quiet"]) == 2
+    assert "--process-profile" in capsys.readouterr().err

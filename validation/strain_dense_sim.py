@@ -13,7 +13,7 @@ shared by every method (:func:`sfem_filters.imaging.phase_to_displacement`), the
   process noise 0.1 of the noise floor, the linear smoother, Green-Lagrange strain of the
   recovered gradient with delta-method sd, the maximum-likelihood noise scale and the excess-error
   term in the 95% bands);
-* at the first seed of each case and SNR, five ablations of the route (the error budget): the
+* at the first seed of each case and SNR, seven ablations of the route (the error budget): the
   nodal least-squares fit of each frame alone (no dynamics, no bands); the route with the
   process noise chosen by its evidence (``process_fraction=None``, type-II maximum likelihood,
   instead of the default 0.1 of the noise floor); and the route whose observation operator
@@ -23,7 +23,9 @@ shared by every method (:func:`sfem_filters.imaging.phase_to_displacement`), the
   observing it at the pixel centre; the same with the case's myocardium masks of every frame fused
   in (``border_masks=True``: each border node's motion across the border, the contours route's data
   and sd, stacked with the phase data in one model), with the phase data at their stated sd and at
-  their own maximum-likelihood level (``phase_noise_level="evidence"``);
+  their own maximum-likelihood level (``phase_noise_level="evidence"``); and the route whose process
+  noise varies over the cycle with the data's own acceleration (``process_profile="data"``), with
+  the point observation and with the PSF;
 
 each scored by :func:`sfem_filters.benchmark.score_strain` (pixel RMSE, global and segment peak
 errors in percentage points; coverage of the true segment curves by the 95% bands, with their mean
@@ -57,7 +59,7 @@ from ._core import fmt, md_table
 NAME = "strain_dense_sim"
 NEEDS_DATA = True
 TITLE = "Strain against DENSE-Sim's ground truth"
-FULL_COST = "about 20-35 minutes on 2 cores (12 runs of our route, 20 of its ablations)"
+FULL_COST = "about 20-35 minutes on 2 cores (12 runs of our route, 28 of its ablations)"
 TIERS = {"quick": {"cases": ["phantom_subject_1"], "snr": [30.0], "seeds": [0], "frames": 8, "route": True},
          "full": {"cases": None, "snr": [30.0, 8.0], "seeds": [0, 1, 2], "frames": None, "route": True}}
 #: Noise draws are seeded, our route is deterministic; timings are not compared.
@@ -78,7 +80,10 @@ ABLATIONS = {"ours, process noise by the evidence": {"process_fraction": None},
              "ours, PSF + mask borders": {"resolution_px": "acquisition", "border_masks": True},
              "ours, PSF + mask borders, phase level by evidence": {"resolution_px": "acquisition",
                                                                   "border_masks": True,
-                                                                  "phase_noise_level": "evidence"}}
+                                                                  "phase_noise_level": "evidence"},
+             "ours, process noise profile from the data": {"process_profile": "data"},
+             "ours, PSF + process noise profile from the data": {"resolution_px": "acquisition",
+                                                                 "process_profile": "data"}}
 NODAL_FIT = "nodal fit per frame (no dynamics)"
 
 
@@ -259,7 +264,8 @@ def markdown(results: dict) -> str:
              "around the myocardium mixed in at the borders, instead of observing it at the pixel centre; the PSF "
              "route with the case's myocardium masks of every frame fused in (each border node's motion across the "
              "border, the contours route's data and sd), the phase data at their stated sd or at their own "
-             "maximum-likelihood level; and each "
+             "maximum-likelihood level; the route whose process noise per frame interval follows the data's own "
+             "acceleration (never below the default level), with the point observation and with the PSF; and each "
              "frame's nodal "
              "least-squares fit alone. Process fraction: the route's process noise per frame over the noise floor "
              "(mean over the seeds). Resolution: the acquired resolution (reconstructed pixels) the observation "

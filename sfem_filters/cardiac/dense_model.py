@@ -6,6 +6,7 @@ in metres; pixels for the tracks.
 """
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -31,7 +32,8 @@ from .myocardium import lv_geometry, tissue_mesh
 __all__ = ["MESHES", "INFORMATION_FLOOR", "RELAXATION_CYCLES", "PROCESS_FRACTIONS", "reference_mesh",
            "observation_points", "nodal_fit", "NodalFitModel", "compliant_modulus", "temporal_noise_floor",
            "build_dense_model", "concentrated_log_evidence", "process_fraction_ml", "observation_operator",
-           "ObservationScaling", "phase_noise_level"]
+           "ObservationScaling", "phase_noise_level", "PROCESS_PROFILES", "PROFILE_HARMONICS", "smooth_motion_basis",
+           "process_profile_from_data"]
 
 #: How the reference myocardium is meshed (``mesh=``).
 MESHES = ("gmsh", "pixels")
@@ -41,6 +43,11 @@ INFORMATION_FLOOR = 1e-8
 RELAXATION_CYCLES = 10.0
 #: Candidates of the process noise fraction compared by their evidence (:func:`process_fraction_ml`).
 PROCESS_FRACTIONS = (0.1, 0.3, 1.0, 3.0)
+#: How the process noise varies over the frame intervals (``StrainRouteSettings.process_profile``).
+PROCESS_PROFILES = ("constant", "data")
+#: Angular harmonics of the smooth motion whose acceleration sets the ``"data"`` profile: up to 3, what six
+#: equal segments resolve around the centre (their Nyquist), with a linear trend across the wall.
+PROFILE_HARMONICS = 3
 
 
 # ----------------------------------------------------------------------------------- the mesh
@@ -270,12 +277,20 @@ class NodalFitModel(SFEMModel):
     """:class:`SFEMModel` observing every node, with a full measurement covariance per frame.
 
     ``R_frames`` (F, m, m), m the observed rows: :meth:`R_at` returns frame t's (the filters'
-    per-frame noise protocol); ``R`` is their mean. Everything else is :class:`SFEMModel`'s.
+    per-frame noise protocol); ``R`` is their mean. ``process_profile`` (F - 1,) factors > 0 on
+    ``Q`` per frame interval, or None (``Q`` every interval): :meth:`process_profile`, the filters'
+    :class:`~sfem_filters.filtering.protocol.ProcessNoiseProfile`. Everything else is :class:`SFEMModel`'s.
     """
 
-    def __init__(self, *args, R_frames, **kwargs):
+    def __init__(self, *args, R_frames, process_profile=None, **kwargs):
         R_frames = np.asarray(R_frames, float)
         super().__init__(*args, **kwargs)
+        if process_profile is not None:
+            process_profile = as_float_array("process_profile", process_profile, shape=(self.n_frames - 1,))
+            if np.any(process_profile <= 0):
+                raise ValueError(f"process_profile: expected factors > 0 on Q, got minimum "
+                                 f"{float(process_profile.min())!r}")
+        self._profile = process_profile
         if R_frames.shape != (self.n_frames, self.dim_obs, self.dim_obs):
             raise ValueError(f"R_frames: expected shape ({self.n_frames}, {self.dim_obs}, {self.dim_obs}), "
                              f"got {R_frames.shape}")
@@ -290,6 +305,17 @@ class NodalFitModel(SFEMModel):
         out = super().with_measurement_noise(scale)
         out._R_full = self._R_full * positive("scale", scale)
         return out
+
+    def process_profile(self):
+        """(F - 1,) factors on ``Q`` per frame interval, or None (``Q`` every interval)."""
+        return None if self._profile is None else self._profile.copy()
+
+    def fingerprint(self) -> str:
+        """:meth:`SFEMModel.fingerprint` with the process profile (a model with another profile behaves differently)."""
+        base = super().fingerprint()
+        if self._profile is None:
+            return base
+        return hashlib.sha256(base.encode() + self._profile.tobytes()).hexdigest()
 
 
 def compliant_modulus(wall_m: float, cycle_s: float, density: float = NOMINAL["density"],
@@ -331,6 +357,130 @@ def temporal_noise_floor(displacement) -> float:
     return float(np.sqrt(np.nanmean(d2 ** 2) / 1.5))
 
 
+def smooth_motion_basis(points_px, centre_px, harmonics: int = PROFILE_HARMONICS) -> np.ndarray:
+    """(P, 2 (2 harmonics + 1)) smooth fields over the points: ``{1, rho} x {1, cos k phi, sin k phi}``, k <= harmonics.
+
+    ``phi`` the angle about ``centre_px`` and ``rho = (r - r_mean) / r_mean`` the relative radius
+    (a linear trend across the wall): the motion the route's curves resolve, six segments around
+    the centre and the wall's thickening, and nothing finer.
+    """
+    X = as_float_array("points_px", points_px, shape=(None, 2))
+    c = as_float_array("centre_px", centre_px, shape=(2,))
+    d = X - c
+    r = np.hypot(d[:, 0], d[:, 1])
+    if not np.mean(r) > 0:
+        raise ValueError("points_px: expected points around the centre, got all of them at it")
+    phi = np.arctan2(d[:, 1], d[:, 0])
+    rho = (r - r.mean()) / r.mean()
+    ang = [np.ones_like(phi)]
+    for k in range(1, int(harmonics) + 1):
+        ang += [np.cos(k * phi), np.sin(k * phi)]
+    A = np.column_stack(ang)
+    return np.hstack([A, A * rho[:, None]])
+
+
+def process_profile_from_data(displacement_px, sd_px, points_px, frame_interval_s: float, alpha: float,
+                              q_floor_px: float) -> tuple:
+    """Process noise sd of each frame interval from the data's own acceleration (method of moments).
+
+    The model (:func:`build_dense_model`) moves each dof, over a frame of ``T`` s, as a damped
+    constant-velocity prior: ``v_t+1 = phi v_t + w^v_t`` and ``u_t+1 = u_t + tau v_t + w^u_t``,
+    ``phi = exp(-alpha T)``, ``tau = (1 - phi) / alpha`` (mass damping; the compliant tissue's
+    elastic and ground forces are negligible over the cycle, :func:`compliant_modulus`), with
+    process sd ``q`` on ``u`` and ``q / T`` on ``v``. So the damped second difference
+    ``delta_t = u_t+1 - (1 + phi) u_t + phi u_t-1 = tau w^v_t-1 + w^u_t - phi w^u_t-1`` has variance
+    ``kappa q^2``, ``kappa = (tau / T)^2 + 1 + phi^2`` (3 without damping): the model's own
+    constant, no number chosen here. Reading ``delta_t`` off the data gives ``q`` per frame:
+
+    1. the tracks of each frame are projected, weighted by ``1 / sd^2``, on the smooth fields of
+       :func:`smooth_motion_basis` about the points' centroid (least squares): at the pixel level the
+       acceleration is a few percent of the noise's share (the second differences' power per frame
+       is flat within +-20% over a DENSE-Sim cycle), while the smooth fields average the noise of
+       hundreds of pixels and keep the motion the curves report;
+    2. ``a_t^2``, the mean over the points and components of ``delta_t`` of that smooth field
+       squared, less the noise's own share, clipped at 0. The share's course over the frames is
+       the white noise's, ``w_t = mean diag(B (C_t+1 + (1 + phi)^2 C_t + phi^2 C_t-1) B^T)`` with
+       ``C_t`` the projection's covariance from the data's sd (for ``phi = 1`` the familiar
+       ``6 sigma^2`` of a second difference), which follows the signal's fading over the cycle;
+       its level is the data's: the median over the frames of ``power_t / w_t``. Why not ``w_t``
+       alone: noise correlated over the pixels (the simulator's and the scanner's phase texture)
+       is averaged far less by the projection than white noise, and on DENSE-Sim the smooth
+       field's ``delta`` of the quiet frames is several times ``w_t`` (measured: every interval of
+       the in-vivo case then asked for 2.5 to 6.5 times the constant level, and the bands lost
+       coverage). The median assumes that at least half the frames are quiet (diastasis and the
+       slow phases; where more move, the level is too high and the profile falls back towards the
+       constant level, never below it); it also sits a little below the mean of a frame's noise
+       power (a weighted sum of many chi-square terms), which errs towards more process noise;
+    3. ``q_t^2 = a_t^2 / kappa`` at frames 1 .. F - 2; interval t (frame t to t + 1) takes the
+       mean over the two frames whose ``delta`` it enters (t and t + 1, where they exist);
+    4. ``q_t = max(q_floor, q_t)``: never below the constant level.
+
+    What it cannot see: acceleration at finer scales than the basis (the per-dof process noise
+    is then taken at the smooth motion's level), and a noise whose course over the frames is not
+    the stated sd's.
+
+    Parameters
+    ----------
+    displacement_px, sd_px : (F, P, 2) arrays
+        Tracks (pixels; NaN where untracked) and the sd the route gives them (pixels).
+    points_px : (P, 2) array
+        Their reference positions (pixels).
+    frame_interval_s, alpha : float
+        ``T`` (s) and the model's mass damping (1/s, >= 0).
+    q_floor_px : float
+        The constant level (pixels): ``process_fraction`` of the noise floor.
+
+    Returns
+    -------
+    q_px : (F - 1,) array
+        Process sd on the displacement per interval (pixels), ``>= q_floor_px``.
+    accel_px : (F,) array
+        ``sqrt(a_t^2)`` per frame after the noise's share (pixels; NaN at the first and last).
+    noise_level : float
+        The noise's share of the smooth field's ``delta`` over its white share (step 2).
+    """
+    u = as_float_array("displacement_px", displacement_px, shape=(None, None, 2), allow_nan=True)
+    sd = as_float_array("sd_px", sd_px, shape=u.shape, allow_nan=True)
+    F, P = u.shape[:2]
+    if F < 3:
+        raise ValueError(f"displacement_px: expected at least 3 frames for an acceleration, got {F}")
+    X = as_float_array("points_px", points_px, shape=(P, 2))
+    T = positive("frame_interval_s", frame_interval_s, "s")
+    a = float(alpha)
+    if not np.isfinite(a) or a < 0:
+        raise ValueError(f"alpha: expected a mass damping >= 0 (1/s), got {alpha!r}")
+    q0 = positive("q_floor_px", q_floor_px, "pixels")
+    B = smooth_motion_basis(X, X.mean(axis=0))
+    k = B.shape[1]
+    coef = np.zeros((F, 2, k))
+    cov = np.zeros((F, 2, k, k))
+    for t in range(F):
+        for c in range(2):
+            w = np.where(np.isfinite(u[t, :, c]) & np.isfinite(sd[t, :, c]) & (sd[t, :, c] > 0),
+                         1.0 / np.where(sd[t, :, c] > 0, sd[t, :, c], 1.0) ** 2, 0.0)
+            J = B.T @ (B * w[:, None])
+            Ji = np.linalg.pinv(J, hermitian=True)
+            coef[t, c] = Ji @ (B.T @ (w * np.nan_to_num(u[t, :, c])))
+            cov[t, c] = Ji
+    phi = np.exp(-a * T)
+    tau_T = (1.0 - phi) / (a * T) if a * T > 0 else 1.0
+    kappa = tau_T ** 2 + 1.0 + phi ** 2
+    power, white = np.full(F, np.nan), np.full(F, np.nan)
+    for t in range(1, F - 1):
+        field = (coef[t + 1] - (1 + phi) * coef[t] + phi * coef[t - 1]) @ B.T           # (2, P)
+        C = cov[t + 1] + (1 + phi) ** 2 * cov[t] + phi ** 2 * cov[t - 1]                 # (2, k, k)
+        power[t] = float(np.mean(field ** 2))
+        white[t] = float(np.mean(np.einsum("pi,cij,pj->cp", B, C, B)))
+    inner = slice(1, F - 1)
+    if not np.all(white[inner] > 0):
+        raise ValueError("sd_px: expected a positive sd of some tracked point in every frame")
+    level = float(np.median(power[inner] / white[inner]))             # the noise's share, over its white share
+    accel2 = np.maximum(0.0, power - level * white)
+    q2 = accel2 / kappa
+    q2_int = np.array([np.nanmean(q2[[t, t + 1]]) for t in range(F - 1)])             # frames t, t + 1 (NaN ends)
+    return np.maximum(q0, np.sqrt(q2_int)), np.sqrt(accel2), level
+
+
 def build_dense_model(mesh: TriMesh, tracks: LagrangianDisplacement, pixel_size_m: float,
                       settings: StrainRouteSettings, background=None, border=None, phase_scale: float = 1.0) -> tuple:
     """The filter model of dense displacement data and its observations (module docstring, steps 2-3).
@@ -339,7 +489,10 @@ def build_dense_model(mesh: TriMesh, tracks: LagrangianDisplacement, pixel_size_
     down) so that its RMS equals the temporal noise floor (:func:`temporal_noise_floor`); the
     process noise is ``settings.process_fraction`` of that floor per frame on the displacement,
     and the same over the frame interval on the velocity (the rule of
-    :func:`sfem_filters.cardiac.measured.build_model`).
+    :func:`sfem_filters.cardiac.measured.build_model`). With ``settings.process_profile ==
+    "data"`` each frame interval's process sd is the larger of that level and the data's own
+    smooth acceleration's (:func:`process_profile_from_data`), passed to the filters as factors on
+    ``Q`` (:class:`NodalFitModel` ``process_profile``).
 
     Observations through :func:`observation_operator` with ``settings.resolution_px`` and
     ``background`` (a :class:`~sfem_filters.imaging.dense.BackgroundSignal`, or None: a dark background).
@@ -395,19 +548,29 @@ def build_dense_model(mesh: TriMesh, tracks: LagrangianDisplacement, pixel_size_
     if settings.process_fraction is None:
         raise ValueError("settings: expected a process_fraction (None is resolved by process_fraction_ml)")
     q = settings.process_fraction * floor_px * s * np.sqrt(c)
+    profile, profile_info = None, {}
+    if getattr(settings, "process_profile", "constant") == "data":
+        q_t, accel, level = process_profile_from_data(tracks.displacement, sd * sd_scale, tracks.points, T, alpha,
+                                               settings.process_fraction * floor_px)
+        profile = (q_t / (settings.process_fraction * floor_px)) ** 2        # on Q: its sds are q and q / T
+        profile_info = {"process_profile_std_px": (q_t * np.sqrt(c)).tolist(),
+                        "process_profile_factor_range": [float(profile.min()), float(profile.max())],
+                        "process_profile_intervals_above_floor": int(np.count_nonzero(profile > 1.0)),
+                        "smooth_acceleration_px": [None if not np.isfinite(v) else float(v) for v in accel],
+                        "process_profile_noise_over_white": level}
     # the initial state: at rest in the reference configuration (encoding time, t = 0), uncertain
     # by the first frame's displacement (frame 0 is 22.5 ms after the encoding, already moved): u0_sd above
     model = NodalFitModel(mesh, material, np.zeros((F, mesh.n_dofs)), H, T, (), density=NOMINAL["density"],
                           alpha=alpha, beta=NOMINAL["beta"], measurement_std=1.0,
                           process_std=(q, q / T), initial_std=(u0_sd, u0_sd / T), effects=effs, penalty=penalty,
-                          R_frames=R)
+                          R_frames=R, process_profile=profile)
     info = {"n_points_moved_into_mesh": int(np.count_nonzero(moved)), "largest_move_px": float(moved.max() / s),
             "noise_floor_px": floor_px, "tracks_sd_rms_px": sd_rms, "sd_scale": sd_scale,
             "process_std_px": q / s, "frame_interval_s": T, "E_Pa": E, "alpha_per_s": alpha,
             "wall_thickness_px": _wall_thickness(mesh) / s,
             "initial_std_px": u0_sd / s, "observation_tissue_weight_mean": float(scaling.tissue.mean()),
             "observation_background_offset_rms_px": float(np.sqrt(np.mean(scaling.offset ** 2))),
-            "phase_noise_scale": c, **border_info}
+            "phase_noise_scale": c, **border_info, **profile_info}
     return model, y, info, Xin
 
 

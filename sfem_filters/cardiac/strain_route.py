@@ -86,7 +86,13 @@ The DENSE route of issue 42 (items 3 and 4), as a library function, :func:`dense
      segment peaks of radial strain come much closer to the truth), but the estimate follows
      more of the data's noise (pixel RMSE rises, above the smoothed conventional analysis on the
      in-vivo case) and the bands of step 6 no longer cover (the estimate's noise, shared with the
-     reference, escapes the excess-error moment); so it is not the default;
+     reference, escapes the excess-error moment); so it is not the default. One level for every
+     frame must do both, and the cycle is not stationary; ``process_profile="data"`` lets each
+     frame interval's process sd follow the data's own acceleration at that time, never below the
+     constant level (:func:`process_profile_from_data`: the damped second difference of the
+     tracks' smooth motion, less the noise's share, by the model's own constant ``kappa``), given
+     to the filters as a factor on Q per interval
+     (:class:`sfem_filters.filtering.protocol.ProcessNoiseProfile`);
    * *element size*: 2.5 px (:class:`StrainRouteSettings`).
 4. **Strain.** ``F = I + grad u`` with ``grad u`` the *recovered* gradient (default,
    ``strain="recovered"``, :func:`gradient_operators`): at each node the area-weighted mean of the
@@ -179,10 +185,10 @@ from ..imaging.dense import LagrangianDisplacement
 from ..imaging.strain import N_SEGMENTS, Z95, StrainEstimate, displacement_gradient, global_curve, green_strain, \
     json_list, mask_centre, project_strain, segment_labels
 from .border_data import BorderData, contour_landmark_tracks, mask_border_data
-from .dense_model import INFORMATION_FLOOR, MESHES, PROCESS_FRACTIONS, RELAXATION_CYCLES, NodalFitModel, \
-    build_dense_model, compliant_modulus, concentrated_log_evidence, nodal_fit, observation_points, \
-    ObservationScaling, observation_operator, phase_noise_level, process_fraction_ml, reference_mesh, \
-    temporal_noise_floor
+from .dense_model import INFORMATION_FLOOR, MESHES, PROCESS_FRACTIONS, PROCESS_PROFILES, RELAXATION_CYCLES, \
+    NodalFitModel, build_dense_model, compliant_modulus, concentrated_log_evidence, nodal_fit, observation_points, \
+    ObservationScaling, observation_operator, phase_noise_level, process_fraction_ml, process_profile_from_data, \
+    reference_mesh, temporal_noise_floor
 from .measured import NOMINAL
 from .strain_bands import STRAINS, _component_rows, _covariance_from_blocks, curve_noise_variance, \
     discrepancy_variance, element_gradient_operator, gradient_operators, linearised_disagreement, linearised_rows, \
@@ -196,7 +202,8 @@ __all__ = ["StrainRouteSettings", "DenseStrain", "NodalFitModel", "reference_mes
            "RELAXATION_CYCLES", "Z95", "STRAINS", "gradient_operators", "point_variance", "discrepancy_variance",
            "noise_scale", "DenseRouteStrain", "linearised_disagreement", "curve_noise_variance", "curve_discrepancy",
            "PROCESS_FRACTIONS", "process_fraction_ml", "concentrated_log_evidence", "observation_operator",
-           "ObservationScaling", "border_masks_data", "phase_noise_level", "PHASE_NOISE_LEVELS"]
+           "ObservationScaling", "border_masks_data", "phase_noise_level", "PHASE_NOISE_LEVELS", "PROCESS_PROFILES",
+           "process_profile_from_data"]
 
 
 #: How the phase data's noise level is set beside the masks (``StrainRouteSettings.phase_noise_level``).
@@ -259,6 +266,13 @@ class StrainRouteSettings:
         border node's motion across the border, from landmarks tracked through the masks by
         bending-energy matching, with the contours route's sd, stacked with the phase data in one
         model (module docstring, step 2, *fused with the masks*). Default False: the phase alone.
+    process_profile : {"constant", "data"}
+        How the process noise varies over the frame intervals. ``"constant"`` (default): the level
+        of ``process_fraction`` every interval. ``"data"``: each interval's process sd the larger of
+        that level and the one the data's own smooth acceleration at that time asks for
+        (:func:`process_profile_from_data`, module docstring step 3): a short systole and early
+        filling move fast, diastasis barely, and one level must flatten the one or follow the
+        noise in the other.
     phase_noise_level : {"stated", "evidence"}
         With ``border_masks``: the level at which the phase data join the masks. ``"stated"``
         (default): the phase data's sd as the route states it (step 3), the masks' by the contours
@@ -282,6 +296,7 @@ class StrainRouteSettings:
     resolution_px: float = 1.0
     border_masks: bool = False
     phase_noise_level: str = "stated"
+    process_profile: str = "constant"
 
     def __post_init__(self):
         if self.mesh not in MESHES:
@@ -291,6 +306,8 @@ class StrainRouteSettings:
         for name in ("noise_scale", "discrepancy", "border_masks"):
             if not isinstance(getattr(self, name), (bool, np.bool_)):
                 raise TypeError(f"{name}: expected True or False, got {getattr(self, name)!r}")
+        if self.process_profile not in PROCESS_PROFILES:
+            raise ValueError(f"process_profile: expected one of {PROCESS_PROFILES}, got {self.process_profile!r}")
         if self.phase_noise_level not in PHASE_NOISE_LEVELS:
             raise ValueError(f"phase_noise_level: expected one of {PHASE_NOISE_LEVELS}, got {self.phase_noise_level!r}")
         if self.phase_noise_level == "evidence" and not self.border_masks:

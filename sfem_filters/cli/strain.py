@@ -9,6 +9,7 @@ import time
 import numpy as np
 
 from ..cardiac import StrainRouteSettings, dense_strain
+from ..cardiac.dense_model import PROCESS_PROFILES
 from ..cardiac.contours_route import ContourRouteSettings, contour_spline_strain, contour_strain
 from ..imaging import conventional_from_displacement, mask_centre, truth_at_points
 from ..imaging.spline_strain import spline_strain
@@ -94,6 +95,12 @@ def add_parser(sub) -> None:
                         "phase data's sd as the route states it (their sd scaled to their temporal noise floor); "
                         "evidence: that times the phase data's own maximum-likelihood noise level from one filter "
                         "pass without the masks (each source weighed by the noise it shows; one pass more)")
+    s.add_argument("--process-profile", choices=PROCESS_PROFILES, default="constant",
+                   help="dense route: the process noise over the cycle. constant (default): one level, 0.1 of the "
+                        "data's temporal noise floor per frame; data: each frame interval's level from the data's "
+                        "own acceleration (the tracks projected on smooth fields, less the noise's share), never "
+                        "below the constant level, so a short systole is not flattened (the docs' validation page "
+                        "reports both)")
     s.add_argument("--csv", metavar="PATH",
                    help="also write the report as one tidy CSV table (one row per method, region = pixel, global "
                         "or segment, frame and component; PATH ending .gz is compressed); see the how-to page "
@@ -123,6 +130,9 @@ def cmd_strain(args) -> int:
         raise ValueError("--with-masks: expected the myocardium mask of every frame, got "
                          + ("none (the sequence file has no reference_mask and frame_masks)" if src["masks"] is None
                             else "one mask for every frame (--masks (H, W)); give --masks (F, H, W) or (F + 1, H, W)"))
+    if args.route == "contours" and args.process_profile != "constant":
+        raise ValueError("--process-profile: is for the dense route; the contours route chooses its process noise by "
+                         "its evidence")
     if args.route == "contours":       # the masks alone (no phase): tracked borders, interior from the physics
         if src["masks"] is None:
             raise ValueError("--route contours: expected the myocardium masks of the reference and of every frame; the "
@@ -134,7 +144,8 @@ def cmd_strain(args) -> int:
         ours = dense_strain(tracks, src["reference_mask"], src["pixel_size_m"],
                             StrainRouteSettings(start_deg=args.segment_start, resolution_px=resolution,
                                                 border_masks=with_masks,
-                                                phase_noise_level=phase_level or "stated"), progress=say,
+                                                phase_noise_level=phase_level or "stated",
+                                                process_profile=args.process_profile), progress=say,
                             background=background, masks=src["masks"] if with_masks else None)
     centre = ours.centre if ours.centre is not None else mask_centre(src["reference_mask"])
     conv = conventional_from_displacement(tracks, centre, sigma=args.conventional_sigma, start_deg=args.segment_start)

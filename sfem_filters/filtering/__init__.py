@@ -62,9 +62,9 @@ from .ljung import LJUNG_MAX_PARAMS, LjungCoupling
 from .marginal import MarginalCheck, laplace_check, log_likelihood, log_posterior
 from .roukf import ROUKFEngine, simplex_points
 from .protocol import (FilterModel, Fingerprinted, Linearisable, LoadResponse, OutputOperators, PerFrameNoise,
-                       PhysicalJacobian, PhysicalParameters, ScalableMeasurementNoise, ScalableProcessNoise,
-                       TransitionDerivatives, check_model, measurement_cov, scaled_measurement_noise,
-                       scaled_process_noise)
+                       PhysicalJacobian, PhysicalParameters, ProcessNoiseProfile, ScalableMeasurementNoise,
+                       ScalableProcessNoise, TransitionDerivatives, check_model, measurement_cov, process_profile,
+                       scaled_measurement_noise, scaled_process_noise)
 from .safeguards import FilterDivergence, Safeguards, nearest_psd
 from .smoother import ForwardPass, SmoothedPass, kalman_forward, rts_reference, smooth, smooth_backward
 from .structured import StructuredEngine, joseph_update
@@ -84,4 +84,4 @@ __all__ = ["ROUKFEngine", "simplex_points", "UKFEngine", "make_ukf", "diagnostic
            "Linearisable", "OutputOperators", "ScalableProcessNoise", "scaled_process_noise",
            "ScalableMeasurementNoise", "scaled_measurement_noise", "MarginalCheck", "laplace_check", "log_likelihood", "log_posterior",
            "ProfileHessian", "profile_hessian", "profile_pass", "optimal_trajectory", "gauss_newton_pass", "exact_laplace",
-           "with_covariance", "step_in_sd"]
+           "with_covariance", "step_in_sd", "ProcessNoiseProfile", "process_profile"]

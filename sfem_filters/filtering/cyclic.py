@@ -18,7 +18,7 @@ from ..resources import limits_blas_threads
 from .checkpoint import load_checkpoint, run_fingerprint, save_checkpoint
 from .engines import ENGINES, make_engine
 from .history import History
-from .protocol import check_model, physical_parameters
+from .protocol import check_model, physical_parameters, process_profile
 from .safeguards import Safeguards
 
 __all__ = ["CyclicEKF", "CyclicResult", "cyclic_estimate", "filter_loop", "check_observations", "one_cycle_covariance"]
@@ -39,6 +39,10 @@ def filter_loop(engine, model, observations, loop: int = 0, history: History | N
     (n_frames, dim_state).
     """
     observations = check_observations(model, observations)
+    if process_profile(model) is not None:
+        raise ValueError("model: a process noise profile per frame interval (ProcessNoiseProfile) is used by the "
+                         "smoother (linearise, kalman_forward, IteratedSmoother) only; the cyclic engines step with "
+                         "model.Q alone: give the model without a profile")
     states = np.empty((model.n_frames, model.dim_state))
     nis_run: list = []
     for t in range(model.n_frames):

@@ -87,7 +87,7 @@ class LinearisedEngine(DenseEngine):
             new[:nr, nr:] = cross
             new[nr:, :nr] = cross.T
             new[nr:, nr:] = Ptt
-        new[:nr, :nr] = rr + lin.Q
+        new[:nr, :nr] = rr + lin.Q_at(t)
         x = self._x
         xr = np.asarray(A @ x[:nr]).ravel() + lin.c[t]
         if self.p:

@@ -4,7 +4,7 @@ About a trajectory ``z_t = [r_t; theta]`` (restart part r, static parameters the
 transition is replaced by its first-order expansion (Eqs. 31-33) and the restart part is
 written in coordinates xi of the linearisation's choice, ``r = V xi``:
 
-    xi_{t+1} = A_t xi_t + M_t (theta - theta_bar) + c_t + w_t,     w_t ~ N(0, Q)
+    xi_{t+1} = A_t xi_t + M_t (theta - theta_bar) + c_t + w_t,     w_t ~ N(0, s_t Q)
     y_t      = H xi_t + v_t,                                      v_t ~ N(0, R_t)
     xi_0 ~ N(xi0, P0),   theta ~ N(theta0, P_theta0),   independent (Eq. 34)
 
@@ -22,7 +22,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from .._validate import as_float_array
-from .protocol import Linearisable, check_model, measurement_cov, n_parameters
+from .protocol import Linearisable, check_model, measurement_cov, n_parameters, process_profile
 
 __all__ = ["LinearisedModel", "linearise", "linearise_dense", "check_static_parameters"]
 
@@ -44,7 +44,7 @@ class LinearisedModel:
     R : (n_frames, m, m) array
         Measurement noise covariance of every frame.
     Q : (n_r, n_r) array
-        Process noise of the restart part per frame (theta is static).
+        Process noise of the restart part per frame (theta is static); interval t's is :meth:`Q_at`.
     xi0, P0 : (n_r,), (n_r, n_r) arrays
         Prior of the first frame's restart part.
     theta_bar, theta0 : (p,) arrays
@@ -53,6 +53,9 @@ class LinearisedModel:
         Their prior covariance.
     V : (n_r, n_r) array or sparse matrix, or None
         Model coordinates of xi, ``r = V xi`` (None: the identity).
+    q_scale : (n_frames - 1,) array or None
+        Factor ``s_t`` on Q of the interval from frame t to t + 1 (the model's
+        :class:`~sfem_filters.filtering.protocol.ProcessNoiseProfile`); None: 1 every interval.
     """
 
     A: object
@@ -67,6 +70,7 @@ class LinearisedModel:
     theta0: np.ndarray
     P_theta0: np.ndarray
     V: object = None
+    q_scale: object = None
 
     @property
     def n_frames(self) -> int:
@@ -87,6 +91,10 @@ class LinearisedModel:
     @property
     def dim_obs(self) -> int:
         return self.H.shape[0]
+
+    def Q_at(self, t: int) -> np.ndarray:
+        """Process noise of the interval from frame ``t`` to ``t + 1``: ``s_t Q`` (``Q`` without a profile)."""
+        return self.Q if self.q_scale is None else self.q_scale[t] * self.Q
 
     def A_at(self, t: int):
         """Transition from frame ``t`` to ``t + 1``."""
@@ -157,7 +165,7 @@ def linearise_dense(model, states, sensitivity: bool = True) -> LinearisedModel:
     return LinearisedModel(A=A, M=M, c=c, H=H[:, :nr], R=np.array([measurement_cov(model, t) for t in range(T)]),
                            Q=Q[:nr, :nr], xi0=np.asarray(model.x0, float)[:nr].copy(), P0=P0[:nr, :nr],
                            theta_bar=theta.copy(), theta0=np.asarray(model.x0, float)[nr:nr + p].copy(),
-                           P_theta0=P0[nr:nr + p, nr:nr + p], V=None)
+                           P_theta0=P0[nr:nr + p, nr:nr + p], V=None, q_scale=process_profile(model))
 
 
 def linearise(model, states, sensitivity: bool = True) -> LinearisedModel:

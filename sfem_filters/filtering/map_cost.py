@@ -5,7 +5,9 @@ static parameters theta (material); the data of the cycle are counted once. The 
 posterior (the MAP cost) is
 
     J = 1/2 |r_0 - x0|^2_{P1^-1} + 1/2 |theta - theta0|^2_{P3^-1}
-        + 1/2 sum_t |r_{t+1} - f_r(r_t, theta, t)|^2_{Q^-1} + 1/2 sum_t |y_t - H r_t|^2_{R_t^-1}.
+        + 1/2 sum_t |r_{t+1} - f_r(r_t, theta, t)|^2_{Q_t^-1} + 1/2 sum_t |y_t - H r_t|^2_{R_t^-1},
+
+``Q_t = s_t Q`` with the model's :class:`~sfem_filters.filtering.protocol.ProcessNoiseProfile` (else ``Q``).
 
 :class:`MapObjective` evaluates J (and its four sums) for a trajectory, :func:`open_loop` is the
 prior's trajectory, and :class:`InverseRoot` the Mahalanobis norm the sums are written with. The
@@ -17,7 +19,7 @@ import numpy as np
 import scipy.linalg as sla
 
 from .cyclic import check_observations
-from .protocol import measurement_cov
+from .protocol import measurement_cov, process_profile
 
 __all__ = ["MapObjective", "open_loop", "InverseRoot"]
 
@@ -63,6 +65,7 @@ class MapObjective:
         self.prior_r = InverseRoot(P0[:nr, :nr])
         self.prior_theta = InverseRoot(P0[nr:, nr:]) if P0.shape[0] > nr else None
         self.process = InverseRoot(Q[:nr, :nr])
+        self.profile = process_profile(model)
         self.H = np.asarray(model.H_jacobian(self.x0, 0), float)[:, :nr]
         self.noise = []
         for t in range(model.n_frames):
@@ -84,7 +87,10 @@ class MapObjective:
             f = None
         if f is None or not np.all(np.isfinite(f)):
             return {**out, "process": np.inf, "data": np.inf, "total": np.inf}
-        out["process"] = 0.5 * self.process.norm2(z[1:, :nr] - f)
+        w = z[1:, :nr] - f
+        if self.profile is not None:
+            w = w / np.sqrt(self.profile)[:, None]          # |w|^2 over s_t Q = |w / sqrt(s_t)|^2 over Q
+        out["process"] = 0.5 * self.process.norm2(w)
         data = 0.0
         for t, (mask, root) in enumerate(self.noise):
             if root is not None:

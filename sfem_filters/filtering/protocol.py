@@ -31,7 +31,7 @@ __all__ = ["FilterModel", "PerFrameNoise", "Fingerprinted", "PhysicalParameters"
            "TransitionDerivatives",
            "LoadResponse", "Linearisable", "OutputOperators", "ScalableProcessNoise", "ScalableMeasurementNoise", "check_model", "measurement_cov",
            "model_fingerprint", "physical_parameters", "physical_jacobian", "n_parameters", "parameter_prior", "scaled_process_noise",
-           "scaled_measurement_noise"]
+           "scaled_measurement_noise", "ProcessNoiseProfile", "process_profile"]
 
 
 @runtime_checkable
@@ -89,6 +89,21 @@ class PerFrameNoise(Protocol):
 
     def R_at(self, t: int) -> np.ndarray:
         """(m, m) measurement noise covariance of frame ``t``."""
+
+
+@runtime_checkable
+class ProcessNoiseProfile(Protocol):
+    """Optional: the process noise of each frame interval as a factor on ``Q``. Fallback: ``Q`` every interval.
+
+    The interval from frame ``t`` to ``t + 1`` has process noise ``s_t Q`` (``t = 0 .. n_frames - 2``).
+    Used by the smoother family (:func:`sfem_filters.filtering.linearised.linearise`, the Kalman
+    filter and RTS smoother of the linearised model, :class:`~sfem_filters.filtering.iterated.IteratedSmoother`,
+    :class:`~sfem_filters.filtering.map_cost.MapObjective`); the cyclic engines use ``Q`` alone and
+    refuse a model with a profile (:func:`sfem_filters.filtering.cyclic.filter_loop`).
+    """
+
+    def process_profile(self):
+        """(n_frames - 1,) factors ``s_t > 0`` on ``Q`` per interval, or None (every factor 1)."""
 
 
 @runtime_checkable
@@ -203,6 +218,22 @@ def measurement_cov(model, t: int) -> np.ndarray:
     return np.asarray(model.R_at(t) if isinstance(model, PerFrameNoise) else model.R, float)
 
 
+def process_profile(model):
+    """The model's :class:`ProcessNoiseProfile` factors, checked, as an (n_frames - 1,) array; None
+    when it has none (``Q`` every interval). A ``ValueError`` names ``process_profile`` otherwise."""
+    if not isinstance(model, ProcessNoiseProfile):
+        return None
+    s = model.process_profile()
+    if s is None:
+        return None
+    s = np.asarray(s, float)
+    n = int(model.n_frames) - 1
+    if s.shape != (n,) or not np.all(np.isfinite(s)) or np.any(s <= 0):
+        raise ValueError(f"process_profile: expected {n} finite factors > 0 on Q (one per frame interval), got "
+                         f"shape {s.shape}" + (f", minimum {float(np.min(s))!r}" if s.size else ""))
+    return s
+
+
 def model_fingerprint(model) -> str:
     """The model's own :class:`Fingerprinted` hash, or the fallback over its matrices."""
     if isinstance(model, Fingerprinted):
@@ -210,6 +241,9 @@ def model_fingerprint(model) -> str:
     h = hashlib.sha256()
     for a in (model.x0, model.P0, model.Q, model.R, model.H_jacobian(model.x0, 0)):
         h.update(np.ascontiguousarray(np.asarray(a, float)).tobytes())
+    profile = process_profile(model)
+    if profile is not None:
+        h.update(profile.tobytes())
     h.update(f"{type(model).__qualname__},{model.dim_state},{model.n_restart},{model.n_frames}".encode())
     return h.hexdigest()
 

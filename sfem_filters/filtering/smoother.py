@@ -163,7 +163,7 @@ def smooth_backward(lin: LinearisedModel, forward: ForwardPass, *, outputs=None,
 
     On a pass run with ``store="mean"`` the smoothed means come from the adjoint ``lambda~_t``
     alone (no prior covariance of any frame): the smoothed initial state ``x_0- - P_0- lambda~_0``
-    and the smoothed process noise ``w_t-1|T = -Q lambda~_t`` (the disturbance smoother, de Jong
+    and the smoothed process noise ``w_t-1|T = -Q_t-1 lambda~_t`` (the disturbance smoother, de Jong
     1988; Durbin & Koopman 2012, sec. 4.5.3) give the trajectory forward,
     ``x_t|T = F_t-1 x_t-1|T + w_t-1|T`` (after a safeguard's repair D of a frame's covariance,
     from ``x_t-1|T - D lambda_t-1``), the same as ``x_t- - P_t- lambda~_t`` to round-off for
@@ -291,7 +291,7 @@ def _smooth_means(lin: LinearisedModel, forward: ForwardPass) -> SmoothedPass:
             # a repair D of the filtered covariance at t-1 moves the next prior by F D F^T, and so
             # the step: x_t|T = F (x_t-1|T - D lambda_t-1) + w_t-1|T (the covariance pass's numbers)
             prev = prev - eng.repaired[t - 1] @ carried[t - 1]
-        xr = np.asarray(lin.A_at(t - 1) @ prev[:nr]).ravel() + lin.c[t - 1] - lin.Q @ adjoint[t, :nr]
+        xr = np.asarray(lin.A_at(t - 1) @ prev[:nr]).ravel() + lin.c[t - 1] - lin.Q_at(t - 1) @ adjoint[t, :nr]
         if lin.n_params:
             xr += lin.M[t - 1] @ (prev[nr:] - lin.theta_bar)
         smoothed[t, :nr], smoothed[t, nr:] = xr, prev[nr:]
@@ -366,7 +366,6 @@ def rts_reference(lin: LinearisedModel, observations, theta_mean=None, theta_cov
     x = np.concatenate([lin.xi0, lin.theta0 if theta_mean is None else theta_mean])
     P = sla.block_diag(lin.P0, lin.P_theta0 if theta_cov is None else theta_cov)
     Hf = np.hstack([lin.H, np.zeros((lin.dim_obs, p))])
-    Qf = sla.block_diag(lin.Q, np.zeros((p, p)))
     xf, Pf, xp, Pp, Fs = [], [], [None], [None], []
     for t in range(T):
         if t > 0:
@@ -376,7 +375,7 @@ def rts_reference(lin: LinearisedModel, observations, theta_mean=None, theta_cov
             F[:nr, nr:] = lin.M[t - 1]
             off = np.concatenate([lin.c[t - 1] - lin.M[t - 1] @ lin.theta_bar, np.zeros(p)])
             x = F @ x + off
-            P = F @ P @ F.T + Qf
+            P = F @ P @ F.T + sla.block_diag(lin.Q_at(t - 1), np.zeros((p, p)))
             Fs.append(F)
             xp.append(x.copy())
             Pp.append(P.copy())
