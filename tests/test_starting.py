@@ -80,3 +80,16 @@ def test_every_public_name_is_its_modules_object():
         assert name in dir(sfem_filters)
     with pytest.raises(AttributeError):
         sfem_filters.NoSuchName  # noqa: B018
+
+
+def _child_line(argv):
+    return starting.starting_line(argv)
+
+
+def test_worker_processes_stay_silent():
+    """A spawned worker is given the parent's sys.argv; only the command itself says it has started."""
+    import multiprocessing
+    argv = [SCRIPT, "compare", "--seed", "0-4"]
+    with multiprocessing.get_context("spawn").Pool(1) as pool:
+        assert pool.apply(_child_line, (argv,)) is None
+    assert starting.starting_line(argv) is not None

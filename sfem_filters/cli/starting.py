@@ -3,12 +3,14 @@
 Loading numpy, scipy, filterpy, matplotlib and the library takes one to two seconds on a small
 machine, and a long verb's own progress can only start after that. So ``sfem-filters <verb>``
 first says, on stderr, that it has started and what it is loading. It stays silent where a first
-line would be noise: ``--help``, ``--quiet`` or ``--no-progress``, no verb, and any process that is
-not the ``sfem-filters`` console script (Python code importing :mod:`sfem_filters.cli`, tests).
+line would be noise: ``--help``, ``--quiet`` or ``--no-progress``, no verb, any process that is
+not the ``sfem-filters`` console script (Python code importing :mod:`sfem_filters.cli`, tests), and
+the command's worker processes (which are given the parent's ``sys.argv`` when they start).
 This module imports nothing of the library's, so it runs before them.
 """
 from __future__ import annotations
 
+import multiprocessing
 import os
 import re
 import sys
@@ -31,7 +33,7 @@ def starting_line(argv) -> str | None:
     """The first line of ``argv`` (``sys.argv`` as the console script sees it), or None when the
     command should stay silent (see the module docstring)."""
     argv = list(argv)
-    if not argv or os.path.basename(argv[0]) != SCRIPT:
+    if not argv or os.path.basename(argv[0]) != SCRIPT or multiprocessing.parent_process() is not None:
         return None
     args = argv[1:]
     # the verb: the first argument that is neither an option nor an option's value
