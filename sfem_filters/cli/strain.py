@@ -10,6 +10,7 @@ import numpy as np
 
 from ..cardiac import StrainRouteSettings, dense_strain
 from ..cardiac.dense_model import PROCESS_PROFILES
+from ..cardiac.strain_route import PHASE_NOISE_LEVELS
 from ..cardiac.contours_route import ContourRouteSettings, contour_spline_strain, contour_strain
 from ..imaging import conventional_from_displacement, mask_centre, truth_at_points
 from ..imaging.spline_strain import spline_strain
@@ -90,7 +91,7 @@ def add_parser(sub) -> None:
                         "stacked with the phase data. Needs each frame's mask: DENSE-Sim folders carry them; a DICOM "
                         "folder's --masks (F, H, W) or (F + 1, H, W); a sequence file's reference_mask and "
                         "frame_masks. Default: the phase alone")
-    s.add_argument("--phase-noise-level", choices=("stated", "evidence"), default=None,
+    s.add_argument("--phase-noise-level", choices=PHASE_NOISE_LEVELS, default=None,
                    help="with --with-masks: the level at which the phase data join the masks. stated (default): the "
                         "phase data's sd as the route states it (their sd scaled to their temporal noise floor); "
                         "evidence: that times the phase data's own maximum-likelihood noise level from one filter "
