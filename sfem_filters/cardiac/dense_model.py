@@ -28,6 +28,7 @@ from ..model import SFEMModel
 from .effects import build_effects
 from .measured import EFFECT_STEP, NOMINAL
 from .myocardium import lv_geometry, tissue_mesh
+from .strain_bands import noise_scale
 
 __all__ = ["MESHES", "INFORMATION_FLOOR", "RELAXATION_CYCLES", "PROCESS_FRACTIONS", "reference_mesh",
            "observation_points", "nodal_fit", "NodalFitModel", "compliant_modulus", "temporal_noise_floor",
@@ -549,7 +550,7 @@ def build_dense_model(mesh: TriMesh, tracks: LagrangianDisplacement, pixel_size_
         raise ValueError("settings: expected a process_fraction (None is resolved by process_fraction_ml)")
     q = settings.process_fraction * floor_px * s * np.sqrt(c)
     profile, profile_info = None, {}
-    if getattr(settings, "process_profile", "constant") == "data":
+    if settings.process_profile == "data":
         q_t, accel, level = process_profile_from_data(tracks.displacement, sd * sd_scale, tracks.points, T, alpha,
                                                settings.process_fraction * floor_px)
         profile = (q_t / (settings.process_fraction * floor_px)) ** 2        # on Q: its sds are q and q / T
@@ -620,11 +621,7 @@ def phase_noise_level(mesh: TriMesh, tracks: LagrangianDisplacement, pixel_size_
     model, y, _, _ = build_dense_model(mesh, tracks, pixel_size_m, settings, background)
     fw = kalman_forward(linearise(model, np.zeros((y.shape[0], model.dim_x))), y, store=False,
                         check_every_frame=False)
-    nis, n = np.asarray(fw.nis, float), np.asarray(fw.n_obs, float)
-    ok = np.isfinite(nis) & (n > 0)
-    if not ok.any():
-        raise ValueError("tracks: expected some observed frame for the phase data's noise level, got none")
-    return float(np.sum(nis[ok]) / np.sum(n[ok]))
+    return noise_scale(fw.nis, fw.n_obs)
 
 
 def _wall_thickness(mesh: TriMesh) -> float:
