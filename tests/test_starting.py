@@ -93,3 +93,18 @@ def test_worker_processes_stay_silent():
     with multiprocessing.get_context("spawn").Pool(1) as pool:
         assert pool.apply(_child_line, (argv,)) is None
     assert starting.starting_line(argv) is not None
+
+
+def test_workers_that_rerun_the_console_script_stay_silent(tmp_path):
+    """A spawned worker runs the parent's main script again (as ``__mp_main__``) before it knows its
+    parent; Dask's workers under ``sfem-filters compare`` did, and repeated the line."""
+    script = tmp_path / "sfem-filters"
+    script.write_text("import multiprocessing\n"
+                      "from sfem_filters.cli import main\n\n\n"
+                      "def work(x):\n    return x\n\n\n"
+                      "if __name__ == '__main__':\n"
+                      "    with multiprocessing.get_context('spawn').Pool(2) as pool:\n"
+                      "        assert pool.map(work, range(4)) == [0, 1, 2, 3]\n")
+    err = subprocess.run([sys.executable, str(script), "compare", "--seed", "0"], capture_output=True, text=True,
+                         check=True).stderr
+    assert err.count("sfem-filters compare: starting") == 1, err

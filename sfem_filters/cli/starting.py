@@ -5,7 +5,8 @@ machine, and a long verb's own progress can only start after that. So ``sfem-fil
 first says, on stderr, that it has started and what it is loading. It stays silent where a first
 line would be noise: ``--help``, ``--quiet`` or ``--no-progress``, no verb, any process that is
 not the ``sfem-filters`` console script (Python code importing :mod:`sfem_filters.cli`, tests), and
-the command's worker processes (which are given the parent's ``sys.argv`` when they start).
+the command's worker processes (which are given the parent's ``sys.argv`` and run its main
+script again when they start).
 This module imports nothing of the library's, so it runs before them.
 """
 from __future__ import annotations
@@ -29,11 +30,18 @@ SILENT = ("-h", "--help", "-q", "--quiet", "--no-progress")
 VALUED = ("--blas-threads",)
 
 
+def _main_process() -> bool:
+    """Whether this is the command's own process: not a worker, which knows its parent once started
+    and, while it starts, runs the parent's main script again as a module ``__mp_main__`` of its own
+    (spawn; in the command's process ``multiprocessing`` makes ``__mp_main__`` an alias of ``__main__``)."""
+    return multiprocessing.parent_process() is None and sys.modules.get("__mp_main__") is sys.modules.get("__main__")
+
+
 def starting_line(argv) -> str | None:
     """The first line of ``argv`` (``sys.argv`` as the console script sees it), or None when the
     command should stay silent (see the module docstring)."""
     argv = list(argv)
-    if not argv or os.path.basename(argv[0]) != SCRIPT or multiprocessing.parent_process() is not None:
+    if not argv or os.path.basename(argv[0]) != SCRIPT or not _main_process():
         return None
     args = argv[1:]
     # the verb: the first argument that is neither an option nor an option's value
