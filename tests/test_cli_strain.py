@@ -83,31 +83,45 @@ def test_strain_argument_errors_say_what_was_expected(capsys):
     assert "a number >= 0" in capsys.readouterr().err
 
 
-# --with-masks: the DENSE route fused with each frame's myocardium mask
+# the DENSE route's default for images: the acquisition's point spread, each frame's mask fused, the profile
 
 @pytest.mark.needs_data(CASE)
-def test_with_masks_stacks_the_case_folders_masks_with_the_phase(short_case, tmp_path):
-    out = tmp_path / "fused.json"
-    assert main(["strain", str(short_case), "--json", str(out), "--with-masks", "--snr", "30", "--quiet"]) == 0
+def test_default_for_images_fuses_the_masks_through_the_point_spread_and_each_part_can_be_turned_off(short_case,
+                                                                                                     tmp_path):
+    out = tmp_path / "default.json"
+    assert main(["strain", str(short_case), "--json", str(out), "--snr", "30", "--quiet"]) == 0
     d = json.loads(out.read_text())
     s = d["settings"]
-    assert d["route"] == "dense" and s["border_masks"] is True and s["phase_noise_level"] == "stated"
+    assert d["route"] == "dense" and s["border_masks"] is True and s["phase_noise_level"] == "evidence"
+    assert s["resolution_px"] == pytest.approx(128 / 60)               # config.yaml N_im / N_im_pre_spiral
+    assert s["process_profile"] == "data"
     assert s["border_rows"] == s["border_nodes"] > 20 and s["border_landmarks"] > s["border_nodes"]
+    assert s["phase_noise_scale"] > 0 and s["phase_noise_scale"] != 1.0
     assert np.array(d["global"]["Err"], float).shape == (6,)
     assert np.all(np.isfinite(np.array(d["strain"]["Err"], float)))
-    assert s["phase_noise_scale"] == 1.0
-    ev = tmp_path / "evidence.json"
-    assert main(["strain", str(short_case), "--json", str(ev), "--with-masks", "--phase-noise-level", "evidence",
-                 "--snr", "30", "--quiet"]) == 0
-    e = json.loads(ev.read_text())["settings"]
-    assert e["phase_noise_level"] == "evidence" and e["phase_noise_scale"] > 0 and e["border_rows"] == s["border_rows"]
+    runs = {"stated": ["--phase-noise-level", "stated"], "alone": ["--no-masks"], "point": ["--resolution-px", "1"],
+            "constant": ["--process-profile", "constant"]}
+    got = {}
+    for name, extra in runs.items():
+        path = tmp_path / f"{name}.json"
+        assert main(["strain", str(short_case), "--json", str(path), "--snr", "30", "--quiet", *extra]) == 0
+        got[name] = json.loads(path.read_text())
+    assert got["stated"]["settings"]["phase_noise_scale"] == 1.0
+    assert got["stated"]["settings"]["border_rows"] == s["border_rows"]
+    alone = got["alone"]["settings"]
+    assert alone["border_masks"] is False and alone["phase_noise_level"] == "stated" and "border_rows" not in alone
+    assert got["point"]["settings"]["resolution_px"] == 1.0 and got["point"]["settings"]["border_masks"] is True
+    assert got["constant"]["settings"]["process_profile"] == "constant"
+    base = np.array(d["global"]["Err"], float)
+    for name, rep in got.items():                    # each part changes the estimate: none is ignored
+        assert np.max(np.abs(np.array(rep["global"]["Err"], float) - base)) > 1e-6, name
 
 
 @pytest.mark.needs_data(CASE)
-def test_with_masks_errors_name_the_argument(short_case, tmp_path, capsys):
+def test_mask_options_errors_name_the_argument(short_case, tmp_path, capsys):
     out = str(tmp_path / "x.json")
     assert main(["strain", str(short_case), "--json", out, "--with-masks", "--route", "contours"]) == 2
-    assert "--with-masks: is for the dense route" in capsys.readouterr().err
+    assert "--with-masks/--no-masks: is for the dense route" in capsys.readouterr().err
     yy, xx = np.mgrid[0:20, 0:20]
     ring = (np.hypot(xx - 9.5, yy - 9.5) >= 4) & (np.hypot(xx - 9.5, yy - 9.5) <= 7)
     rows, cols = np.nonzero(ring)
@@ -116,17 +130,21 @@ def test_with_masks_errors_name_the_argument(short_case, tmp_path, capsys):
     np.savez(tmp_path / "seq.npz", points=pts, displacement=disp, pixel_spacing=1.5e-3, frame_interval=0.02)
     assert main(["strain", str(tmp_path / "seq.npz"), "--json", out, "--with-masks", "--quiet"]) == 2
     assert "--with-masks: expected the myocardium mask of every frame, got none" in capsys.readouterr().err
-    assert main(["strain", str(short_case), "--json", out, "--phase-noise-level", "evidence"]) == 2
-    assert "--phase-noise-level: weighs the phase data against the masks; give --with-masks" in capsys.readouterr().err
+    assert main(["strain", str(tmp_path / "seq.npz"), "--json", out, "--phase-noise-level", "evidence"]) == 2
+    assert "--phase-noise-level: weighs the phase data against the masks, which this run does not fuse (no mask" \
+        in capsys.readouterr().err
+    assert main(["strain", str(short_case), "--json", out, "--no-masks", "--phase-noise-level", "evidence"]) == 2
+    assert "which this run does not fuse (--no-masks)" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["strain", str(short_case), "--json", out, "--no-masks", "--with-masks"])
+    assert "not allowed with argument" in capsys.readouterr().err
 
 
 @pytest.mark.needs_data(CASE)
-def test_process_profile_reaches_the_route_and_is_refused_by_the_contours_route(short_case, tmp_path, capsys):
-    out = tmp_path / "profile.json"
-    assert main(["strain", str(short_case), "--json", str(out), "--process-profile", "data", "--snr", "30",
-                 "--quiet"]) == 0
-    s = json.loads(out.read_text())["settings"]
-    assert s["process_profile"] == "data"
-    assert main(["strain", str(short_case), "--json", str(tmp_path / "c.json"), "--route", "contours",
-                 "--process-profile", "data", "--quiet"]) == 2
-    assert "--process-profile" in capsys.readouterr().err
+def test_the_contours_route_refuses_the_dense_routes_options(short_case, tmp_path, capsys):
+    for extra in (["--process-profile", "data"], ["--resolution-px", "2"], ["--no-masks"],
+                  ["--phase-noise-level", "stated"]):
+        assert main(["strain", str(short_case), "--json", str(tmp_path / "c.json"), "--route", "contours",
+                     *extra, "--quiet"]) == 2
+        err = capsys.readouterr().err
+        assert extra[0] in err and "is for the dense route" in err, extra

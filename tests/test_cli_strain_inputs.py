@@ -390,13 +390,13 @@ def test_sequence_input_errors_name_what_is_missing(tmp_path, capsys):
 
 @pytest.mark.needs_data(CASE)
 def test_the_acquisitions_resolution_reaches_the_route(short_case, folder_report, tmp_path):
-    out = tmp_path / "psf.json"
-    assert main(["strain", str(short_case), "--json", str(out), "--quiet", "--resolution-px", "acquisition"]) == 0
-    rep = json.loads(out.read_text())
-    settings = rep["settings"]
+    settings = folder_report["settings"]                                     # the default for images
     assert settings["resolution_px"] == pytest.approx(128 / 60)             # config.yaml N_im / N_im_pre_spiral
     assert settings["observation_tissue_weight_mean"] < 0.95                # border pixels' PSF reaches outside
-    assert folder_report["settings"]["resolution_px"] == 1.0                 # the default: point observation
+    out = tmp_path / "point.json"
+    assert main(["strain", str(short_case), "--json", str(out), "--quiet", "--resolution-px", "1"]) == 0
+    rep = json.loads(out.read_text())
+    assert rep["settings"]["resolution_px"] == 1.0                          # point observation
     # the operator changes the estimate (it is not ignored), within the strain's own scale
     a, b = _a(rep["global"]["Err"]), _a(folder_report["global"]["Err"])
     assert 1e-4 < np.max(np.abs(a - b)) < 0.2

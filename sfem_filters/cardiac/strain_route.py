@@ -35,8 +35,10 @@ The DENSE route of issue 42 (items 3 and 4), as a library function, :func:`dense
    a DICOM's matrix over its AcquisitionMatrix) or the user, never from a fit; the operator is one
    matrix for every frame (the point spread taken in the reference configuration, see
    :func:`observation_operator`) and the frame's background rescales each datum (``n y = D U``,
-   so :func:`nodal_fit` is unchanged). Default 1: the point interpolation above; the validation
-   page's ablation row reports the operator at the acquisition's width and what it trades.
+   so :func:`nodal_fit` is unchanged). :class:`StrainRouteSettings` default 1 (tracks alone carry
+   no acquisition): the point interpolation above; with images, :func:`image_settings` takes the
+   acquisition's width (the command line's default; the validation page's ablation row reports
+   the point observation beside it).
 
    *Fused with the masks* (``border_masks=True``, ``masks=`` of every frame; Shi & Liu's fusion
    of shape tracking with phase-contrast data in one filter): the endocardial border of a mask
@@ -59,7 +61,9 @@ The DENSE route of issue 42 (items 3 and 4), as a library function, :func:`dense
    initial) by their own type-II ML level from one filter pass without the masks
    (:func:`phase_noise_level`; alone this factor changes no estimate), then stacks the masks at
    theirs: each source weighed by the noise it shows. Which to use is an empirical question the
-   masks' own accuracy decides (masks that under-report the thickening pull the estimate down).
+   masks' own accuracy decides (masks that under-report the thickening pull the estimate down);
+   with images, :func:`image_settings` fuses the masks whenever they move, at the evidence level
+   (the command line's default, :func:`dense_case_strain`).
 3. **Estimator.** :class:`sfem_filters.model.SFEMModel` (plane-strain linear elasticity, Eq. 19)
    estimated by :class:`sfem_filters.filtering.iterated.IteratedSmoother`; with the material
    fixed the model is linear and its MAP is one Kalman-RTS pass. The configuration is chosen for
@@ -87,7 +91,7 @@ The DENSE route of issue 42 (items 3 and 4), as a library function, :func:`dense
      more of the data's noise (pixel RMSE rises, above the smoothed conventional analysis on the
      in-vivo case) and the bands of step 6 no longer cover (the estimate's noise, shared with the
      reference, escapes the excess-error moment); so it is not the default. One level for every
-     frame must do both, and the cycle is not stationary; ``process_profile="data"`` lets each
+     frame must do both, and the cycle is not stationary; ``process_profile="data"`` (default) lets each
      frame interval's process sd follow the data's own acceleration at that time, never below the
      constant level (:func:`process_profile_from_data`: the damped second difference of the
      tracks' smooth motion, less the noise's share, by the model's own constant ``kappa``), given
@@ -181,7 +185,7 @@ from ..fem.observation import point_observation_matrix
 from ..filtering.iterated import IteratedSmoother
 from ..filtering.linearised import linearise
 from ..filtering.smoother import smooth
-from ..imaging.dense import LagrangianDisplacement
+from ..imaging.dense import LagrangianDisplacement, background_signal, phase_to_displacement
 from ..imaging.strain import N_SEGMENTS, Z95, StrainEstimate, displacement_gradient, global_curve, green_strain, \
     json_list, mask_centre, project_strain, segment_labels
 from .border_data import BorderData, contour_landmark_tracks, mask_border_data
@@ -203,7 +207,7 @@ __all__ = ["StrainRouteSettings", "DenseStrain", "NodalFitModel", "reference_mes
            "noise_scale", "DenseRouteStrain", "linearised_disagreement", "curve_noise_variance", "curve_discrepancy",
            "PROCESS_FRACTIONS", "process_fraction_ml", "concentrated_log_evidence", "observation_operator",
            "ObservationScaling", "border_masks_data", "phase_noise_level", "PHASE_NOISE_LEVELS", "PROCESS_PROFILES",
-           "process_profile_from_data"]
+           "process_profile_from_data", "image_settings", "dense_case_strain", "masks_move"]
 
 
 #: How the phase data's noise level is set beside the masks (``StrainRouteSettings.phase_noise_level``).
@@ -266,13 +270,13 @@ class StrainRouteSettings:
         border node's motion across the border, from landmarks tracked through the masks by
         bending-energy matching, with the contours route's sd, stacked with the phase data in one
         model (module docstring, step 2, *fused with the masks*). Default False: the phase alone.
-    process_profile : {"constant", "data"}
-        How the process noise varies over the frame intervals. ``"constant"`` (default): the level
-        of ``process_fraction`` every interval. ``"data"``: each interval's process sd the larger of
-        that level and the one the data's own smooth acceleration at that time asks for
-        (:func:`process_profile_from_data`, module docstring step 3): a short systole and early
-        filling move fast, diastasis barely, and one level must flatten the one or follow the
-        noise in the other.
+    process_profile : {"data", "constant"}
+        How the process noise varies over the frame intervals. ``"data"`` (default): each
+        interval's process sd the larger of the level of ``process_fraction`` and the one the
+        data's own smooth acceleration at that time asks for (:func:`process_profile_from_data`,
+        module docstring step 3): a short systole and early filling move fast, diastasis barely,
+        and one level must flatten the one or follow the noise in the other. ``"constant"``: that
+        level every interval (the route's default before the validation page measured both).
     phase_noise_level : {"stated", "evidence"}
         With ``border_masks``: the level at which the phase data join the masks. ``"stated"``
         (default): the phase data's sd as the route states it (step 3), the masks' by the contours
@@ -296,7 +300,7 @@ class StrainRouteSettings:
     resolution_px: float = 1.0
     border_masks: bool = False
     phase_noise_level: str = "stated"
-    process_profile: str = "constant"
+    process_profile: str = "data"
 
     def __post_init__(self):
         if self.mesh not in MESHES:
@@ -587,3 +591,96 @@ def dense_strain(tracks: LagrangianDisplacement, reference_mask, pixel_size_m: f
                             Err=err, Ecr=ecr, Ecc_sd=total_sd["Ecc"], Err_sd=total_sd["Err"], global_curves=glob,
                             segment_curves=segs, displacement=disp_px, seconds=seconds, settings=settings_out,
                             mesh=mesh, Ecc_sd_model=sd_cc, Err_sd_model=sd_rr)
+
+
+def masks_move(masks) -> bool:
+    """Whether the myocardium masks of the frames differ from the reference (so their borders carry motion).
+
+    Parameters
+    ----------
+    masks : (F + 1, H, W) bool array
+        The reference mask (index 0) then each frame's.
+
+    Returns
+    -------
+    bool
+        False when every frame's mask is the reference's (one mask given for all frames: its
+        borders would say the wall never moves).
+    """
+    m = as_mask("masks", masks, ndim=3)
+    return bool(np.any(m[1:] != m[:1]))
+
+
+def image_settings(case, **overrides) -> StrainRouteSettings:
+    """The DENSE route's settings for a case with images: the acquisition's point spread, the masks fused.
+
+    The route's defaults for what images carry beyond the tracks (the command line's ``strain``
+    default; the validation page's main row, measured against every variant it leaves out):
+
+    * ``resolution_px``: the case's acquired resolution
+      (:attr:`sfem_filters.imaging.DenseCase.resolution_px`), so each datum is observed as the
+      point-spread-weighted mean over the tissue with the images' background mixed in at the
+      borders (module docstring, step 2), not at the pixel centre;
+    * ``border_masks``: True when the frames' masks move (:func:`masks_move`): their borders'
+      motion across the border joins the phase data, which the point spread biases at the
+      endocardium; with one mask for every frame there is nothing to fuse;
+    * ``phase_noise_level``: ``"evidence"`` with the masks (each source weighed by the noise it
+      shows);
+    * ``process_profile``: ``"data"`` (the :class:`StrainRouteSettings` default).
+
+    Parameters
+    ----------
+    case : DenseCase
+        The images (:func:`sfem_filters.imaging.read_dense_sim`,
+        :func:`sfem_filters.imaging.read_dense_dicom`).
+    **overrides
+        Any :class:`StrainRouteSettings` field, which wins over the above (e.g.
+        ``resolution_px=1.0`` for the point observation, ``border_masks=False`` for the phase alone).
+
+    Returns
+    -------
+    StrainRouteSettings
+    """
+    fuse = masks_move(case.masks)
+    base = {"resolution_px": case.resolution_px, "border_masks": fuse,
+            "phase_noise_level": "evidence" if fuse else "stated"}
+    if "border_masks" in overrides and not overrides["border_masks"] and "phase_noise_level" not in overrides:
+        base["phase_noise_level"] = "stated"
+    unknown = sorted(set(overrides) - set(StrainRouteSettings.__dataclass_fields__))
+    if unknown:
+        raise TypeError(f"overrides: expected StrainRouteSettings fields, got {unknown}")
+    return StrainRouteSettings(**{**base, **overrides})
+
+
+def dense_case_strain(case, settings: StrainRouteSettings | None = None, tracks: LagrangianDisplacement | None = None,
+                      progress=None) -> DenseRouteStrain:
+    """The DENSE route from images: phase to tracks, the images' background and masks, then :func:`dense_strain`.
+
+    Parameters
+    ----------
+    case : DenseCase
+        The images, with every frame's mask.
+    settings : StrainRouteSettings, optional
+        Default :func:`image_settings` of the case.
+    tracks : LagrangianDisplacement, optional
+        The case's tracks (pixels) if already computed
+        (:func:`sfem_filters.imaging.phase_to_displacement`, the costly step).
+    progress : callable, optional
+        ``progress(message)`` at each step.
+
+    Returns
+    -------
+    DenseRouteStrain
+        As :func:`dense_strain`; its settings name the background used.
+    """
+    cfg = image_settings(case) if settings is None else settings
+    say = progress if progress is not None else (lambda msg: None)
+    if tracks is None:
+        say("phase to Lagrangian displacement")
+        tracks = phase_to_displacement(case)
+    background = None
+    if cfg.resolution_px > 1:
+        say("the images' signal around the myocardium (the point spread's reach outside the tissue)")
+        background = background_signal(case, cfg.resolution_px)
+    return dense_strain(tracks, case.reference_mask, case.pixel_size_m, cfg, progress=progress,
+                        background=background, masks=case.masks if cfg.border_masks else None)

@@ -8,7 +8,7 @@ import time
 
 import numpy as np
 
-from ..cardiac import StrainRouteSettings, dense_strain
+from ..cardiac import dense_case_strain, dense_strain
 from ..cardiac.dense_model import PROCESS_PROFILES
 from ..cardiac.strain_route import PHASE_NOISE_LEVELS
 from ..cardiac.contours_route import ContourRouteSettings, contour_spline_strain, contour_strain
@@ -18,7 +18,7 @@ from ..imaging.strain_report import spline_block, strain_csv, truth_block, with_
 from ..plotting.strain import strain_figures
 from ._common import _finite_float, _message, _non_negative_float, _non_negative_int, _positive_float, \
     _progress, _progress_options, _write_json
-from .strain_input import ACQUISITION, _observation_inputs, _resolution_px, _strain_input
+from .strain_input import ACQUISITION, _dense_settings, _resolution_px, _strain_input
 
 
 def add_parser(sub) -> None:
@@ -76,31 +76,35 @@ def add_parser(sub) -> None:
     s.add_argument("--resolution-px", type=_resolution_px, metavar=f"W|{ACQUISITION}",
                    help="dense route: the images' acquired resolution, in reconstructed pixels (the acquisition's "
                         "pixel, field of view over acquired matrix, over the image's pixel; >= 1); the observation "
-                        "operator then models each datum as the point-spread-weighted mean of the displacement over "
+                        "operator models each datum as the point-spread-weighted mean of the displacement over "
                         "the tissue around its pixel, with the signal the images show around the myocardium mixed in "
                         "at the borders (a Gaussian of FWHM W). "
-                        f"'{ACQUISITION}': from the images (DENSE-Sim config N_im / N_im_pre_spiral, a DICOM's "
-                        "Rows and Columns over its AcquisitionMatrix; 1 when they say nothing). Default 1: point "
-                        "observation at the pixel centres (the validated default; the docs' validation page reports "
-                        "both)")
-    s.add_argument("--with-masks", action="store_true",
-                   help="dense route: also observe the myocardium masks of every frame (Shi & Liu's fusion of shape "
-                        "tracking with phase data in one model): the endo- and epicardial borders tracked through the "
-                        "masks by bending-energy matching, each border node's motion across the border with the "
-                        "contours route's sd (the mask's quantisation or the borders' own temporal noise floor), "
-                        "stacked with the phase data. Needs each frame's mask: DENSE-Sim folders carry them; a DICOM "
-                        "folder's --masks (F, H, W) or (F + 1, H, W); a sequence file's reference_mask and "
-                        "frame_masks. Default: the phase alone")
+                        f"Default for images '{ACQUISITION}': from the images (DENSE-Sim config N_im / "
+                        "N_im_pre_spiral, a DICOM's Rows and Columns over its AcquisitionMatrix; 1 when they say "
+                        "nothing); for a sequence file 1. 1: point observation at the pixel centres (the docs' "
+                        "validation page reports both)")
+    fusion = s.add_mutually_exclusive_group()
+    fusion.add_argument("--with-masks", dest="masks_fusion", action="store_const", const=True, default=None,
+                        help="dense route: observe the myocardium masks of every frame beside the phase (Shi & Liu's "
+                             "fusion of shape tracking with phase data in one model): the endo- and epicardial "
+                             "borders tracked through the masks by bending-energy matching, each border node's "
+                             "motion across the border with the contours route's sd (the mask's quantisation or the "
+                             "borders' own temporal noise floor). The default whenever PATH carries a mask of every "
+                             "frame that moves (DENSE-Sim folders; a DICOM folder's --masks (F, H, W) or "
+                             "(F + 1, H, W); a sequence file's reference_mask and frame_masks); this option makes "
+                             "it an error when it does not")
+    fusion.add_argument("--no-masks", dest="masks_fusion", action="store_const", const=False,
+                        help="dense route: the phase alone, even when PATH carries every frame's mask")
     s.add_argument("--phase-noise-level", choices=PHASE_NOISE_LEVELS, default=None,
-                   help="with --with-masks: the level at which the phase data join the masks. stated (default): the "
-                        "phase data's sd as the route states it (their sd scaled to their temporal noise floor); "
-                        "evidence: that times the phase data's own maximum-likelihood noise level from one filter "
-                        "pass without the masks (each source weighed by the noise it shows; one pass more)")
-    s.add_argument("--process-profile", choices=PROCESS_PROFILES, default="constant",
-                   help="dense route: the process noise over the cycle. constant (default): one level, 0.1 of the "
-                        "data's temporal noise floor per frame; data: each frame interval's level from the data's "
-                        "own acceleration (the tracks projected on smooth fields, less the noise's share), never "
-                        "below the constant level, so a short systole is not flattened (the docs' validation page "
+                   help="with the masks fused: the level at which the phase data join them. evidence (default): the "
+                        "phase data's sd times their own maximum-likelihood noise level from one filter pass without "
+                        "the masks (each source weighed by the noise it shows; one pass more); stated: the phase "
+                        "data's sd as the route states it (their sd scaled to their temporal noise floor)")
+    s.add_argument("--process-profile", choices=PROCESS_PROFILES, default=None,
+                   help="dense route: the process noise over the cycle. data (default): each frame interval's level "
+                        "from the data's own acceleration (the tracks projected on smooth fields, less the noise's "
+                        "share), never below the constant level, so a short systole is not flattened; constant: "
+                        "one level, 0.1 of the data's temporal noise floor per frame (the docs' validation page "
                         "reports both)")
     s.add_argument("--csv", metavar="PATH",
                    help="also write the report as one tidy CSV table (one row per method, region = pixel, global "
@@ -118,36 +122,31 @@ def cmd_strain(args) -> int:
     t0 = time.perf_counter()
     src = _strain_input(args, say)
     case, tracks = src["case"], src["tracks"]
-    if args.route == "contours" and getattr(args, "resolution_px", None) is not None:
-        _observation_inputs(args, case)                          # says --resolution-px is for the dense route
-    with_masks = bool(getattr(args, "with_masks", False))
-    phase_level = getattr(args, "phase_noise_level", None)
-    if phase_level is not None and not with_masks:
-        raise ValueError("--phase-noise-level: weighs the phase data against the masks; give --with-masks too")
-    if with_masks and args.route != "dense":
-        raise ValueError("--with-masks: is for the dense route (it adds the masks to the phase data); the contours "
-                         "route observes the masks alone")
-    if with_masks and (src["masks"] is None or not src.get("frame_masks_given", False)):
-        raise ValueError("--with-masks: expected the myocardium mask of every frame, got "
-                         + ("none (the sequence file has no reference_mask and frame_masks)" if src["masks"] is None
-                            else "one mask for every frame (--masks (H, W)); give --masks (F, H, W) or (F + 1, H, W)"))
-    if args.route == "contours" and args.process_profile != "constant":
-        raise ValueError("--process-profile: is for the dense route; the contours route chooses its process noise by "
-                         "its evidence")
     if args.route == "contours":       # the masks alone (no phase): tracked borders, interior from the physics
+        for name, flag in (("resolution_px", "--resolution-px"), ("masks_fusion", "--with-masks/--no-masks"),
+                           ("phase_noise_level", "--phase-noise-level"), ("process_profile", "--process-profile")):
+            if getattr(args, name, None) is not None:
+                raise ValueError(f"{flag}: is for the dense route; the contours route observes the masks' tracked "
+                                 f"borders alone and chooses its process noise by its evidence")
         if src["masks"] is None:
             raise ValueError("--route contours: expected the myocardium masks of the reference and of every frame; the "
                              "sequence file has no reference_mask and frame_masks (use --route dense)")
         ours = contour_strain(src["masks"], src["pixel_size_m"], src["frame_times_s"],
                               ContourRouteSettings(start_deg=args.segment_start), progress=say)
     else:
-        resolution, background = _observation_inputs(args, case)
-        ours = dense_strain(tracks, src["reference_mask"], src["pixel_size_m"],
-                            StrainRouteSettings(start_deg=args.segment_start, resolution_px=resolution,
-                                                border_masks=with_masks,
-                                                phase_noise_level=phase_level or "stated",
-                                                process_profile=args.process_profile), progress=say,
-                            background=background, masks=src["masks"] if with_masks else None)
+        settings = _dense_settings(args, src)
+        say("dense route: "
+            + (f"observed through the acquisition's point spread ({settings.resolution_px:.2f} px)"
+               if settings.resolution_px > 1 else "observed at the pixel centres")
+            + (f", each frame's mask fused with the phase (phase level: {settings.phase_noise_level})"
+               if settings.border_masks else ", the phase alone")
+            + (", process noise from the data's motion" if settings.process_profile == "data"
+               else ", one process level"))
+        if case is not None:
+            ours = dense_case_strain(case, settings, tracks=tracks, progress=say)
+        else:
+            ours = dense_strain(tracks, src["reference_mask"], src["pixel_size_m"], settings, progress=say,
+                                masks=src["masks"] if settings.border_masks else None)
     centre = ours.centre if ours.centre is not None else mask_centre(src["reference_mask"])
     conv = conventional_from_displacement(tracks, centre, sigma=args.conventional_sigma, start_deg=args.segment_start)
     out = ours.to_dict()

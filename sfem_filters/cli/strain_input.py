@@ -10,10 +10,10 @@ import re
 import numpy as np
 
 from ..cardiac import load_sequence
-from ..cardiac.strain_route import temporal_noise_floor
+from ..cardiac.strain_route import StrainRouteSettings, image_settings, masks_move, temporal_noise_floor
 from ..imaging import (add_complex_noise, phase_to_displacement, read_dense_dicom_folder, read_dense_sim,
                        tracks_on_pixel_grid)
-from ..imaging.dense import background_signal, check_resolution_px
+from ..imaging.dense import check_resolution_px
 
 
 _IMAGE_ONLY = (("ke", "--ke"), ("masks", "--masks"), ("directions", "--directions"), ("phase_range", "--phase-range"))
@@ -80,27 +80,39 @@ def _resolution_px(text: str):
                                          f"acquisition, got {text!r}") from None
 
 
-def _observation_inputs(args, case) -> tuple:
-    """``(resolution_px, background)`` of the DENSE route's observation operator from ``--resolution-px``.
+def _dense_settings(args, src: dict) -> StrainRouteSettings:
+    """The DENSE route's settings from the command line and what PATH carries.
 
-    Not given: 1 (point observation at the pixel centres, the route's validated default).
-    ``acquisition``: the case's acquired resolution (DENSE-Sim ``N_im / N_im_pre_spiral``, a DICOM's
-    Rows and Columns over its AcquisitionMatrix; 1 when the file says nothing). A number: that.
-    With images and a resolution above 1, the complex signal around the myocardium from the images
-    (:func:`sfem_filters.imaging.dense.background_signal`); a sequence file has none (a dark background)."""
+    Images (a DENSE-Sim case, a DICOM folder): :func:`sfem_filters.cardiac.image_settings`, the
+    acquisition's point spread and the masks fused when they move from frame to frame, each
+    option given overriding it. A sequence file: no acquisition (point observation unless
+    ``--resolution-px`` gives a number), its masks fused when it carries each frame's. Raises
+    ValueError naming the option that cannot apply."""
+    case, masks = src["case"], src["masks"]
     value = getattr(args, "resolution_px", None)
-    if value is None:
-        return 1.0, None
-    if args.route != "dense":
-        raise ValueError("--resolution-px: is for the dense route (the phase's point spread); the contours route "
-                         "observes tracked borders")
-    if value == ACQUISITION:
-        if case is None:
-            raise ValueError(f"--resolution-px {ACQUISITION}: a sequence file carries no acquisition; give the "
-                             f"acquired resolution in reconstructed pixels (a number >= 1)")
-        value = case.resolution_px
-    background = background_signal(case, value) if case is not None and value > 1 else None
-    return float(value), background
+    if value == ACQUISITION and case is None:
+        raise ValueError(f"--resolution-px {ACQUISITION}: a sequence file carries no acquisition; give the "
+                         f"acquired resolution in reconstructed pixels (a number >= 1)")
+    fuse = getattr(args, "masks_fusion", None)          # True (--with-masks), False (--no-masks), None (auto)
+    moving = masks is not None and src.get("frame_masks_given", False) and masks_move(masks)
+    if fuse and not moving:
+        raise ValueError("--with-masks: expected the myocardium mask of every frame, got "
+                         + ("none (the sequence file has no reference_mask and frame_masks)" if masks is None
+                            else "one mask for every frame (--masks (H, W)); give --masks (F, H, W) or (F + 1, H, W)"))
+    fuse = moving if fuse is None else fuse
+    level = getattr(args, "phase_noise_level", None)
+    if level is not None and not fuse:
+        raise ValueError("--phase-noise-level: weighs the phase data against the masks, which this run does not fuse "
+                         + ("(--no-masks)" if getattr(args, "masks_fusion", None) is False
+                            else "(no mask of every frame that moves)"))
+    overrides = {"start_deg": args.segment_start, "border_masks": bool(fuse),
+                 "phase_noise_level": level or ("evidence" if fuse else "stated"),
+                 "process_profile": args.process_profile or "data"}
+    if value is not None and value != ACQUISITION:
+        overrides["resolution_px"] = float(value)
+    if case is not None:
+        return image_settings(case, **overrides)
+    return StrainRouteSettings(**overrides)
 
 
 def _has_dicom_file(folder: str) -> bool:

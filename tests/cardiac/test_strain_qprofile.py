@@ -107,7 +107,7 @@ def test_the_profile_reaches_the_model_and_the_constant_setting_leaves_it_unchan
     _, _, tracks = burst_runs
     mask = annulus_mask(4.0, 8.5, 24)
     mesh = reference_mesh(mask, PX, "gmsh", 2.0)
-    m0, y0, _, _ = build_dense_model(mesh, tracks, PX, StrainRouteSettings(element_px=2.0))
+    m0, y0, _, _ = build_dense_model(mesh, tracks, PX, StrainRouteSettings(element_px=2.0, process_profile="constant"))
     m1, y1, info, _ = build_dense_model(mesh, tracks, PX, StrainRouteSettings(element_px=2.0, process_profile="data"))
     assert process_profile(m0) is None
     s = process_profile(m1)
@@ -165,4 +165,4 @@ def test_the_settings_with_the_profile_survive_a_json_round_trip():
     cfg = StrainRouteSettings(process_profile="data", element_px=2.0)
     back = StrainRouteSettings(**json.loads(json.dumps(asdict(cfg))))
     assert back == cfg and back.process_profile == "data"
-    assert StrainRouteSettings().process_profile == "constant"
+    assert StrainRouteSettings().process_profile == "data"                      # the route's default

@@ -333,7 +333,7 @@ def _moving_ring(rough: bool, frames=16, noise_px=0.03, seed=2):
 def test_the_evidence_asks_for_more_process_noise_where_the_motion_is_rougher():
     """The same noise, a smooth and a jittery motion: the evidence's process fraction is larger for the latter,
     and the route reports the candidates' evidence and uses its choice."""
-    cfg = StrainRouteSettings(element_px=2.0, process_fraction=None)
+    cfg = StrainRouteSettings(element_px=2.0, process_fraction=None, process_profile="constant")   # one level
     q_smooth, t_smooth = process_fraction_ml(MESH, _moving_ring(False), PX, cfg)
     q_rough, t_rough = process_fraction_ml(MESH, _moving_ring(True), PX, cfg)
     assert q_rough > q_smooth
@@ -342,6 +342,6 @@ def test_the_evidence_asks_for_more_process_noise_where_the_motion_is_rougher():
     r = dense_strain(_moving_ring(True), MASK, PX, cfg)
     assert r.settings["process_fraction"] == pytest.approx(q_rough)
     assert set(r.settings["process_fraction_evidence"]) == {f"{q:g}" for q in PROCESS_FRACTIONS}
-    fixed = dense_strain(_moving_ring(True), MASK, PX, StrainRouteSettings(element_px=2.0))
+    fixed = dense_strain(_moving_ring(True), MASK, PX, StrainRouteSettings(element_px=2.0, process_profile="constant"))
     assert fixed.settings["process_fraction"] == 0.1                    # the default: the measured-data rule
     assert fixed.settings["process_fraction_evidence"] == "fixed by the settings"

@@ -4,13 +4,16 @@ Ground truth from an analytic deformation (an area-preserving inward thickening,
 rendered by our own generator as complex DENSE signal on a fine grid, blurred by the Gaussian point
 spread of a stated acquired resolution and sampled at the pixel centres, with a static lit background.
 """
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from scipy import ndimage
 
 pytest.importorskip("gmsh", reason="gmsh (the optional mesher, GPL-2.0-or-later) is not installed")
 
-from sfem_filters.cardiac.strain_route import StrainRouteSettings, dense_strain  # noqa: E402
+from sfem_filters.cardiac.strain_route import (StrainRouteSettings, dense_case_strain, dense_strain,  # noqa: E402
+                                               image_settings, masks_move)
 from sfem_filters.imaging.dense import (background_signal, make_dense_case, phase_to_displacement,  # noqa: E402
                                         psf_sigma_px)
 
@@ -91,3 +94,49 @@ def test_the_background_signal_is_read_where_the_tissues_blur_has_faded():
     b = np.abs(background_signal(case).signal[..., 0])
     far = ~ndimage.binary_dilation(case.frame_masks[-1], iterations=4)
     assert np.allclose(np.median(b[-1][far]), BACKGROUND, atol=0.05)
+
+
+# ------------------------------------------------------------------ the route's default for images
+def test_image_settings_take_the_acquisition_and_fuse_masks_only_when_they_move():
+    case, _ = render_blurred_ring(2.5)
+    cfg = image_settings(case)
+    assert cfg.resolution_px == case.resolution_px == 2.5
+    assert cfg.border_masks and cfg.phase_noise_level == "evidence" and cfg.process_profile == "data"
+    alone = image_settings(case, border_masks=False)
+    assert not alone.border_masks and alone.phase_noise_level == "stated"
+    assert image_settings(case, resolution_px=1.0).resolution_px == 1.0
+    with pytest.raises(TypeError, match="overrides: expected StrainRouteSettings fields, got \\['resolution'\\]"):
+        image_settings(case, resolution=1.0)
+    still = replace(case, masks=np.repeat(case.masks[:1], case.masks.shape[0], axis=0))   # one mask for all frames
+    assert masks_move(case.masks) and not masks_move(still.masks)
+    assert not image_settings(still).border_masks and image_settings(still).phase_noise_level == "stated"
+    with pytest.raises(ValueError, match="masks"):
+        masks_move(case.masks[0])
+
+
+def test_dense_case_strain_is_dense_strain_with_the_images_background_and_masks():
+    case, _ = render_blurred_ring(2.5, areas=AREAS[:5])
+    tracks = phase_to_displacement(case)
+    cfg = image_settings(case, element_px=2.0)
+    a = dense_case_strain(case, cfg, tracks=tracks)
+    b = dense_strain(tracks, case.reference_mask, case.pixel_size_m, cfg, background=background_signal(case),
+                     masks=case.masks)
+    assert np.array_equal(a.Err, b.Err) and np.array_equal(a.Err_sd, b.Err_sd)
+    assert a.settings["border_masks"] and a.settings["resolution_px"] == 2.5
+
+
+def test_the_default_for_images_brings_the_blurred_rings_radial_peak_closer_than_the_phase_alone():
+    """The images' default (point spread, masks at the evidence level, profile) against the earlier default (the
+    phase alone at the pixel centres, one process level) on a ring imaged through a known point spread."""
+    case, err = render_blurred_ring(2.5)
+    tracks = phase_to_displacement(case)
+    truth = err[:, case.reference_mask]
+    peak = int(np.argmax(AREAS))
+    bias = {}
+    for name, cfg in {"images": image_settings(case),
+                      "earlier": image_settings(case, resolution_px=1.0, border_masks=False,
+                                                process_profile="constant")}.items():
+        r = dense_case_strain(case, cfg, tracks=tracks)
+        bias[name] = float(np.mean(r.Err[peak] - truth[peak]))
+    assert bias["earlier"] < -0.1 * np.mean(truth[peak])           # the blur flattens the phase alone's peak
+    assert abs(bias["images"]) < 0.5 * abs(bias["earlier"])
