@@ -142,14 +142,23 @@ def markdown(results: dict) -> str:
     return "\n".join(text)
 
 
+def load_stretch() -> float:
+    """How much slower than idle this machine runs now: the 1-minute load average per core, at least 1."""
+    return max(1.0, os.getloadavg()[0] / max(os.cpu_count() or 1, 1))
+
+
 def check(results: dict, tier: str) -> list:
-    """A first line within :data:`FIRST_LINE_S`, the run's own progress within 5 s (allowing for a
-    loaded machine), a finite wall time, a final held-out error below the baseline's when rounds ran."""
+    """A first line within :data:`FIRST_LINE_S`, the run's own progress within 5 s, a finite wall
+    time, a final held-out error below the baseline's when rounds ran. The two limits are an idle
+    machine's; on a loaded one they stretch by the load per core (:func:`load_stretch`: the test
+    suite runs the quick tier beside its other workers), so the check says whether the command is
+    prompt, not how busy the machine was."""
     problems = []
-    if results["first_output_s"] is None or not results["first_output_s"] < FIRST_LINE_S:
-        problems.append(f"first line after {results['first_output_s']} s")
-    if results["first_progress_s"] is None or not results["first_progress_s"] < 5.0:
-        problems.append(f"first progress after {results['first_progress_s']} s")
+    stretch = load_stretch()
+    if results["first_output_s"] is None or not results["first_output_s"] < FIRST_LINE_S * stretch:
+        problems.append(f"first line after {results['first_output_s']} s (limit {FIRST_LINE_S * stretch:.1f} s)")
+    if results["first_progress_s"] is None or not results["first_progress_s"] < 5.0 * stretch:
+        problems.append(f"first progress after {results['first_progress_s']} s (limit {5.0 * stretch:.1f} s)")
     if not results["wall_s"] > 0:
         problems.append(f"wall time {results['wall_s']}")
     if results["rounds"] and not results["final_heldout_px"] <= results["baseline_heldout_px"]:
