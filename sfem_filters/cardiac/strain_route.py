@@ -74,7 +74,7 @@ The DENSE route of issue 42 (items 3 and 4), as a library function, :func:`dense
      10 kPa and Rayleigh damping every mode relaxes to the reference configuration within a
      frame and the near-incompressible plane-strain tissue resists thickening, so the model
      cannot carry the wall's motion from frame to frame and flattens radial strain (measured:
-     ``validation_draft/model_dense_sim.py --E 10000``); the compliant tissue lets the state
+     ``StrainRouteSettings(E=10e3)`` on a DENSE-Sim case); the compliant tissue lets the state
      carry the motion (mass and mass damping: a damped constant-velocity prior);
    * *effects*: none by default (``effects=`` adds catalogue effects; a compliant tissue has no
      elastic balance for an active stress);
