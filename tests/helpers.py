@@ -126,10 +126,12 @@ def bias_model(rng, n, p, m, frames):
     return model, y
 
 
-def write_dicom(path, stored, trigger_ms, instance, slope=2.0, intercept=-4096.0, comments=None, spacing=1.75):
+def write_dicom(path, stored, trigger_ms, instance, slope=2.0, intercept=-4096.0, comments=None, spacing=1.75,
+                acquisition_matrix=None):
     """One MR image as a scanner exports it: ``stored`` (H, W) 12-bit integers with RescaleSlope and
     RescaleIntercept, TriggerTime (ms), InstanceNumber, PixelSpacing (mm) and, when given,
-    ImageComments (which DENSE exports use to tell their series apart)."""
+    ImageComments (which DENSE exports use to tell their series apart) and AcquisitionMatrix
+    (frequency rows, frequency columns, phase rows, phase columns)."""
     from pydicom.dataset import Dataset, FileMetaDataset
     from pydicom.uid import ExplicitVRLittleEndian, MRImageStorage, generate_uid
     meta = FileMetaDataset()
@@ -148,6 +150,8 @@ def write_dicom(path, stored, trigger_ms, instance, slope=2.0, intercept=-4096.0
     ds.RescaleSlope, ds.RescaleIntercept = slope, intercept
     if comments is not None:
         ds.ImageComments = comments
+    if acquisition_matrix is not None:
+        ds.AcquisitionMatrix = [int(v) for v in acquisition_matrix]
     ds.PixelData = np.asarray(stored, np.uint16).tobytes()
     ds.save_as(path, enforce_file_format=True)
 

@@ -129,7 +129,14 @@ def test_mask_options_errors_name_the_argument(short_case, tmp_path, capsys):
     disp = 0.02 * np.arange(4)[:, None, None] * (pts - 9.5)[None]
     np.savez(tmp_path / "seq.npz", points=pts, displacement=disp, pixel_spacing=1.5e-3, frame_interval=0.02)
     assert main(["strain", str(tmp_path / "seq.npz"), "--json", out, "--with-masks", "--quiet"]) == 2
-    assert "--with-masks: expected the myocardium mask of every frame, got none" in capsys.readouterr().err
+    assert "--with-masks: expected the myocardium mask of every frame, moving with the wall, got none" \
+        in capsys.readouterr().err
+    still = np.zeros((20, 20), bool)
+    still[rows, cols] = True
+    np.savez(tmp_path / "still.npz", points=pts, displacement=disp, pixel_spacing=1.5e-3, frame_interval=0.02,
+             reference_mask=still, frame_masks=np.repeat(still[None], 4, axis=0))
+    assert main(["strain", str(tmp_path / "still.npz"), "--json", out, "--with-masks", "--quiet"]) == 2
+    assert "got masks that do not move (every frame's is the reference's)" in capsys.readouterr().err
     assert main(["strain", str(tmp_path / "seq.npz"), "--json", out, "--phase-noise-level", "evidence"]) == 2
     assert "--phase-noise-level: weighs the phase data against the masks, which this run does not fuse (no mask" \
         in capsys.readouterr().err

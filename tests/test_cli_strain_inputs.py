@@ -68,7 +68,8 @@ def _write_export(folder, case_dir, with_comments=True):
     phases = [np.load(case_dir / "phase_x.npy"), np.load(case_dir / "phase_y.npy")]
     mag = np.load(case_dir / "magnitude.npy").astype(float)
     with open(case_dir / "config.yaml") as f:
-        tt = yaml.safe_load(f)["sim_params"]["tt"]
+        sim = yaml.safe_load(f)["sim_params"]
+    tt, n_acq = sim["tt"], int(sim["N_im_pre_spiral"])        # the acquired matrix, as a scanner's header says
     F = mag.shape[0]
     mag_slope = float(mag.max()) / LEVELS
     series = [(f"DENSE {e}-enc pha - Scale:1.000000 EncFreq:{KE:.2f}", "phase_" + e, _stored_phase(p), 2.0, -4096.0)
@@ -82,7 +83,7 @@ def _write_export(folder, case_dir, with_comments=True):
         for f in range(F):
             text = f"{comment} - Rep:0/1 Slc:0/1 Par:0/1 Phs:{f}/{F} RCswap:0 RCSflip:0/0/0"
             write_dicom(where / f"IM_{next(names):04d}", stored[f], tt[f + 1], f + 1, slope, intercept,
-                         comments=text if with_comments else None)
+                         comments=text if with_comments else None, acquisition_matrix=(0, n_acq, n_acq, 0))
     (folder / "DICOMDIR.txt").write_text("not a DICOM file")
     return folder, mag_slope
 

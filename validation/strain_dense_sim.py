@@ -57,7 +57,7 @@ from ._core import fmt, md_table
 NAME = "strain_dense_sim"
 NEEDS_DATA = True
 TITLE = "Strain against DENSE-Sim's ground truth"
-FULL_COST = "about 20-35 minutes on 2 cores (12 runs of our route, 28 of its ablations)"
+FULL_COST = "about 35-45 minutes on 2 cores (12 runs of our route, 28 of its ablations)"
 TIERS = {"quick": {"cases": ["phantom_subject_1"], "snr": [30.0], "seeds": [0], "frames": 8, "route": True},
          "full": {"cases": None, "snr": [30.0, 8.0], "seeds": [0, 1, 2], "frames": None, "route": True}}
 #: Noise draws are seeded, our route is deterministic; timings are not compared.
@@ -178,8 +178,9 @@ def run_case(folder: Path, snr: float, seed: int, frames=None, route: bool = Tru
 def nodal_fit_strain(tracks, reference_mask, pixel_size_m, settings=None) -> tuple:
     """The error budget's middle term: each frame's weighted least-squares nodal fit alone (no dynamics).
 
-    The route's mesh, observation operator and data weights (:func:`sfem_filters.cardiac.strain_route.
-    build_dense_model`), the fit ``U_t = J_t^-1 D^T W_t y_t`` of every frame on its own, and the strain of
+    The route's mesh and data weights (:func:`sfem_filters.cardiac.strain_route.build_dense_model`) with
+    ``StrainRouteSettings()`` by default, i.e. the phase data alone observed at the pixel centres (what each
+    frame's pixels say, without the images' point spread or masks), the fit ``U_t = J_t^-1 D^T W_t y_t`` of every frame on its own, and the strain of
     the route's gradient (``settings.strain``). Returns ``(Ecc, Err, points, centre)``.
     """
     cfg = StrainRouteSettings() if settings is None else settings

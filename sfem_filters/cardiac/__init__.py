@@ -103,6 +103,7 @@ __all__ = ["Sequence", "make_sequence", "load_sequence", "save_sequence", "examp
            "spline_reference", "residual_spline", "rmse_difference", "angular_sectors", "kriged_heldout", "material_conflict",
            "contour_interpolant", "cross_validate", "observation_folds",
            "spline_cross_validation", "observe", "fusion_setup",
-           "compare_fusion", "annulus_mask", "annulus_sequence", "deformed_masks", "dense_strain", "dense_case_strain", "image_settings", "DenseStrain", "contour_strain", "ContourStrain",
+           "compare_fusion", "annulus_mask", "annulus_sequence", "deformed_masks", "dense_strain",
+           "dense_case_strain", "image_settings", "DenseStrain", "contour_strain", "ContourStrain",
            "ContourRouteSettings", "contour_spline_strain",
            "StrainRouteSettings"]

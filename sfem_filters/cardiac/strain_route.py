@@ -85,7 +85,7 @@ The DENSE route of issue 42 (items 3 and 4), as a library function, :func:`dense
      ``process_fraction=None``, chosen by type-II maximum likelihood (:func:`process_fraction_ml`:
      the evidence of one filter pass per candidate of :data:`PROCESS_FRACTIONS`, the common noise
      level profiled out). What that choice trades, measured (the validation page's error budget,
-     row "process noise by the evidence"): the evidence asks for a process noise near the noise
+     row "earlier default with process noise by the evidence", one process level): the evidence asks for a process noise near the noise
      floor itself, the smoother then flattens the curves' peaks in time far less (the global and
      segment peaks of radial strain come much closer to the truth), but the estimate follows
      more of the data's noise (pixel RMSE rises, above the smoothed conventional analysis on the
@@ -102,7 +102,7 @@ The DENSE route of issue 42 (items 3 and 4), as a library function, :func:`dense
    ``strain="recovered"``, :func:`gradient_operators`): at each node the area-weighted mean of the
    constant gradients of the linear triangles around it (nodal averaging, Zienkiewicz & Zhu 1992),
    interpolated at each reference pixel by the shape functions. Why, by measurement (one case at
-   SNR 30, the error budget of issue 42's strain work, the validation page's ablation rows): the
+   SNR 30, the error budget of issue 42's strain work; ``strain="element"`` reproduces it): the
    linear triangle's own constant gradient (``strain="element"``) jumps from element to element and
    carries the noise of its three nodes alone, so it is the noisiest part of the route (pixel
    RMSE of Ecc worse than the unsmoothed finite differences); a finer mesh is no remedy (at
@@ -185,7 +185,7 @@ from ..fem.observation import point_observation_matrix
 from ..filtering.iterated import IteratedSmoother
 from ..filtering.linearised import linearise
 from ..filtering.smoother import smooth
-from ..imaging.dense import LagrangianDisplacement, background_signal, phase_to_displacement
+from ..imaging.dense import DenseCase, LagrangianDisplacement, background_signal, phase_to_displacement
 from ..imaging.strain import N_SEGMENTS, Z95, StrainEstimate, displacement_gradient, global_curve, green_strain, \
     json_list, mask_centre, project_strain, segment_labels
 from .border_data import BorderData, contour_landmark_tracks, mask_border_data
@@ -641,14 +641,15 @@ def image_settings(case, **overrides) -> StrainRouteSettings:
     -------
     StrainRouteSettings
     """
-    fuse = masks_move(case.masks)
-    base = {"resolution_px": case.resolution_px, "border_masks": fuse,
-            "phase_noise_level": "evidence" if fuse else "stated"}
-    if "border_masks" in overrides and not overrides["border_masks"] and "phase_noise_level" not in overrides:
-        base["phase_noise_level"] = "stated"
+    if not isinstance(case, DenseCase):
+        raise TypeError(f"case: expected a DenseCase (sfem_filters.imaging.read_dense_sim, read_dense_dicom), "
+                        f"got {type(case).__name__}")
     unknown = sorted(set(overrides) - set(StrainRouteSettings.__dataclass_fields__))
     if unknown:
         raise TypeError(f"overrides: expected StrainRouteSettings fields, got {unknown}")
+    fuse = bool(overrides.get("border_masks", masks_move(case.masks)))
+    base = {"resolution_px": case.resolution_px, "border_masks": fuse,
+            "phase_noise_level": "evidence" if fuse else "stated"}
     return StrainRouteSettings(**{**base, **overrides})
 
 
@@ -674,6 +675,8 @@ def dense_case_strain(case, settings: StrainRouteSettings | None = None, tracks:
         As :func:`dense_strain`; its settings name the background used.
     """
     cfg = image_settings(case) if settings is None else settings
+    if not isinstance(case, DenseCase):
+        raise TypeError(f"case: expected a DenseCase, got {type(case).__name__}")
     say = progress if progress is not None else (lambda msg: None)
     if tracks is None:
         say("phase to Lagrangian displacement")

@@ -136,7 +136,7 @@ def cmd_strain(args) -> int:
     else:
         settings = _dense_settings(args, src)
         say("dense route: "
-            + (f"observed through the acquisition's point spread ({settings.resolution_px:.2f} px)"
+            + (f"observed through a point spread of {settings.resolution_px:.2f} px"
                if settings.resolution_px > 1 else "observed at the pixel centres")
             + (f", each frame's mask fused with the phase (phase level: {settings.phase_noise_level})"
                if settings.border_masks else ", the phase alone")

@@ -96,9 +96,13 @@ def _dense_settings(args, src: dict) -> StrainRouteSettings:
     fuse = getattr(args, "masks_fusion", None)          # True (--with-masks), False (--no-masks), None (auto)
     moving = masks is not None and src.get("frame_masks_given", False) and masks_move(masks)
     if fuse and not moving:
-        raise ValueError("--with-masks: expected the myocardium mask of every frame, got "
-                         + ("none (the sequence file has no reference_mask and frame_masks)" if masks is None
-                            else "one mask for every frame (--masks (H, W)); give --masks (F, H, W) or (F + 1, H, W)"))
+        if masks is None:
+            got = "none (the sequence file has no reference_mask and frame_masks)"
+        elif not src.get("frame_masks_given", False):
+            got = "one mask for every frame (--masks (H, W)); give --masks (F, H, W) or (F + 1, H, W)"
+        else:
+            got = "masks that do not move (every frame's is the reference's): their borders carry no motion"
+        raise ValueError(f"--with-masks: expected the myocardium mask of every frame, moving with the wall, got {got}")
     fuse = moving if fuse is None else fuse
     level = getattr(args, "phase_noise_level", None)
     if level is not None and not fuse:

@@ -110,6 +110,10 @@ def test_image_settings_take_the_acquisition_and_fuse_masks_only_when_they_move(
     still = replace(case, masks=np.repeat(case.masks[:1], case.masks.shape[0], axis=0))   # one mask for all frames
     assert masks_move(case.masks) and not masks_move(still.masks)
     assert not image_settings(still).border_masks and image_settings(still).phase_noise_level == "stated"
+    forced = image_settings(still, border_masks=True)                 # fused on request: at the evidence level
+    assert forced.border_masks and forced.phase_noise_level == "evidence"
+    with pytest.raises(TypeError, match="case: expected a DenseCase"):
+        image_settings(case.masks)
     with pytest.raises(ValueError, match="masks"):
         masks_move(case.masks[0])
 
