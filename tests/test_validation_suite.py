@@ -163,3 +163,23 @@ def test_the_suite_uses_only_public_names(path):
         if isinstance(node, ast.Attribute):
             assert not (node.attr.startswith("_") and not node.attr.startswith("__")), \
                 f"{path.name}:{node.lineno}: private attribute {node.attr}"
+
+
+def test_render_rewrites_the_table_from_the_stored_results_keeping_their_provenance(tmp_path):
+    """``render``: the stored run's header and numbers, the claim's current table, a line saying it was rendered;
+    nothing is run (a stored JSON nobody computed renders as it stands)."""
+    name = "strain_dense_sim"
+    stored = json.loads((GENERATED / f"{name}.json").read_text())
+    stored["results"]["rows"] = stored["results"]["rows"][:3]           # not what a run would give: no run happens
+    (tmp_path / f"{name}.json").write_text(json.dumps(stored))
+    proc = _run("render", name, "--out", str(tmp_path))
+    assert f"{name}: rewrote" in proc.stdout
+    md = (tmp_path / f"{name}.md").read_text()
+    from validation._core import header
+    first, second, rest = md.split("\n", 2)
+    assert first == header(stored["provenance"])
+    assert second.startswith(f"*Table rendered from that run's stored results by `python -m validation render {name}")
+    assert rest.strip() == claim(name).markdown(stored["results"]).strip()
+    assert json.loads((tmp_path / f"{name}.json").read_text()) == stored            # the results are untouched
+    missing = _run("render", "table1", "--out", str(tmp_path), check=False)
+    assert missing.returncode == 2 and "no stored results" in missing.stderr

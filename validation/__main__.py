@@ -1,4 +1,4 @@
-"""``python -m validation list | run NAME... | run --all | sync-readme`` (from the repository root)."""
+"""``python -m validation list | run NAME... | run --all | render NAME... | sync-readme`` (from the repository root)."""
 from __future__ import annotations
 
 import argparse
@@ -6,7 +6,7 @@ import sys
 from pathlib import Path
 
 from . import CLAIMS, claim
-from ._core import GENERATED, command_line, run_claim
+from ._core import GENERATED, command_line, render_claim, run_claim
 from .readme import sync
 
 
@@ -25,6 +25,11 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--out", type=Path, default=None,
                      help=f"output folder (default {GENERATED.relative_to(GENERATED.parent.parent)} for the full "
                           "tier; the quick tier needs --out, so it never overwrites the committed outputs)")
+    render = sub.add_parser("render", help="rewrite <out>/<name>.md from the stored <name>.json with the claim's "
+                                           "current table (no run: the stored numbers and their provenance)")
+    render.add_argument("names", nargs="+", metavar="NAME", help=f"claims: {', '.join(CLAIMS)}")
+    render.add_argument("--out", type=Path, default=GENERATED, help="folder of the stored JSON (default "
+                        f"{GENERATED.relative_to(GENERATED.parent.parent)})")
     sub.add_parser("sync-readme", help="rewrite README.md's generated blocks from their files")
     return ap
 
@@ -40,6 +45,16 @@ def main(argv=None) -> int:
     if args.verb == "sync-readme":
         changed = sync()
         print("\n".join(f"rewrote {c}" for c in changed) or "README.md is up to date")
+        return 0
+    if args.verb == "render":
+        unknown = [n for n in args.names if n not in CLAIMS]
+        if unknown:
+            build_parser().error(f"render: unknown claims {unknown}; expected names from {list(CLAIMS)}")
+        for name in args.names:
+            if not (args.out / f"{name}.json").is_file():
+                build_parser().error(f"render: no stored results {args.out / (name + '.json')}; run the claim first")
+            render_claim(claim(name), args.out, command_line(argv))
+            print(f"{name}: rewrote {args.out / (name + '.md')} from its stored results")
         return 0
     tier = args.tier or "full"
     names = list(CLAIMS) if args.all else args.names

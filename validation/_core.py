@@ -151,6 +151,21 @@ def run_claim(module, tier: str, out_dir, command: str) -> dict:
     return payload
 
 
+def render_claim(module, out_dir, command: str) -> dict:
+    """Rewrite ``<out_dir>/<NAME>.md`` from the stored ``<NAME>.json`` with the claim's current
+    ``markdown`` (no run): a change of presentation, the numbers and their provenance those of the
+    stored run, the header saying so. Returns the stored payload."""
+    payload = load(module.NAME, out_dir)
+    code = code_state()
+    commit = (code.get("git_commit") or "unknown")[:10]
+    note = (f"*Table rendered from that run's stored results by `{command}` at commit {commit}"
+            f"{' with uncommitted changes' if code.get('git_dirty') else ''}.*")
+    with open(Path(out_dir) / f"{module.NAME}.md", "w") as f:
+        f.write(header(payload["provenance"]) + "\n" + note + "\n\n" + module.markdown(payload["results"]).rstrip()
+                + "\n")
+    return payload
+
+
 def load(name: str, out_dir=GENERATED) -> dict:
     """The stored JSON of claim ``name`` in ``out_dir``."""
     with open(Path(out_dir) / f"{name}.json") as f:

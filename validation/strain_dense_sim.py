@@ -221,7 +221,9 @@ def _mean_rows(rows) -> list:
     for (case, snr, method), rs in groups.items():
         mean = {k: float(np.mean([r[k] for r in rs])) if all(r.get(k) is not None for r in rs) else None
                 for k in (*METRICS, "seconds", "process_fraction", "resolution_px")}
-        out.append({"case": case, "snr": snr, "method": method, "seeds": len(rs), **mean})
+        peak = [r["peak_rss_mb"] for r in rs if r.get("peak_rss_mb") is not None]
+        out.append({"case": case, "snr": snr, "method": method, "seeds": len(rs), **mean,
+                    "peak_rss_mb": max(peak) if peak else None})
     return out
 
 
@@ -229,7 +231,7 @@ def markdown(results: dict) -> str:
     cols = ["case", "SNR", "method", "seeds", "RMSE Ecc", "RMSE Err", "global peak err Ecc", "global peak err Err",
             "segment peak err Ecc mean / max", "segment peak err Err mean / max", "band coverage Ecc / Err [%]",
             "band width Ecc / Err", "pixel band coverage Ecc / Err [%] (width)", "global band coverage Ecc / Err [%]",
-            "process fraction", "resolution [px]", "seconds"]
+            "process fraction", "resolution [px]", "seconds", "peak memory [GB]"]
     body = []
     for r in _mean_rows(results["rows"]):
         ours = r["coverage_pct_Ecc"] is not None
@@ -247,7 +249,8 @@ def markdown(results: dict) -> str:
                      if ours else "",
                      fmt(r["process_fraction"], ".2f") if r.get("process_fraction") is not None else "",
                      fmt(r["resolution_px"], ".2f") if r.get("resolution_px") is not None else "",
-                     fmt(r["seconds"], ".0f")])
+                     fmt(r["seconds"], ".0f"),
+                     fmt(r["peak_rss_mb"] / 1024, ".2f") if r.get("peak_rss_mb") is not None else ""])
     notes = ["Strain in percentage points (Green-Lagrange, radial and circumferential about the reference "
              "myocardium's centre of mass), means over the noise seeds; peak errors are signed (estimate - truth). "
              "Band coverage: the fraction of (segment, frame) pairs whose true segment mean lies inside our 95% "
@@ -267,7 +270,9 @@ def markdown(results: dict) -> str:
              "least-squares fit alone. Process fraction: the route's process noise per frame over the noise floor "
              "(mean over the seeds). Resolution: the acquired resolution (reconstructed pixels) the observation "
              "operator used (1: point observation). "
-             "Seconds: wall time of one run, phase conversion included, on the machine of the header.",
+             "Seconds: wall time of one run, phase conversion included, on the machine of the header (mean over "
+             "the seeds). Peak memory: the claim process's peak resident memory at the end of the run (the most "
+             "over the seeds; every run shares one process, so this bounds each run's own from above).",
              "Goals of the DENSE route, every case and SNR at once: pixel RMSE below the better conventional "
              "variant; |global peak error| at most 1.0 (Ecc) and 3.0 (Err); mean segment peak error at most 1.0 "
              "(Ecc) and 4.0 (Err); band coverage 85-99%; at most 180 s a run."]
