@@ -91,7 +91,8 @@ from .sequence import (
                        save_sequence,
 )
 from .contours_route import ContourRouteSettings, ContourStrain, contour_spline_strain, contour_strain
-from .strain_route import DenseStrain, StrainRouteSettings, dense_case_strain, dense_strain, image_settings
+from .strain_route import DenseStrain, StrainRouteSettings, dense_case_strain, dense_strain, image_settings, \
+    route_settings
 
 __all__ = ["Sequence", "make_sequence", "load_sequence", "save_sequence", "example_path", "moved_on_lattice", "LVGeometry",
            "lv_geometry", "mesh_from_points", "tissue_mesh", "polar_mesh", "NotStarShapedError", "mesh_from_mask", "contour_landmarks", "Effect", "CATALOGUE",
@@ -104,6 +105,6 @@ __all__ = ["Sequence", "make_sequence", "load_sequence", "save_sequence", "examp
            "contour_interpolant", "cross_validate", "observation_folds",
            "spline_cross_validation", "observe", "fusion_setup",
            "compare_fusion", "annulus_mask", "annulus_sequence", "deformed_masks", "dense_strain",
-           "dense_case_strain", "image_settings", "DenseStrain", "contour_strain", "ContourStrain",
+           "dense_case_strain", "image_settings", "route_settings", "DenseStrain", "contour_strain", "ContourStrain",
            "ContourRouteSettings", "contour_spline_strain",
            "StrainRouteSettings"]

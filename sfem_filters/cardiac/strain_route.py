@@ -207,7 +207,8 @@ __all__ = ["StrainRouteSettings", "DenseStrain", "NodalFitModel", "reference_mes
            "noise_scale", "DenseRouteStrain", "linearised_disagreement", "curve_noise_variance", "curve_discrepancy",
            "PROCESS_FRACTIONS", "process_fraction_ml", "concentrated_log_evidence", "observation_operator",
            "ObservationScaling", "border_masks_data", "phase_noise_level", "PHASE_NOISE_LEVELS", "PROCESS_PROFILES",
-           "process_profile_from_data", "image_settings", "dense_case_strain", "masks_move"]
+           "process_profile_from_data", "image_settings", "route_settings", "dense_case_strain",
+           "masks_move"]
 
 
 #: How the phase data's noise level is set beside the masks (``StrainRouteSettings.phase_noise_level``).
@@ -641,16 +642,42 @@ def image_settings(case, **overrides) -> StrainRouteSettings:
     -------
     StrainRouteSettings
     """
-    if not isinstance(case, DenseCase):
-        raise TypeError(f"case: expected a DenseCase (sfem_filters.imaging.read_dense_sim, read_dense_dicom), "
-                        f"got {type(case).__name__}")
+    _check_case(case)
+    resolution = overrides.pop("resolution_px", case.resolution_px)
+    return route_settings(resolution, masks_move(case.masks), **overrides)
+
+
+def route_settings(resolution_px: float = 1.0, moving_masks: bool = False, **overrides) -> StrainRouteSettings:
+    """The DENSE route's settings for what its input carries (:func:`image_settings` for images).
+
+    Parameters
+    ----------
+    resolution_px : float
+        Acquired resolution of the images (reconstructed pixels, >= 1; 1 for tracks without an
+        acquisition: point observation).
+    moving_masks : bool
+        Whether the input holds a mask of every frame that moves (:func:`masks_move`): then they
+        are fused, with the phase data at their evidence level.
+    **overrides
+        Any :class:`StrainRouteSettings` field, which wins; ``border_masks`` given alone also sets
+        the phase level that goes with it.
+
+    Returns
+    -------
+    StrainRouteSettings
+    """
     unknown = sorted(set(overrides) - set(StrainRouteSettings.__dataclass_fields__))
     if unknown:
         raise TypeError(f"overrides: expected StrainRouteSettings fields, got {unknown}")
-    fuse = bool(overrides.get("border_masks", masks_move(case.masks)))
-    base = {"resolution_px": case.resolution_px, "border_masks": fuse,
-            "phase_noise_level": "evidence" if fuse else "stated"}
+    fuse = bool(overrides.get("border_masks", moving_masks))
+    base = {"resolution_px": resolution_px, "border_masks": fuse, "phase_noise_level": "evidence" if fuse else "stated"}
     return StrainRouteSettings(**{**base, **overrides})
+
+
+def _check_case(case) -> None:
+    if not isinstance(case, DenseCase):
+        raise TypeError(f"case: expected a DenseCase (sfem_filters.imaging.read_dense_sim, read_dense_dicom), "
+                        f"got {type(case).__name__}")
 
 
 def dense_case_strain(case, settings: StrainRouteSettings | None = None, tracks: LagrangianDisplacement | None = None,
@@ -674,9 +701,8 @@ def dense_case_strain(case, settings: StrainRouteSettings | None = None, tracks:
     DenseRouteStrain
         As :func:`dense_strain`; its settings name the background used.
     """
+    _check_case(case)
     cfg = image_settings(case) if settings is None else settings
-    if not isinstance(case, DenseCase):
-        raise TypeError(f"case: expected a DenseCase, got {type(case).__name__}")
     say = progress if progress is not None else (lambda msg: None)
     if tracks is None:
         say("phase to Lagrangian displacement")

@@ -10,7 +10,8 @@ import re
 import numpy as np
 
 from ..cardiac import load_sequence
-from ..cardiac.strain_route import StrainRouteSettings, image_settings, masks_move, temporal_noise_floor
+from ..cardiac.strain_route import StrainRouteSettings, image_settings, masks_move, route_settings, \
+    temporal_noise_floor
 from ..imaging import (add_complex_noise, phase_to_displacement, read_dense_dicom_folder, read_dense_sim,
                        tracks_on_pixel_grid)
 from ..imaging.dense import check_resolution_px
@@ -109,14 +110,11 @@ def _dense_settings(args, src: dict) -> StrainRouteSettings:
         raise ValueError("--phase-noise-level: weighs the phase data against the masks, which this run does not fuse "
                          + ("(--no-masks)" if getattr(args, "masks_fusion", None) is False
                             else "(no mask of every frame that moves)"))
-    overrides = {"start_deg": args.segment_start, "border_masks": bool(fuse),
-                 "phase_noise_level": level or ("evidence" if fuse else "stated"),
-                 "process_profile": args.process_profile or "data"}
-    if value is not None and value != ACQUISITION:
-        overrides["resolution_px"] = float(value)
-    if case is not None:
-        return image_settings(case, **overrides)
-    return StrainRouteSettings(**overrides)
+    overrides = {"start_deg": args.segment_start, "border_masks": bool(fuse)}
+    given = {"phase_noise_level": level, "process_profile": args.process_profile,
+             "resolution_px": None if value in (None, ACQUISITION) else float(value)}
+    overrides.update({k: v for k, v in given.items() if v is not None})
+    return image_settings(case, **overrides) if case is not None else route_settings(**overrides)
 
 
 def _has_dicom_file(folder: str) -> bool:

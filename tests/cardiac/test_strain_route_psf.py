@@ -13,7 +13,7 @@ from scipy import ndimage
 pytest.importorskip("gmsh", reason="gmsh (the optional mesher, GPL-2.0-or-later) is not installed")
 
 from sfem_filters.cardiac.strain_route import (StrainRouteSettings, dense_case_strain, dense_strain,  # noqa: E402
-                                               image_settings, masks_move)
+                                               image_settings, masks_move, route_settings)
 from sfem_filters.imaging.dense import (background_signal, make_dense_case, phase_to_displacement,  # noqa: E402
                                         psf_sigma_px)
 
@@ -110,6 +110,9 @@ def test_image_settings_take_the_acquisition_and_fuse_masks_only_when_they_move(
     still = replace(case, masks=np.repeat(case.masks[:1], case.masks.shape[0], axis=0))   # one mask for all frames
     assert masks_move(case.masks) and not masks_move(still.masks)
     assert not image_settings(still).border_masks and image_settings(still).phase_noise_level == "stated"
+    plain = route_settings()                                          # tracks alone: no acquisition, no masks
+    assert plain.resolution_px == 1.0 and not plain.border_masks and plain.phase_noise_level == "stated"
+    assert route_settings(2.0, True) == replace(cfg, resolution_px=2.0)
     forced = image_settings(still, border_masks=True)                 # fused on request: at the evidence level
     assert forced.border_masks and forced.phase_noise_level == "evidence"
     with pytest.raises(TypeError, match="case: expected a DenseCase"):
