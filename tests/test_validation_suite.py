@@ -183,3 +183,21 @@ def test_render_rewrites_the_table_from_the_stored_results_keeping_their_provena
     assert json.loads((tmp_path / f"{name}.json").read_text()) == stored            # the results are untouched
     missing = _run("render", "table1", "--out", str(tmp_path), check=False)
     assert missing.returncode == 2 and "no stored results" in missing.stderr
+
+
+def test_code_state_ignores_the_suites_own_outputs_but_not_the_code(tmp_path):
+    """A claim rewrites docs/_generated while it runs: that is not uncommitted code; a changed source file is."""
+    from validation._core import code_state
+    git = ["git", "-c", "user.name=t", "-c", "user.email=t@t", "-c", "commit.gpgsign=false"]
+    (tmp_path / "docs" / "_generated").mkdir(parents=True)
+    (tmp_path / "code.py").write_text("x = 1\n")
+    (tmp_path / "docs" / "_generated" / "claim.md").write_text("table\n")
+    subprocess.run(["git", "init", "-q"], cwd=tmp_path, check=True)
+    subprocess.run([*git, "add", "."], cwd=tmp_path, check=True)
+    subprocess.run([*git, "commit", "-qm", "init"], cwd=tmp_path, check=True)
+    clean = code_state(tmp_path)
+    assert clean["git_dirty"] is False and len(clean["git_commit"]) == 40
+    (tmp_path / "docs" / "_generated" / "claim.md").write_text("a new table\n")
+    assert code_state(tmp_path)["git_dirty"] is False
+    (tmp_path / "code.py").write_text("x = 2\n")
+    assert code_state(tmp_path)["git_dirty"] is True

@@ -28,9 +28,9 @@ PROVENANCE_KEYS = ("package_version", "git_commit", "git_dirty", "date_utc", "cp
                    "command", "wall_seconds", "tier")
 
 
-def _git(*args) -> str | None:
+def _git(*args, root: Path = ROOT) -> str | None:
     try:
-        out = subprocess.run(["git", *args], cwd=ROOT, capture_output=True, text=True, timeout=30)
+        out = subprocess.run(["git", *args], cwd=root, capture_output=True, text=True, timeout=30)
     except (OSError, subprocess.SubprocessError):
         return None
     return out.stdout.strip() if out.returncode == 0 else None
@@ -55,10 +55,16 @@ def blas_threads() -> int | None:
     return max(counts) if counts else None
 
 
-def code_state() -> dict:
-    """The git commit and whether the tracked files differ from it (``None`` outside a clone)."""
-    status = _git("status", "--porcelain", "--untracked-files=no")
-    return {"git_commit": _git("rev-parse", "HEAD"), "git_dirty": None if status is None else bool(status)}
+def code_state(root: Path = ROOT) -> dict:
+    """The git commit and whether the tracked files of the clone at ``root`` differ from it (``None`` outside one).
+
+    The suite's own outputs (``docs/_generated``) do not count: a claim rewrites its files during
+    its run, and claims run side by side rewrite theirs, so counting them would mark every such
+    run as made from uncommitted code when the code was the commit's.
+    """
+    status = _git("status", "--porcelain", "--untracked-files=no", "--", ".",
+                  f":(exclude){GENERATED.relative_to(ROOT).as_posix()}", root=root)
+    return {"git_commit": _git("rev-parse", "HEAD", root=root), "git_dirty": None if status is None else bool(status)}
 
 
 def provenance(tier: str, command: str, wall_seconds: float, start: dict | None = None) -> dict:
