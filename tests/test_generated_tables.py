@@ -6,6 +6,7 @@ the files they name, line for line (``python -m validation sync-readme`` rewrite
 Markdown table with a decimal number in a body cell outside such a block: results come in by an
 ``{include}`` of a generated file, never pasted.
 (c) Every ``{include}`` of a generated file names one that exists, so the pages build.
+(d) Every stored result names the commit it was made at, from a clean tree (reproducible).
 """
 from __future__ import annotations
 
@@ -74,3 +75,16 @@ def test_results_table_detection(tmp_path):
 def test_an_unterminated_block_is_an_error():
     with pytest.raises(ValueError, match="end generated"):
         readme.blocks("<!-- generated: docs/_generated/table1.md -->\n| a |\n")
+
+
+STORED = sorted((ROOT / "docs" / "_generated").glob("*.json"))
+
+
+@pytest.mark.parametrize("path", STORED, ids=_ids(STORED))
+def test_stored_results_were_made_from_committed_code(path):
+    """(d) Each stored claim names the commit it ran at, with a clean tree that stayed so: anyone can rerun it."""
+    import json
+    prov = json.loads(path.read_text())["provenance"]
+    assert isinstance(prov.get("git_commit"), str) and len(prov["git_commit"]) == 40, prov.get("git_commit")
+    assert prov.get("git_dirty") is False, f"{path.name}: made with uncommitted changes; rerun it at a commit"
+    assert not prov.get("git_changed_during_run"), f"{path.name}: the code changed during its run; rerun it"
