@@ -53,7 +53,7 @@ def test_magnitude_wall_finds_the_edges_of_a_blurred_ring_image_not_the_masks():
     image = _wall_profile(d, 12.6, 19.4, 0.8, (0.3, 1.0, 0.1))
     mask = (d >= 12.0) & (d <= 20.0)
     angles = np.linspace(0, 2 * np.pi, 90, endpoint=False)
-    a, b = magnitude_wall(image, mask, centre, angles, 0.8)
+    a, b = magnitude_wall(image, centre, angles, 0.8, mask_wall(mask, centre, angles))
     assert np.median(np.abs(a - 12.6)) < 0.05 and np.median(np.abs(b - 19.4)) < 0.05
 
 

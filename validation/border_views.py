@@ -114,9 +114,13 @@ def fit_blurred_wall(profile, r, a0, b0, sigma: float, iterations: int = 15) -> 
     return a, b
 
 
-def magnitude_wall(image, mask, centre, angles, sigma: float) -> tuple:
-    """Endo- and epicardial radii (px) along rays, the blurred-wall model fitted to the magnitude."""
-    a0, b0 = mask_wall(mask, centre, angles)
+def magnitude_wall(image, centre, angles, sigma: float, start_radii) -> tuple:
+    """Endo- and epicardial radii (px) along rays, the blurred-wall model fitted to the magnitude.
+
+    ``start_radii``: the ``(a0, b0)`` the fit starts from and whose wall (plus :data:`MARGIN_PX`) the
+    profiles span, the frame's mask's (:func:`mask_wall`).
+    """
+    a0, b0 = (np.asarray(r, float) for r in start_radii)
     offsets = np.arange(0.0, float(np.max(b0 - a0)) + 2 * MARGIN_PX + PROFILE_STEP_PX, PROFILE_STEP_PX)
     start = np.maximum(a0 - MARGIN_PX, 0.5)
     x, y = _ray_points(centre, angles, start[:, None] + offsets[None])
@@ -163,7 +167,7 @@ def case_views(folder, frames=None, rays: int = 180) -> dict:
         cf = mask_centre(m)
         a, b = mask_wall(m, cf, angles)
         per_ray["masks"].append(b - a)
-        a, b = magnitude_wall(case.magnitude[f], m, cf, angles, sigma)
+        a, b = magnitude_wall(case.magnitude[f], cf, angles, sigma, (a, b))
         per_ray["magnitude"].append(b - a)
     curves = {}
     for v, arr in per_ray.items():
