@@ -1,0 +1,104 @@
+"""The strain-budget claim's resampled cases (validation/strain_budget.py): a finer grid, the same case."""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from hypothesis import given, settings, strategies as st
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from sfem_filters.imaging import phase_to_displacement, read_dense_sim  # noqa: E402
+from validation.strain_budget import resampled_pixels, write_resampled_case, zoom_for_pixels  # noqa: E402
+
+N, FOV_MM, KE, N_ACQ, FRAMES = 48, 96.0, 0.1, 24, 3
+
+
+def _annulus(n=N, inner=7.0, outer=14.0):
+    yy, xx = np.mgrid[0:n, 0:n]
+    d = np.hypot(xx - (n - 1) / 2, yy - (n - 1) / 2)
+    return (d >= inner) & (d <= outer)
+
+
+def _write_case(folder: Path, shift_mm=(0.0, 0.0), truth=0.1) -> Path:
+    """A DENSE-Sim folder of an annulus translated by ``shift_mm`` (x, y) in every frame."""
+    folder.mkdir(parents=True, exist_ok=True)
+    mask = _annulus()
+    ones = np.ones((FRAMES, N, N))
+    for name, d in (("phase_x", shift_mm[0]), ("phase_y", shift_mm[1])):
+        np.save(folder / f"{name}.npy", np.angle(np.exp(2j * np.pi * KE * d) * ones).astype(np.float32))
+    np.save(folder / "magnitude.npy", np.where(mask, 1.0, 0.05)[None].repeat(FRAMES, 0).astype(np.float32))
+    np.save(folder / "LV_mask_time_lowres.npy", mask[None].repeat(FRAMES + 1, 0))
+    gt = np.where(mask, truth, np.nan)[None].repeat(FRAMES, 0).astype(np.float32)
+    np.save(folder / "GT_Ecc.npy", -gt)
+    np.save(folder / "GT_Err.npy", gt)
+    cfg = {"sim_params": {"FOV": [FOV_MM, FOV_MM, 8], "N_im": N, "N_im_pre_spiral": N_ACQ, "ke": KE,
+                          "tt": [0.0] + [20.0 + 15.0 * f for f in range(FRAMES)], "Nt": FRAMES}}
+    with open(folder / "config.yaml", "w") as fh:
+        yaml.safe_dump(cfg, fh)
+    return folder
+
+
+def test_zoom_one_reproduces_the_case(tmp_path):
+    src = _write_case(tmp_path / "src", (1.3, -0.4))
+    write_resampled_case(src, tmp_path / "dst", 1.0)
+    a, b = read_dense_sim(src), read_dense_sim(tmp_path / "dst")
+    assert np.array_equal(a.masks, b.masks)
+    assert np.allclose(a.phases, b.phases, atol=1e-5)
+    assert np.allclose(a.truth_err, b.truth_err, equal_nan=True)
+    assert b.pixel_size_m == pytest.approx(a.pixel_size_m) and b.resolution_px == pytest.approx(a.resolution_px)
+    assert np.array_equal(a.frame_times_s, b.frame_times_s)
+
+
+@settings(max_examples=8, deadline=None)
+@given(zoom=st.floats(0.8, 1.6), dx=st.floats(-2.0, 2.0), dy=st.floats(-2.0, 2.0))
+def test_a_finer_grid_keeps_the_anatomy_the_motion_and_the_acquisition(tmp_path_factory, zoom, dx, dy):
+    tmp = tmp_path_factory.mktemp("zoom")
+    src = _write_case(tmp / "src", (dx, dy))
+    info = write_resampled_case(src, tmp / "dst", zoom)
+    a, b = read_dense_sim(src), read_dense_sim(tmp / "dst")
+    n_new = info["n_im"]
+    assert n_new == round(N * zoom)
+    # the pixel shrinks by the zoom, the field of view and the acquired pixel stay
+    assert b.pixel_size_m == pytest.approx(a.pixel_size_m / zoom)
+    assert b.resolution_px == pytest.approx(n_new / N_ACQ)
+    # the myocardium's area in mm^2 is kept (to the quantisation of its two borders)
+    area = lambda c: c.reference_mask.sum() * c.pixel_size_mm ** 2     # noqa: E731
+    assert area(b) == pytest.approx(area(a), rel=0.12)
+    assert info["reference_pixels"] == int(b.reference_mask.sum())
+    # the motion: a translation of (dx, dy) mm is (dx, dy) mm at every reference pixel
+    tracks = phase_to_displacement(b)
+    disp_mm = tracks.displacement * b.pixel_size_mm
+    ok = np.isfinite(disp_mm).all(axis=-1)
+    assert ok.mean() > 0.95
+    assert np.allclose(disp_mm[ok], [dx, dy], atol=1e-3)
+    # the truth where it is known, and only on the reference myocardium
+    assert np.allclose(b.truth_err[:, b.reference_mask], 0.1, atol=1e-6)
+    assert np.isnan(b.truth_err[:, ~b.reference_mask]).all()
+
+
+def test_frames_keep_the_first_ones_and_their_times(tmp_path):
+    src = _write_case(tmp_path / "src")
+    write_resampled_case(src, tmp_path / "dst", 1.0, frames=2)
+    a, b = read_dense_sim(src), read_dense_sim(tmp_path / "dst")
+    assert b.n_frames == 2 and b.masks.shape[0] == 3
+    assert np.array_equal(b.frame_times_s, a.frame_times_s[:2])
+
+
+def test_zoom_for_pixels_is_the_smallest_on_its_grid_that_reaches_the_target():
+    mask = _annulus()
+    for target in (int(mask.sum()) // 2, int(mask.sum()) * 2):
+        z, n, tried = zoom_for_pixels(mask, target)
+        assert n >= target and n == resampled_pixels(mask, z)
+        assert resampled_pixels(mask, round(z - 0.01, 10)) < target
+        assert tried[-1][0] == z or tried[-2][0] == z
+
+
+def test_bad_input_is_named():
+    with pytest.raises(ValueError, match="zoom"):
+        write_resampled_case(".", ".", 0.0)
+    with pytest.raises(ValueError, match="reference_mask"):
+        zoom_for_pixels(np.zeros((4, 4), bool), 10)
