@@ -65,8 +65,11 @@ The DENSE route of issue 42 (items 3 and 4), as a library function, :func:`dense
    with images, :func:`image_settings` fuses the masks whenever they move, at the evidence level
    (the command line's default, :func:`dense_case_strain`).
 3. **Estimator.** :class:`sfem_filters.model.SFEMModel` (plane-strain linear elasticity, Eq. 19)
-   estimated by :class:`sfem_filters.filtering.iterated.IteratedSmoother`; with the material
-   fixed the model is linear and its MAP is one Kalman-RTS pass. The configuration is chosen for
+   estimated by the Kalman filter and RTS smoother (:mod:`sfem_filters.filtering.smoother`): with
+   the material fixed the model is linear and its MAP is one Kalman-RTS pass (what
+   :class:`sfem_filters.filtering.iterated.IteratedSmoother` returns for a model without
+   parameters), so one forward pass keeps what two backward passes need, the smoothed means and
+   then the covariances of the strain linearised at them (step 5). The configuration is chosen for
    dense data, each setting by a principle, none fitted to a case:
 
    * *material*: fixed; Young's modulus by :func:`compliant_modulus` (elastic relaxation across
@@ -182,9 +185,10 @@ from .._validate import as_float_array, as_mask, positive
 from ..imaging.dense import check_resolution_px
 from ..fem.mesh import TriMesh
 from ..fem.observation import point_observation_matrix
-from ..filtering.iterated import IteratedSmoother
 from ..filtering.linearised import linearise
-from ..filtering.smoother import smooth
+from ..filtering.memory import check_memory, covariance_interval
+from ..filtering.safeguards import Safeguards
+from ..filtering.smoother import kalman_forward, smooth_backward
 from ..imaging.dense import DenseCase, LagrangianDisplacement, background_signal, phase_to_displacement
 from ..imaging.strain import N_SEGMENTS, Z95, StrainEstimate, displacement_gradient, global_curve, green_strain, \
     json_list, mask_centre, project_strain, segment_labels
@@ -502,13 +506,22 @@ def dense_strain(tracks: LagrangianDisplacement, reference_mask, pixel_size_m: f
     say(f"mesh: {mesh.n_nodes} nodes, {mesh.n_elements} triangles; building the model")
     model, y, info, Xin = build_dense_model(mesh, tracks, s, cfg, background, border, phase_scale=c_phase)
     F, P = tracks.displacement.shape[:2]
-    say(f"smoothing {F} frames ({model.dim_state} states)")
-    result = IteratedSmoother(covariance=False).run(model, y)
+    # The material is fixed, so the model is linear and its MAP trajectory is one Kalman-RTS pass (what an
+    # iterated smoother with no parameters returns, after two passes): one forward pass keeps what both
+    # backward passes need, the means' (the strain's linearisation point) and then the covariances' (step 5)
+    observed = int(np.sum(~np.isnan(y)))
+    check_memory(model.dim_state, F, covariance=True, observed=observed)
+    lin = linearise(model, np.zeros((F, model.dim_x)))
+    say(f"smoothing {F} frames ({model.dim_state} states): one Kalman filter pass, then the smoothed means and "
+        "the covariances of the linearised strain")
+    fwd = kalman_forward(lin, y, safeguards=Safeguards(), monitor_nis=True, store="covariance",
+                         every=covariance_interval(lin.dim_state, F, observed=observed))
     nr = model.n_restart
+    states = lin.to_model(smooth_backward(lin, fwd).smoothed[:, :nr])      # xi, the pass's coordinates, to the model's
     n = model.dim_x // 2
     free = model.dofmap.free
     U = np.zeros((F, mesh.n_dofs))
-    U[:, free] = result.states[:, :n]
+    U[:, free] = states[:, :n]
     # gradients at the points: G = R_k U, R_k = weights @ ops[k] (element or recovered, step 4)
     ops, weights = gradient_operators(mesh, Xin, cfg.strain)
     R = [sp.csr_matrix(weights @ op) for op in ops]
@@ -521,15 +534,14 @@ def dense_strain(tracks: LagrangianDisplacement, reference_mask, pixel_size_m: f
     a_cc, a_rr = linearised_rows(grad, X, centre)
     curve_rows = np.concatenate([np.concatenate([sum(sp.csr_matrix(A * a[t][:, k]) @ R[k] for k in range(4)).toarray()
                                                  for a in (a_cc, a_rr)]) for t in range(F)])   # (F * 14, n_dofs)
-    say("covariance pass (linearised strain)")
-    lin = linearise(model, result.states)
+    say("covariances of the linearised strain (backward pass)")
 
     def on_state(op):
         op = sp.csr_matrix(op)[:, free]
         return lin.output_in_xi(sp.hstack([op, sp.csr_matrix((op.shape[0], nr - n))], format="csr"))
 
     outputs = {"gradient": on_state(_component_rows(ops)), "curves": on_state(curve_rows)}
-    sm = smooth(lin, y, outputs=outputs, covariance=True)
+    sm = smooth_backward(lin, fwd, outputs=outputs, covariance=True)
     c_ml = noise_scale(sm.nis, sm.n_obs) if cfg.noise_scale else 1.0         # step 6 (a)
     C = c_ml * _covariance_from_blocks(sm.variances["gradient"], ops[0].shape[0])       # (F, m, 4, 4)
     E = green_strain(grad)
@@ -573,7 +585,8 @@ def dense_strain(tracks: LagrangianDisplacement, reference_mask, pixel_size_m: f
     settings_out = {**asdict(cfg), **info, "n_nodes": mesh.n_nodes, "n_elements": mesh.n_elements,
                     "element_px_mean_edge": float(edges), "dim_state": int(model.dim_state),
                     "material": "fixed: E of compliant_modulus unless given, nu nominal",
-                    "estimator": "IteratedSmoother (material fixed: one Kalman-RTS pass), then a covariance pass",
+                    "estimator": "Kalman filter and RTS smoother (material fixed: a linear model), one forward pass for the "
+                                 "means and the covariances",
                     "strain": ("Green-Lagrange of the recovered (nodal-average) gradient" if cfg.strain == "recovered"
                                else "Green-Lagrange of the linear triangles' element gradient"),
                     "sd": "delta method at the posterior mean, full smoothed covariance of U"

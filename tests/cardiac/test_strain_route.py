@@ -1,5 +1,6 @@
 """The DENSE route: Green strain of the FE field, its linearised sd, curves with full-covariance bands."""
 import os
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -153,6 +154,29 @@ def test_dense_strain_on_a_small_ring_gives_the_issue_names_and_honest_shapes():
         assert abs(r.global_curves["Err"][f] - err.mean()) < 0.01 + 0.2 * abs(err.mean())
         assert abs(r.global_curves["Ecc"][f] - ecc.mean()) < 0.01 + 0.2 * abs(ecc.mean())
     assert err.mean() > 0.05 and ecc.mean() < -0.05                      # the wall thickens, the ring shortens
+
+
+def test_the_one_pass_estimate_is_the_iterated_smoothers_map():
+    """The route runs one forward pass for its means and covariances (the material is fixed, the model
+    linear); its displacement must be the iterated smoother's MAP trajectory of the same model."""
+    from sfem_filters.cardiac.dense_model import build_dense_model
+    from sfem_filters.fem.observation import point_observation_matrix
+    from sfem_filters.filtering.iterated import IteratedSmoother
+
+    mask = annulus_mask(4.0, 8.5, 24)
+    tracks, _ = thickening_ring_tracks(mask)
+    cfg = StrainRouteSettings(element_px=2.0)
+    r = dense_strain(tracks, mask, PX, cfg)
+    mesh = reference_mesh(mask, PX, cfg.mesh, cfg.element_px)
+    model, y, _, Xin = build_dense_model(mesh, tracks, PX, cfg)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)             # the NIS monitor's, as in the route
+        states = IteratedSmoother(covariance=False).run(model, y).states
+    U = np.zeros((len(y), mesh.n_dofs))
+    U[:, model.dofmap.free] = states[:, :model.dim_x // 2]
+    disp = (point_observation_matrix(mesh, Xin) @ U.T).T.reshape(r.displacement.shape) / PX
+    assert np.max(np.abs(disp - r.displacement)) <= 1e-9 * np.max(np.abs(r.displacement))
+    assert np.max(np.abs(r.displacement)) > 0.1                           # the ring moves (px)
 
 
 DATA = Path(os.environ.get("SFEM_FILTERS_DATA", Path(__file__).resolve().parents[3] / "shared" / "data"))
