@@ -59,7 +59,7 @@ from .strain_dense_sim import case_folders
 NAME = "strain_budget"
 TITLE = "The strain command's time and memory, up to the largest slice the issue names"
 NEEDS_DATA = True
-FULL_COST = "about 4-5 min"
+FULL_COST = "about 3-4 min"
 #: The reference myocardium the resampled slice must reach (issue 42, item 3: "up to about 1300").
 TARGET_PIXELS = 1300
 #: The issue's budget for one slice, images to report, default settings, on a 2-core machine.
