@@ -57,7 +57,7 @@ from .first_run import FIRST_LINE_S, _timed_run, load_stretch
 from .strain_dense_sim import case_folders
 
 NAME = "strain_budget"
-TITLE = "The strain command's time and memory, up to the largest slice the issue names"
+TITLE = "The strain command's time and memory, up to a 1300-pixel slice"
 NEEDS_DATA = True
 FULL_COST = "about 3-4 min"
 #: The reference myocardium the resampled slice must reach (issue 42, item 3: "up to about 1300").
