@@ -64,6 +64,19 @@ def _timed_run(argv: list, env: dict) -> dict:
             "stderr": b"".join(c for _, c in chunks).decode(errors="replace")}
 
 
+def user_environment() -> dict:
+    """The user's environment as it is: this process's, less the BLAS thread settings the suite may
+    have set (none is forced on the command)."""
+    return {k: v for k, v in os.environ.items() if k not in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS",
+                                                             "MKL_NUM_THREADS")}
+
+
+def first_progress(lines) -> tuple:
+    """``(seconds, line)`` of the run's own first progress: the first timed line after the console
+    script's "starting" line (:data:`~sfem_filters.cli.starting.STARTING`), or ``(None, None)``."""
+    return next(((t, ln) for t, ln in lines if not STARTING.match(ln)), (None, None))
+
+
 def _timed_lines(chunks) -> list:
     """``(seconds, line)`` of every non-empty line in the timed ``chunks`` of a stream."""
     out, pending = [], b""
@@ -79,9 +92,7 @@ def _timed_lines(chunks) -> list:
 def compute(settings: dict, out_dir) -> dict:
     path = Path(out_dir) / "first_run.command.json"
     args = ["dense", "example", *settings["args"], "--json", str(path)]
-    # the user's environment as it is: no BLAS thread setting is forced on the command
-    env = {k: v for k, v in os.environ.items() if k not in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS",
-                                                             "MKL_NUM_THREADS")}
+    env = user_environment()
     before = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
     run = _timed_run(command() + args, env)
     peak_kb = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
@@ -93,7 +104,7 @@ def compute(settings: dict, out_dir) -> dict:
     final = report.get("extended") or report["baseline"]
     lines = run["lines"]
     # the run's own progress: the first line after the console script's "starting" line
-    progress = next(((t, ln) for t, ln in lines if not STARTING.match(ln)), (None, None))
+    progress = first_progress(lines)
     return {"command": "sfem-filters " + " ".join(a for a in args if a not in ("--json", str(path))),
             "wall_s": run["wall_s"], "first_output_s": lines[0][0] if lines else None,
             "first_output_line": lines[0][1] if lines else None,

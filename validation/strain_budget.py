@@ -38,7 +38,6 @@ Timings depend on the machine and what else runs on it; the header's load averag
 from __future__ import annotations
 
 import json
-import os
 import shutil
 import sys
 import tempfile
@@ -49,11 +48,10 @@ import yaml
 from scipy import ndimage
 
 from sfem_filters.benchmark import score_strain
-from sfem_filters.cli.starting import STARTING
 
 from ._core import fmt, md_table
 from .closing_loop import command
-from .first_run import FIRST_LINE_S, _timed_run, load_stretch
+from .first_run import FIRST_LINE_S, _timed_run, first_progress, load_stretch, user_environment
 from .strain_dense_sim import case_folders
 
 NAME = "strain_budget"
@@ -217,9 +215,7 @@ def run_one(case: str, zoom, frames, snr: float) -> dict:
     resampled = zoom != 1.0 or frames is not None
     label = case if not resampled else (f"{case} resampled x{zoom:.2f}"
                                         + (f", first {frames} frames" if frames is not None else ""))
-    # the user's environment as it is: no BLAS thread setting is forced on the command
-    env = {k: v for k, v in os.environ.items() if k not in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS",
-                                                             "MKL_NUM_THREADS")}
+    env = user_environment()
     with tempfile.TemporaryDirectory(prefix=f"{NAME}-") as tmp:
         tmp = Path(tmp)
         if resampled:
@@ -233,7 +229,7 @@ def run_one(case: str, zoom, frames, snr: float) -> dict:
         with open(out) as fh:
             report = json.load(fh)
     lines = run["lines"]
-    progress = next(((t, ln) for t, ln in lines if not STARTING.match(ln)), (None, None))
+    progress = first_progress(lines)
     s = report["settings"]
     return {"case": label, "zoom": zoom, "zoom_search": search,
             "command": f"sfem-filters strain <{label}> --snr {snr:g}",
