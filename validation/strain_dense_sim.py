@@ -57,7 +57,7 @@ from ._core import fmt, md_table
 NAME = "strain_dense_sim"
 NEEDS_DATA = True
 TITLE = "Strain against DENSE-Sim's ground truth"
-FULL_COST = "about 35-45 minutes on 2 cores (12 runs of our route, 28 of its ablations)"
+FULL_COST = "about 18-25 minutes on 2 cores (12 runs of our route, 28 of its ablations)"
 TIERS = {"quick": {"cases": ["phantom_subject_1"], "snr": [30.0], "seeds": [0], "frames": 8, "route": True},
          "full": {"cases": None, "snr": [30.0, 8.0], "seeds": [0, 1, 2], "frames": None, "route": True}}
 #: Noise draws are seeded, our route is deterministic; timings are not compared.
