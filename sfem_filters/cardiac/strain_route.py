@@ -512,6 +512,9 @@ def dense_strain(tracks: LagrangianDisplacement, reference_mask, pixel_size_m: f
     observed = int(np.sum(~np.isnan(y)))
     check_memory(model.dim_state, F, covariance=True, observed=observed)
     lin = linearise(model, np.zeros((F, model.dim_x)))
+    if lin.n_params:                       # a material to estimate would make the model nonlinear in it
+        raise RuntimeError(f"dense_strain: expected a model without static parameters (the material fixed), got "
+                           f"{lin.n_params}; the one-pass smoother is exact only for a linear model")
     say(f"smoothing {F} frames ({model.dim_state} states): one Kalman filter pass, then the smoothed means and "
         "the covariances of the linearised strain")
     fwd = kalman_forward(lin, y, safeguards=Safeguards(), monitor_nis=True, store="covariance",
