@@ -511,7 +511,7 @@ def dense_strain(tracks: LagrangianDisplacement, reference_mask, pixel_size_m: f
     # backward passes need, the means' (the strain's linearisation point) and then the covariances' (step 5)
     observed = int(np.sum(~np.isnan(y)))
     check_memory(model.dim_state, F, covariance=True, observed=observed)
-    lin = linearise(model, np.zeros((F, model.dim_x)))
+    lin = linearise(model, np.zeros((F, model.dim_state)))
     if lin.n_params:                       # a material to estimate would make the model nonlinear in it
         raise RuntimeError(f"dense_strain: expected a model without static parameters (the material fixed), got "
                            f"{lin.n_params}; the one-pass smoother is exact only for a linear model")

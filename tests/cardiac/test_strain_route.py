@@ -165,7 +165,7 @@ def test_the_one_pass_estimate_is_the_iterated_smoothers_map():
 
     mask = annulus_mask(4.0, 8.5, 24)
     tracks, _ = thickening_ring_tracks(mask)
-    cfg = StrainRouteSettings(element_px=2.0)
+    cfg = StrainRouteSettings(element_px=2.0, effects=("cavity_pressure",))      # an effect adds a state
     r = dense_strain(tracks, mask, PX, cfg)
     mesh = reference_mesh(mask, PX, cfg.mesh, cfg.element_px)
     model, y, _, Xin = build_dense_model(mesh, tracks, PX, cfg)
@@ -175,7 +175,7 @@ def test_the_one_pass_estimate_is_the_iterated_smoothers_map():
     U = np.zeros((len(y), mesh.n_dofs))
     U[:, model.dofmap.free] = states[:, :model.dim_x // 2]
     disp = (point_observation_matrix(mesh, Xin) @ U.T).T.reshape(r.displacement.shape) / PX
-    assert np.max(np.abs(disp - r.displacement)) <= 1e-9 * np.max(np.abs(r.displacement))
+    assert np.max(np.abs(disp - r.displacement)) <= 1e-7 * np.max(np.abs(r.displacement))   # round-off
     assert np.max(np.abs(r.displacement)) > 0.1                           # the ring moves (px)
 
 
