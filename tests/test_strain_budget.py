@@ -62,8 +62,9 @@ def test_a_finer_grid_keeps_the_anatomy_the_motion_and_the_acquisition(tmp_path_
     a, b = read_dense_sim(src), read_dense_sim(tmp / "dst")
     n_new = info["n_im"]
     assert n_new == round(N * zoom)
-    # the pixel shrinks by the zoom, the field of view and the acquired pixel stay
-    assert b.pixel_size_m == pytest.approx(a.pixel_size_m / zoom)
+    # the field of view and the acquired pixel stay; the pixel shrinks by the new matrix over the old
+    assert b.pixel_size_m * n_new == pytest.approx(a.pixel_size_m * N)
+    assert b.pixel_size_m == pytest.approx(a.pixel_size_m * N / n_new)
     assert b.resolution_px == pytest.approx(n_new / N_ACQ)
     # the myocardium's area in mm^2 is kept (to the quantisation of its two borders)
     area = lambda c: c.reference_mask.sum() * c.pixel_size_mm ** 2     # noqa: E731

@@ -19,8 +19,9 @@ its noise) on
   larger slice's would. The complex signal ``magnitude * exp(i phase)`` of each encoding is
   interpolated linearly (the wrapped phase itself cannot be), the masks by linear interpolation of
   their indicator at 1/2, the truth by linear interpolation normalised over its known pixels; the
-  configuration gets the new matrix and the field of view it spans, so the pixel shrinks by the
-  zoom factor and the acquired resolution (``N_im / N_im_pre_spiral``) grows by it. The folder is
+  configuration keeps the field of view and gets the new matrix (``round(N_im * zoom)``: the zoom
+  aligns the images' edges, so the pixel shrinks by the new matrix over the old, the zoom rounded
+  to whole pixels) and the acquired resolution (``N_im / N_im_pre_spiral``) grows by as much. The folder is
   written to a temporary folder and removed after the run (it is made from the data directory's
   case, never committed).
 
@@ -169,9 +170,7 @@ def write_resampled_case(src, dst, zoom: float, frames: int | None = None) -> di
         out[:, ~new_masks[0]] = np.nan
         np.save(dst / name, out.astype(np.float32))
     n_new = int(new_masks.shape[-1])
-    pixel_mm = float(sim["FOV"][0]) / float(sim["N_im"]) / zoom
-    sim["FOV"] = [pixel_mm * n_new, pixel_mm * n_new] + list(sim["FOV"][2:])
-    sim["N_im"] = n_new
+    sim["N_im"] = n_new                     # the field of view stays: grid-mode zoom keeps the images' edges
     if frames is not None:
         sim["tt"] = list(sim["tt"])[:int(frames) + 1]
         sim["Nt"] = int(frames)
@@ -186,7 +185,7 @@ def write_resampled_case(src, dst, zoom: float, frames: int | None = None) -> di
 def _measured_run(argv: list, env: dict, rss_path: Path) -> dict:
     """``argv`` through the wrapper: first_run's timed run, plus the command's own peak memory (GB)."""
     run = _timed_run([sys.executable, "-c", _WRAPPER, str(rss_path)] + argv, env)
-    run["peak_rss_gb"] = float(rss_path.read_text()) / 1024 ** 2 if rss_path.is_file() else None
+    run["peak_rss_gb"] = float(rss_path.read_text()) * 1024 / 1e9 if rss_path.is_file() else None   # kB (KiB) to GB
     return run
 
 
