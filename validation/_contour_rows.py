@@ -16,13 +16,14 @@ segmental peaks: :func:`beats_spline`.
 """
 from __future__ import annotations
 
-import resource
 import time
 from pathlib import Path
 
 from sfem_filters.benchmark import score_strain
 from sfem_filters.cardiac import ContourRouteSettings, contour_spline_strain, contour_strain
 from sfem_filters.imaging import read_dense_sim, truth_at_points
+
+from ._core import MIB, peak_rss_bytes
 
 #: Method names of the rows.
 ROUTE = "contours route (masks only, no phase)"
@@ -34,7 +35,8 @@ METRICS = ("pixel_rmse_Ecc", "pixel_rmse_Err", "global_peak_error_Ecc", "global_
 
 
 def _peak_rss_mb() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    """This process's peak resident memory in MiB (2**20 bytes): what ``peak_rss_mb`` stores."""
+    return peak_rss_bytes() / MIB
 
 
 def contour_rows(case_dir, snr: float | None = None, seed: int | None = None, frames: int | None = None,

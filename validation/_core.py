@@ -15,6 +15,7 @@ import json
 import math
 import os
 import platform
+import resource
 import subprocess
 import time
 from pathlib import Path
@@ -53,6 +54,25 @@ def blas_threads() -> int | None:
     from threadpoolctl import threadpool_info
     counts = [p.get("num_threads") for p in threadpool_info() if p.get("user_api") == "blas"]
     return max(counts) if counts else None
+
+
+#: ``ru_maxrss`` is in kibibytes on Linux (``getrusage(2)``); the tables print decimal GB (1e9 bytes).
+RU_MAXRSS_BYTES = 1024
+MIB = 2 ** 20
+
+
+def peak_rss_bytes(who: str = "self") -> int:
+    """Peak resident memory in bytes of this process (``who="self"``) or of its largest waited-for child
+    (``"children"``), from ``ru_maxrss``."""
+    which = {"self": resource.RUSAGE_SELF, "children": resource.RUSAGE_CHILDREN}
+    if who not in which:
+        raise ValueError(f"who: expected 'self' or 'children', got {who!r}")
+    return resource.getrusage(which[who]).ru_maxrss * RU_MAXRSS_BYTES
+
+
+def mib_to_gb(mib: float) -> float:
+    """Mebibytes (2**20 bytes, what the claims store as ``peak_rss_mb``) to decimal gigabytes (1e9 bytes)."""
+    return mib * MIB / 1e9
 
 
 def code_state(root: Path = ROOT) -> dict:

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import json
 import os
-import resource
 import subprocess
 import threading
 import time
@@ -22,7 +21,7 @@ from pathlib import Path
 
 from sfem_filters.cli.starting import STARTING
 
-from ._core import fmt, md_table
+from ._core import fmt, md_table, peak_rss_bytes
 from .closing_loop import _model, command
 
 NAME = "first_run"
@@ -93,9 +92,9 @@ def compute(settings: dict, out_dir) -> dict:
     path = Path(out_dir) / "first_run.command.json"
     args = ["dense", "example", *settings["args"], "--json", str(path)]
     env = user_environment()
-    before = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    before = peak_rss_bytes("children")
     run = _timed_run(command() + args, env)
-    peak_kb = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    peak = peak_rss_bytes("children")
     if run["returncode"] != 0:
         raise RuntimeError(f"sfem-filters {' '.join(args)} failed ({run['returncode']}):\n{run['stderr'][-2000:]}")
     with open(path) as f:
@@ -109,9 +108,9 @@ def compute(settings: dict, out_dir) -> dict:
             "wall_s": run["wall_s"], "first_output_s": lines[0][0] if lines else None,
             "first_output_line": lines[0][1] if lines else None,
             "first_progress_s": progress[0], "first_progress_line": progress[1],
-            # ru_maxrss of the children is the largest single process (kB on Linux); a run before
-            # this one in the same process could only raise it, so say when one did
-            "peak_rss_gb": peak_kb / 1024 ** 2, "peak_rss_may_include_earlier_child": bool(before),
+            # ru_maxrss of the children is the largest single process; a run before this one in the
+            # same process could only raise it, so say when one did. Decimal GB (1e9 bytes).
+            "peak_rss_gb": peak / 1e9, "peak_rss_may_include_earlier_child": bool(before),
             "budget_s": BUDGET_S, "stop_reason": report.get("stop_reason"),
             "final_effects": final.get("effects") or [], "final_model": _final_label(report),
             "baseline_heldout_px": report["baseline"]["heldout_rmse_px"],

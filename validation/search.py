@@ -40,12 +40,12 @@ TIERS = {"quick": {"searches": ["fast"], "slice_args": ["--effects", "none", "--
 TOLERANCES = {"*": (1e-6, 1e-9), "seconds": None, "peak_memory_gb": None}
 
 #: Runs the command line in this interpreter and prints the peak resident memory (GB) of the
-#: process and of its largest worker (Linux: ru_maxrss in kB) after the command's own output.
+#: process and of its largest worker (Linux: ru_maxrss in KiB; decimal GB, 1e9 bytes) after the command's own output.
 _RUNNER = ("import resource, sys\n"
            "from sfem_filters.cli import main\n"
            "rc = main(sys.argv[1:])\n"
            "peak = max(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss,\n"
-           "           resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss) / 1e6\n"
+           "           resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss) * 1024 / 1e9\n"
            "print(f'PEAK_GB {peak:.3f}', file=sys.stderr)\n"
            "sys.exit(rc)\n")
 

@@ -133,13 +133,14 @@ def figure(rows, path) -> str:
 
 def markdown(results: dict) -> str:
     cols = ["case", "nodes", "params", "state n", "discretisation s", "M_t s", "propagation s", "update s", "step s",
-            "peak MB", "floor s", "step / floor"]
+            "peak MiB", "floor s", "step / floor"]
     body = [[r["case"], r["nodes"], r["params"], r["state"], fmt(r["discretisation_s"], ".4f"), fmt(r["M_t_s"], ".4f"),
              fmt(r["propagation_s"], ".4f"), fmt(r["update_s"], ".4f"), fmt(r["step_s"], ".4f"),
              fmt(r["peak_MB"], ".1f"), fmt(r["floor_s"], ".4f"), fmt(r["step_over_floor"], ".1f")]
             for r in results["rows"]]
     return (md_table(cols, body) + "\n\nFloor: one dense n x n matrix product at the augmented size, timed in the "
-            "same run; best of the repeats. Timings vary by some 10% between runs on a shared machine.")
+            "same run; best of the repeats. Timings vary by some 10% between runs on a shared machine. Peak MiB: the "
+            "largest memory allocated while one step runs (tracemalloc), in mebibytes (2**20 bytes).")
 
 
 def check(results: dict, tier: str) -> list:

@@ -36,7 +36,6 @@ analysis behaves as the spec describes (smoothing lowers the pixel RMSE).
 from __future__ import annotations
 
 import os
-import resource
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -52,7 +51,7 @@ from sfem_filters.imaging import (add_complex_noise, conventional_analysis, phas
                                   truth_at_points)
 from sfem_filters.imaging.strain import green_strain, mask_centre, project_strain
 
-from ._core import fmt, md_table
+from ._core import MIB, fmt, md_table, mib_to_gb, peak_rss_bytes
 
 NAME = "strain_dense_sim"
 NEEDS_DATA = True
@@ -125,7 +124,8 @@ def _truncated(case, frames):
 
 
 def _peak_rss_mb() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    """This process's peak resident memory in MiB (2**20 bytes): what ``peak_rss_mb`` stores."""
+    return peak_rss_bytes() / MIB
 
 
 def _row(base, method, score, seconds, cpu, extra=None) -> dict:
@@ -250,7 +250,7 @@ def markdown(results: dict) -> str:
                      fmt(r["process_fraction"], ".2f") if r.get("process_fraction") is not None else "",
                      fmt(r["resolution_px"], ".2f") if r.get("resolution_px") is not None else "",
                      fmt(r["seconds"], ".0f"),
-                     fmt(r["peak_rss_mb"] / 1024, ".2f") if r.get("peak_rss_mb") is not None else ""])
+                     fmt(mib_to_gb(r["peak_rss_mb"]), ".2f") if r.get("peak_rss_mb") is not None else ""])
     notes = ["Strain in percentage points (Green-Lagrange, radial and circumferential about the reference "
              "myocardium's centre of mass), means over the noise seeds; peak errors are signed (estimate - truth). "
              "Band coverage: the fraction of (segment, frame) pairs whose true segment mean lies inside our 95% "

@@ -11,11 +11,10 @@ from __future__ import annotations
 
 import concurrent.futures
 import multiprocessing
-import resource
 import time
 import warnings
 
-from ._core import fmt, md_table
+from ._core import MIB, fmt, md_table, peak_rss_bytes
 
 NAME = "whole_runs_smoother"
 TITLE = "Whole smoother runs on the measured slice: iterations, MAP cost, time, memory"
@@ -43,7 +42,7 @@ def one_case(param: str, effects: list, max_iterations: int) -> dict:
             "limit": int(max_iterations), "stop": str(res.stop_reason), "cost": float(res.cost),
             "costs": [float(r["cost"]) for r in res.records], "step_sd": [float(r["step_sd"]) for r in res.records],
             "seconds": sec, "seconds_per_iteration": sec / max(res.iterations, 1),
-            "peak_MB": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
+            "peak_MB": peak_rss_bytes() / MIB}
 
 
 def compute(settings: dict, out_dir) -> dict:
@@ -57,15 +56,15 @@ def compute(settings: dict, out_dir) -> dict:
 
 def markdown(results: dict) -> str:
     cols = ["case", "nodes", "params", "state n", "iterations", "limit", "stop", "MAP cost", "wall s", "s / iteration",
-            "peak MB"]
+            "peak MiB"]
     body = [[r["case"], r["nodes"], r["params"], r["state"], r["iterations"], r["limit"], r["stop"],
              fmt(r["cost"], ".3f"), fmt(r["seconds"], ".1f"), fmt(r["seconds_per_iteration"], ".2f"),
              fmt(r["peak_MB"], ".0f")] for r in results["rows"]]
     path = md_table(["case", "MAP cost after each iteration", "material step / sd"],
                     [[r["case"], ", ".join(f"{c:.3f}" for c in r["costs"]), ", ".join(f"{s:.2e}" for s in r["step_sd"])]
                      for r in results["rows"]])
-    return (md_table(cols, body) + "\n\n`+`: with the `active_polar` effect; peak MB: the case's process's peak "
-            "resident memory.\n\n" + path)
+    return (md_table(cols, body) + "\n\n`+`: with the `active_polar` effect; peak MiB: the case's process's peak "
+            "resident memory in mebibytes (2**20 bytes).\n\n" + path)
 
 
 def check(results: dict, tier: str) -> list:
