@@ -12,7 +12,8 @@ from hypothesis import given, settings, strategies as st
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from sfem_filters.imaging import phase_to_displacement, read_dense_sim  # noqa: E402
-from validation.strain_budget import resampled_pixels, write_resampled_case, zoom_for_pixels  # noqa: E402
+from validation.strain_budget import (  # noqa: E402
+    _zoom_mask, matrix_for_pixels, resampled_pixels, write_resampled_case)
 
 N, FOV_MM, KE, N_ACQ, FRAMES = 48, 96.0, 0.1, 24, 3
 
@@ -89,17 +90,25 @@ def test_frames_keep_the_first_ones_and_their_times(tmp_path):
     assert np.array_equal(b.frame_times_s, a.frame_times_s[:2])
 
 
-def test_zoom_for_pixels_is_the_smallest_on_its_grid_that_reaches_the_target():
+def test_matrix_for_pixels_is_the_smallest_matrix_that_reaches_the_target():
     mask = _annulus()
-    for target in (int(mask.sum()) // 2, int(mask.sum()) * 2):
-        z, n, tried = zoom_for_pixels(mask, target)
-        assert n >= target and n == resampled_pixels(mask, z)
-        assert resampled_pixels(mask, round(z - 0.01, 10)) < target
-        assert tried[-1][0] == z or tried[-2][0] == z
+    size, own = mask.shape[0], int(mask.sum())
+    for target in (own // 2, own, own + 1, int(own * 1.7)):
+        n, zoom, pixels, tried = matrix_for_pixels(mask, target)
+        assert zoom == n / size and pixels == resampled_pixels(mask, zoom) >= target
+        # every smaller matrix from the mask's own size upwards falls short, and each was tried
+        assert all(resampled_pixels(mask, m / size) < target for m in range(size, n))
+        assert [t[0] for t in tried] == list(range(size, n + 1))
+        # the zoom makes exactly an n x n image: the matrix the resampled case's config states
+        assert _zoom_mask(mask, zoom).shape == (n, n)
 
 
 def test_bad_input_is_named():
     with pytest.raises(ValueError, match="zoom"):
         write_resampled_case(".", ".", 0.0)
     with pytest.raises(ValueError, match="reference_mask"):
-        zoom_for_pixels(np.zeros((4, 4), bool), 10)
+        matrix_for_pixels(np.zeros((4, 4), bool), 10)
+    with pytest.raises(ValueError, match="reference_mask"):
+        matrix_for_pixels(np.ones((4, 5), bool), 10)
+    with pytest.raises(ValueError, match="target"):
+        matrix_for_pixels(_annulus(), 0)
