@@ -5,6 +5,8 @@ import numpy as np
 import pytest
 from threadpoolctl import threadpool_info, threadpool_limits
 
+import sfem_filters.cardiac.contours_route as contours_module
+import sfem_filters.cardiac.strain_route as strain_module
 import sfem_filters.cli as cli
 import sfem_filters.filtering.cyclic as cyclic_module
 import sfem_filters.filtering.iterated as iterated_module
@@ -104,8 +106,9 @@ def _record(seen):
 
 @pytest.mark.parametrize("setting, expected", [(None, 1), ("2", 2)])
 def test_the_estimators_entry_points_run_under_the_chosen_threads(setting, expected, monkeypatch):
-    """IteratedSmoother.run, cyclic_estimate (CyclicEKF.run) and the command line run their work
-    under blas_threads(): the default, or the environment variable; the threads come back after."""
+    """IteratedSmoother.run, cyclic_estimate (CyclicEKF.run), the strain routes (dense_strain, whose one
+    Kalman pass does not go through IteratedSmoother, and contour_strain) and the command line run their
+    work under blas_threads(): the default, or the environment variable; the threads come back after."""
     if setting is None:
         monkeypatch.delenv(BLAS_THREADS_ENV, raising=False)
     else:
@@ -114,6 +117,8 @@ def test_the_estimators_entry_points_run_under_the_chosen_threads(setting, expec
     monkeypatch.setattr(iterated_module, "check_model", _record(seen))
     monkeypatch.setattr(cyclic_module, "check_model", _record(seen))
     monkeypatch.setattr(cli, "cmd_compare", _record(seen))
+    monkeypatch.setattr(strain_module, "StrainRouteSettings", _record(seen))
+    monkeypatch.setattr(contours_module, "ContourRouteSettings", _record(seen))
     with threadpool_limits(limits=3 - expected, user_api="blas"):
         before = _blas()
         with pytest.raises(_Seen):
@@ -122,8 +127,12 @@ def test_the_estimators_entry_points_run_under_the_chosen_threads(setting, expec
             cyclic_module.cyclic_estimate(None, None)
         with pytest.raises(_Seen):
             cli.main(["compare", "--seed", "0"])
+        with pytest.raises(_Seen):
+            strain_module.dense_strain(None, None, None)
+        with pytest.raises(_Seen):
+            contours_module.contour_strain(None, None, None)
         assert _blas() == before
-    assert [s == [expected] * len(s) for s in seen] == [True, True, True]
+    assert [s == [expected] * len(s) for s in seen] == [True] * 5
 
 
 def test_the_command_line_says_what_is_wrong_with_the_environment_variable(monkeypatch, capsys):

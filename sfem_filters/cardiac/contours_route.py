@@ -97,6 +97,7 @@ from ..imaging.contours import check_myocardium_mask
 from ..imaging.spline_strain import SplineStrain, spline_strain
 from ..imaging.strain import N_SEGMENTS, mask_centre, segment_labels
 from ..imaging.tracking import BoundaryTracks
+from ..resources import limits_blas_threads
 # the masks' data on the border nodes live in border_data (the DENSE route fuses them too): re-exported here
 from .border_data import (LANDMARK_SPACING_PX, MIN_LANDMARKS, QUANTISATION_SD_PX, border_node_data,
                           contour_landmark_tracks, landmark_sd, mask_border_data)
@@ -287,6 +288,7 @@ def elastic_prior(mesh: TriMesh, nu: float, boundary_dofs) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------------- the route
+@limits_blas_threads
 def contour_strain(masks, pixel_size_m: float, frame_times_s, settings: ContourRouteSettings | None = None,
                    progress=None) -> ContourStrain:
     """The contours route: myocardium masks in, Green-Lagrange strain with sd and banded curves out.

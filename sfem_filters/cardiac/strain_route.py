@@ -192,6 +192,7 @@ from ..filtering.smoother import kalman_forward, smooth_backward
 from ..imaging.dense import DenseCase, LagrangianDisplacement, background_signal, phase_to_displacement
 from ..imaging.strain import N_SEGMENTS, Z95, StrainEstimate, displacement_gradient, global_curve, green_strain, \
     json_list, mask_centre, project_strain, segment_labels
+from ..resources import limits_blas_threads
 from .border_data import BorderData, contour_landmark_tracks, mask_border_data
 from .dense_model import INFORMATION_FLOOR, MESHES, PROCESS_FRACTIONS, PROCESS_PROFILES, RELAXATION_CYCLES, \
     NodalFitModel, build_dense_model, compliant_modulus, concentrated_log_evidence, nodal_fit, observation_points, \
@@ -438,6 +439,7 @@ def border_masks_data(masks, reference_mask, n_frames: int, mesh: TriMesh, pixel
     return mask_border_data(mesh, contour_landmark_tracks(m), pixel_size_m)
 
 
+@limits_blas_threads
 def dense_strain(tracks: LagrangianDisplacement, reference_mask, pixel_size_m: float,
                  settings: StrainRouteSettings | None = None, progress=None, background=None,
                  masks=None) -> DenseRouteStrain:
