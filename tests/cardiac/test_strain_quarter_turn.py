@@ -83,13 +83,18 @@ def test_the_dense_route_sees_the_same_strain_and_the_same_error_after_the_turn(
     case, turned, order = cases
     r = dense_case_strain(case, image_settings(case))
     s = dense_case_strain(turned, image_settings(turned, start_deg=270.0))
-    truth = truth_at_points(case)
-    # pixel by pixel the two differ by the mesh (Gmsh meshes the turned outline afresh): about as much as
-    # an element of 2.4 px instead of 2.5 px changes them (measured: 1.6 against 1.5 points RMS of Ecc);
-    # the curves, the means over many pixels, do not
+    # pixel by pixel the two differ by the mesh (Gmsh meshes the turned outline afresh); the yardstick of
+    # how much a mesh change moves the curves is measured here, on the unturned case, by an element of
+    # 2.6 px instead of 2.5 (at the time of writing the turn moved the curves 0.8-1.8 times as much as
+    # that): a convention the turn breaks moves them far more
+    m = dense_case_strain(case, replace(image_settings(case), element_px=2.6))
     for q in ("Ecc", "Err"):
-        assert np.max(np.abs(r.global_curves[q] - s.global_curves[q])) < 0.005
-        assert np.max(np.abs(r.segment_curves[q] - s.segment_curves[q])) < 0.01
+        mesh_global = np.max(np.abs(r.global_curves[q] - m.global_curves[q]))
+        mesh_segments = np.max(np.abs(r.segment_curves[q] - m.segment_curves[q]))
+        assert 0 < mesh_global and 0 < mesh_segments          # the yardstick itself is measured
+        assert np.max(np.abs(r.global_curves[q] - s.global_curves[q])) < 3 * mesh_global
+        assert np.max(np.abs(r.segment_curves[q] - s.segment_curves[q])) < 3 * mesh_segments
+    truth = truth_at_points(case)
     sa = score_strain(r.Ecc, r.Err, *truth, r.points, r.centre)
     sb = score_strain(s.Ecc[:, order], s.Err[:, order], *truth, r.points, r.centre)
     assert sb.pixel_rmse_Err == pytest.approx(sa.pixel_rmse_Err, rel=0.1)
