@@ -14,6 +14,7 @@ import numpy as np
 import pydicom                                  # the test extra's (pyproject): the DICOM route is tested, not skipped
 import pytest
 import yaml
+from scipy.ndimage import binary_erosion
 
 from helpers import write_dicom
 from sfem_filters import datasets
@@ -401,3 +402,47 @@ def test_the_acquisitions_resolution_reaches_the_route(short_case, folder_report
     # the operator changes the estimate (it is not ignored), within the strain's own scale
     a, b = _a(rep["global"]["Err"]), _a(folder_report["global"]["Err"])
     assert 1e-4 < np.max(np.abs(a - b)) < 0.2
+
+
+# ------------------------------------------------------------------------------------------ masks with defects
+def _with_masks(short_case, tmp_path, edit):
+    dst = tmp_path / "case"
+    shutil.copytree(short_case, dst)
+    masks = np.load(dst / "LV_mask_time_lowres.npy")
+    edit(masks)
+    np.save(dst / "LV_mask_time_lowres.npy", masks)
+    return dst, masks
+
+
+def test_masks_with_small_defects_are_mended_and_a_broken_frame_leaves_the_phase_alone(short_case, folder_report,
+                                                                                       tmp_path, capsys):
+    """Cases we are not given may carry coarse masks: a pinhole or a stray pixel is mended (with a warning) and
+    the run goes on as before; a frame whose mask is no ring at all leaves the default on the phase alone."""
+    def small(m):
+        r, c = np.argwhere(binary_erosion(m[2]))[0]
+        m[2, r, c] = False                                  # a pinhole in one frame's wall
+        m[0, 0, 0] = True                                   # a stray pixel in the reference mask
+    folder, masks = _with_masks(short_case, tmp_path, small)
+    out = tmp_path / "small.json"
+    with pytest.warns(RuntimeWarning) as rec:
+        assert main(["strain", str(folder), "--json", str(out), "--quiet"]) == 0
+    said = " ".join(str(w.message) for w in rec)
+    assert "masks[0]" in said and "removed 1 stray piece(s) of 1 px" in said
+    assert "masks[2]" in said and "filled 1 hole(s) of 1 px" in said
+    report = json.loads(out.read_text())
+    assert report["settings"]["border_masks"] is True
+    assert len(report["points"]) == int(masks[0].sum()) == len(folder_report["points"]) + 1   # every pixel scored
+    assert np.all(np.isfinite(_a(report["strain"]["Ecc"])))
+
+    def broken(m):
+        m[3] = m[3] & (np.arange(m.shape[-1])[None, :] < m.shape[-1] // 2)    # half a ring: no cavity
+    folder, _ = _with_masks(short_case, tmp_path / "b", broken)
+    out = tmp_path / "broken.json"
+    with pytest.warns(RuntimeWarning, match=r"index \[3\].*phase alone"):
+        assert main(["strain", str(folder), "--json", str(out), "--quiet"]) == 0
+    assert json.loads(out.read_text())["settings"]["border_masks"] is False
+    # asked for explicitly, the masks' defect is an error naming the mask
+    capsys.readouterr()
+    assert main(["strain", str(folder), "--json", str(out), "--quiet", "--with-masks"]) == 2
+    err = capsys.readouterr().err
+    assert "masks[3]" in err and "Traceback" not in err

@@ -58,7 +58,7 @@ def contour_landmark_tracks(masks, spacing_px: float = LANDMARK_SPACING_PX,
         Myocardium masks, index 0 the reference.
     """
     m = np.asarray(masks, bool)
-    b = mask_borders(m[0], 64, 96)
+    b = mask_borders(m[0], 64, 96, name="masks[0]")
     lengths = [float(np.sum(np.linalg.norm(np.diff(np.vstack([c, c[:1]]), axis=0), axis=1))) for c in (b.endo, b.epi)]
     n = [max(int(min_landmarks), int(round(L / positive("spacing_px", spacing_px, "pixels")))) for L in lengths]
     return track_masks(m, TrackingOptions(n_endo=n[0], n_epi=n[1]))

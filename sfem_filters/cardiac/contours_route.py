@@ -93,7 +93,7 @@ from ..fem.observation import point_observation_matrix
 from ..filtering.iterated import IteratedSmoother
 from ..filtering.linearised import linearise
 from ..filtering.smoother import smooth
-from ..imaging.contours import check_myocardium_mask
+from ..imaging.contours import repair_myocardium_mask
 from ..imaging.spline_strain import SplineStrain, spline_strain
 from ..imaging.strain import N_SEGMENTS, mask_centre, segment_labels
 from ..imaging.tracking import BoundaryTracks
@@ -155,6 +155,11 @@ class ContourRouteSettings:
         maximum likelihood, :class:`sfem_filters.filtering.iterated.IteratedSmoother`
         ``process_noise``): the data judge how fast the wall may accelerate. ``"fixed"``: the level
         as set (it flattens a short systole's peak).
+    noise_range : (float, float)
+        Smallest and largest factor on the level above that the evidence may choose (default 4^-8 to
+        4^6). The wall's change of velocity over one frame interval grows as the frame rate falls, so a
+        sparser sequence asks for a larger level; the upper end leaves room for that, and the search
+        warns if its best factor still sits at an end.
     start_deg : float
         Start of segment 0 (degrees from the image's +x axis towards +y).
     centre : tuple or None
@@ -171,6 +176,7 @@ class ContourRouteSettings:
     min_landmarks: int = MIN_LANDMARKS
     along_border: str = "none"
     process_noise: str = "estimate"
+    noise_range: tuple = (4.0 ** -8, 4.0 ** 6)
     start_deg: float = 0.0
     centre: tuple | None = None
 
@@ -192,6 +198,13 @@ class ContourRouteSettings:
             raise ValueError(f"along_border: expected 'none' or 'tracked', got {self.along_border!r}")
         if self.process_noise not in ("fixed", "estimate"):
             raise ValueError(f"process_noise: expected 'fixed' or 'estimate', got {self.process_noise!r}")
+        try:
+            low, high = (float(v) for v in self.noise_range)
+        except (TypeError, ValueError):
+            raise ValueError(f"noise_range: expected two factors (low, high), got {self.noise_range!r}") from None
+        if not 0 < low <= 1 <= high < float("inf"):
+            raise ValueError(f"noise_range: expected 0 < low <= 1 <= high (factors on Q), got {self.noise_range!r}")
+        object.__setattr__(self, "noise_range", (low, high))
         if isinstance(self.min_landmarks, bool) or int(self.min_landmarks) != self.min_landmarks \
                 or self.min_landmarks < 8:
             raise ValueError(f"min_landmarks: expected an integer >= 8, got {self.min_landmarks!r}")
@@ -233,7 +246,7 @@ def _check_inputs(masks, pixel_size_m, frame_times_s) -> tuple:
     if m.dtype != bool and not np.isin(m, (0, 1)).all():
         raise ValueError("masks: expected boolean (or 0/1) myocardium masks")
     m = m.astype(bool)
-    check_myocardium_mask(m[0], "masks[0]")
+    repair_myocardium_mask(m[0], "masks[0]")          # an error unless a ring, up to a defect of a pixel or two
     s = positive("pixel_size_m", pixel_size_m, "m")
     t = as_float_array("frame_times_s", frame_times_s, shape=(None,))
     if len(t) != len(m) - 1:
@@ -361,7 +374,8 @@ def contour_strain(masks, pixel_size_m: float, frame_times_s, settings: ContourR
     say(f"smoothing {F} frames ({model.dim_state} states)" + (
         "; the process noise level by the evidence (a smoother run per level tried)"
         if cfg.process_noise == "estimate" else ""))
-    result = IteratedSmoother(covariance=False, process_noise=cfg.process_noise).run(model, y)
+    result = IteratedSmoother(covariance=False, process_noise=cfg.process_noise,
+                              noise_range=tuple(cfg.noise_range)).run(model, y)
     if cfg.process_noise == "estimate":
         model = model.with_process_noise(result.process_noise_scale)
     nr = model.n_restart

@@ -175,6 +175,7 @@ Units: pixels for points and displacements at the interface (x = column, y = row
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import asdict, dataclass, field, replace
 from typing import ClassVar
 
@@ -182,6 +183,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from .._validate import as_float_array, as_mask, positive
+from ..imaging.contours import repair_myocardium_mask
 from ..imaging.dense import check_resolution_px
 from ..fem.mesh import TriMesh
 from ..fem.observation import point_observation_matrix
@@ -213,7 +215,7 @@ __all__ = ["StrainRouteSettings", "DenseStrain", "NodalFitModel", "reference_mes
            "PROCESS_FRACTIONS", "process_fraction_ml", "concentrated_log_evidence", "observation_operator",
            "ObservationScaling", "border_masks_data", "phase_noise_level", "PHASE_NOISE_LEVELS", "PROCESS_PROFILES",
            "process_profile_from_data", "image_settings", "route_settings", "dense_case_strain",
-           "masks_move"]
+           "masks_move", "masks_can_be_fused"]
 
 
 #: How the phase data's noise level is set beside the masks (``StrainRouteSettings.phase_noise_level``).
@@ -630,6 +632,35 @@ def masks_move(masks) -> bool:
     return bool(np.any(m[1:] != m[:1]))
 
 
+def masks_can_be_fused(masks) -> bool:
+    """Whether every frame's mask is one ring around one cavity, up to a defect of a pixel or two.
+
+    The masks' data come from their borders, tracked frame to frame (:func:`border_data`), which
+    needs a ring in every frame; :func:`sfem_filters.imaging.repair_myocardium_mask` mends small
+    defects. When a frame's mask cannot be mended, this warns (naming the frames) and returns
+    False, so that a default that would fuse the masks uses the phase alone instead of stopping.
+
+    Parameters
+    ----------
+    masks : (F + 1, H, W) bool array
+        The reference mask (index 0) then each frame's.
+    """
+    m = as_mask("masks", masks, ndim=3)
+    bad, first = [], None
+    for f in range(1, len(m)):
+        try:
+            repair_myocardium_mask(m[f], f"masks[{f}]")
+        except ValueError as exc:
+            bad.append(f)
+            first = first or str(exc)
+    if bad:
+        warnings.warn(f"masks: the mask(s) of index {bad} in the (F + 1, H, W) stack (frame index + 1) cannot be "
+                      f"made one ring around one cavity ({first}), so their borders cannot be tracked; the DENSE "
+                      f"route uses the phase alone (border_masks=False; on the command line --with-masks makes "
+                      f"this an error)", RuntimeWarning, stacklevel=2)
+    return not bad
+
+
 def image_settings(case, **overrides) -> StrainRouteSettings:
     """The DENSE route's settings for a case with images: the acquisition's point spread, the masks fused.
 
@@ -642,7 +673,8 @@ def image_settings(case, **overrides) -> StrainRouteSettings:
       borders (module docstring, step 2), not at the pixel centre;
     * ``border_masks``: True when the frames' masks move (:func:`masks_move`): their borders'
       motion across the border joins the phase data, which the point spread biases at the
-      endocardium; with one mask for every frame there is nothing to fuse;
+      endocardium; with one mask for every frame there is nothing to fuse; False, with a warning,
+      when a frame's mask is not a ring that can be mended (:func:`masks_can_be_fused`);
     * ``phase_noise_level``: ``"evidence"`` with the masks (each source weighed by the noise it
       shows);
     * ``process_profile``: ``"data"`` (the :class:`StrainRouteSettings` default).
@@ -662,7 +694,8 @@ def image_settings(case, **overrides) -> StrainRouteSettings:
     """
     _check_case(case)
     resolution = overrides.pop("resolution_px", case.resolution_px)
-    return route_settings(resolution, masks_move(case.masks), **overrides)
+    fuse = masks_move(case.masks) and ("border_masks" in overrides or masks_can_be_fused(case.masks))
+    return route_settings(resolution, fuse, **overrides)
 
 
 def route_settings(resolution_px: float = 1.0, moving_masks: bool = False, **overrides) -> StrainRouteSettings:

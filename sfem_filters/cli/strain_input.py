@@ -10,8 +10,8 @@ import re
 import numpy as np
 
 from ..cardiac import load_sequence
-from ..cardiac.strain_route import StrainRouteSettings, image_settings, masks_move, route_settings, \
-    temporal_noise_floor
+from ..cardiac.strain_route import StrainRouteSettings, image_settings, masks_can_be_fused, masks_move, \
+    route_settings, temporal_noise_floor
 from ..imaging import (add_complex_noise, phase_to_displacement, read_dense_dicom_folder, read_dense_sim,
                        tracks_on_pixel_grid)
 from ..imaging.dense import check_resolution_px
@@ -104,7 +104,7 @@ def _dense_settings(args, src: dict) -> StrainRouteSettings:
         else:
             got = "masks that do not move (every frame's is the reference's): their borders carry no motion"
         raise ValueError(f"--with-masks: expected the myocardium mask of every frame, moving with the wall, got {got}")
-    fuse = moving if fuse is None else fuse
+    fuse = (moving and masks_can_be_fused(masks)) if fuse is None else fuse
     level = getattr(args, "phase_noise_level", None)
     if level is not None and not fuse:
         raise ValueError("--phase-noise-level: weighs the phase data against the masks, which this run does not fuse "

@@ -9,10 +9,11 @@ centre, so that index k of two frames' contours points roughly the same way.
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.ndimage import distance_transform_edt, gaussian_filter1d
+from scipy.ndimage import binary_closing, distance_transform_edt, gaussian_filter1d
 from skimage.measure import find_contours, label
 
 from .._validate import as_float_array, as_mask
@@ -46,6 +47,91 @@ def check_myocardium_mask(mask, name: str = "mask") -> np.ndarray:
         raise ValueError(f"{name}: expected a ring around exactly one cavity, got {holes} enclosed "
                          f"background regions")
     return arr
+
+
+#: The most of a mask :func:`repair_myocardium_mask` may change, as a fraction of its tissue pixels.
+MAX_REPAIR_FRACTION = 0.05
+
+
+def _pieces(arr) -> np.ndarray:
+    return label(arr, connectivity=2)
+
+
+def _enclosed(arr) -> np.ndarray:
+    """Labels of the background regions (4-connected) that do not reach the image's edge."""
+    lab = label(np.pad(~arr, 1, constant_values=True), connectivity=1)
+    return label(((lab != 0) & (lab != lab[0, 0]))[1:-1, 1:-1], connectivity=1)
+
+
+def repair_myocardium_mask(mask, name: str = "mask", max_fraction: float = MAX_REPAIR_FRACTION) -> tuple:
+    """A myocardium mask made one ring around one cavity by the smallest changes, or an error.
+
+    A mask drawn or resampled on a coarse grid can carry defects of a pixel or two that do not
+    change the anatomy but break the ring the meshing and the border tracking need: a stray piece
+    of tissue beside the wall, a pinhole in it, a one-pixel cut through it. Each is mended here in
+    turn, and only while all the changes together stay within ``max_fraction`` of the tissue:
+
+    1. pieces of tissue other than the largest are removed (8-connected pieces);
+    2. enclosed background regions other than the largest (the cavity) are filled;
+    3. a ring without a cavity (cut through) is closed by a 3 x 3 morphological closing, which
+       bridges a gap of a pixel or two (and fills one-pixel notches of the border).
+
+    Parameters
+    ----------
+    mask : (H, W) array_like of bool
+        Myocardium mask.
+    name : str
+        How errors name the mask.
+    max_fraction : float
+        Largest change allowed, as a fraction of the mask's tissue pixels.
+
+    Returns
+    -------
+    (mask, changes) : ((H, W) bool ndarray, str)
+        The ring, and what was changed ("" when the mask was one already).
+
+    Raises
+    ------
+    ValueError
+        Naming ``name``, for an empty mask, or when no change within ``max_fraction`` makes a ring
+        (two large pieces, a second large cavity, a wide cut, no cavity at all).
+    """
+    arr = as_mask(name, mask, 2).copy()
+    if not arr.any():
+        raise ValueError(f"{name}: expected some tissue, got an empty mask")
+    budget = max_fraction * arr.sum()
+    changes, changed = [], 0
+    lab = _pieces(arr)
+    if lab.max() > 1:
+        sizes = np.bincount(lab.ravel())[1:]
+        drop = np.isin(lab, 1 + np.flatnonzero(np.arange(sizes.size) != np.argmax(sizes)))
+        changed += int(drop.sum())
+        if changed > budget:
+            raise ValueError(f"{name}: expected one connected piece of myocardium, got {sizes.size} pieces "
+                             f"(sizes {sorted(sizes.tolist(), reverse=True)} px): more than a stray pixel or two")
+        arr[drop] = False
+        changes.append(f"removed {sizes.size - 1} stray piece(s) of {int(drop.sum())} px")
+    enc = _enclosed(arr)
+    if enc.max() == 0:
+        closed = binary_closing(arr, np.ones((3, 3), bool))
+        added = int((closed & ~arr).sum())
+        if _enclosed(closed).max() == 0 or changed + added > budget:
+            raise ValueError(f"{name}: expected a ring around exactly one cavity, got no enclosed cavity "
+                             f"(the ring is cut by more than two pixels, or there is no cavity)")
+        arr, changed = closed, changed + added
+        changes.append(f"closed a cut in the ring ({added} px added)")
+        enc = _enclosed(arr)
+    if enc.max() > 1:
+        sizes = np.bincount(enc.ravel())[1:]
+        fill = (enc > 0) & (enc != 1 + int(np.argmax(sizes)))
+        changed += int(fill.sum())
+        if changed > budget:
+            raise ValueError(f"{name}: expected a ring around exactly one cavity, got {sizes.size} enclosed "
+                             f"background regions (sizes {sorted(sizes.tolist(), reverse=True)} px)")
+        arr[fill] = True
+        changes.append(f"filled {sizes.size - 1} hole(s) of {int(fill.sum())} px in the wall")
+    check_myocardium_mask(arr, name)
+    return arr, "; ".join(changes)
 
 
 def resample_closed(xy, n: int) -> np.ndarray:
@@ -101,31 +187,39 @@ def _orient_and_start(xy, centre):
     return np.roll(xy, -k, axis=0)
 
 
-def mask_borders(mask, n_endo: int = 64, n_epi: int = 96, smooth: float = 0.0) -> Borders:
+def mask_borders(mask, n_endo: int = 64, n_epi: int = 96, smooth: float = 0.0, name: str = "mask") -> Borders:
     """Endo- and epicardial contours of a myocardium mask (marching squares at level 1/2).
+
+    A mask with a defect of a pixel or two (a stray piece, a pinhole, a one-pixel cut) is mended
+    first by :func:`repair_myocardium_mask`, with a ``RuntimeWarning`` saying what changed.
 
     Parameters
     ----------
     mask : (H, W) bool array
-        Myocardium (one ring around one cavity).
+        Myocardium (one ring around one cavity, up to small defects).
     n_endo, n_epi : int
         Points of each contour after resampling at equal arc length.
     smooth : float
         Gaussian smoothing of the raw border, in raw border points (0: none).
+    name : str
+        How errors and the repair's warning name the mask.
 
     Returns
     -------
     Borders
         Contours in pixels (x = column, y = row), oriented and started as the module says.
     """
-    arr = check_myocardium_mask(mask)
+    arr, changes = repair_myocardium_mask(mask, name)
+    if changes:
+        warnings.warn(f"{name}: not one ring around one cavity; mended before its borders are taken: {changes}",
+                      RuntimeWarning, stacklevel=2)
     raw = find_contours(np.pad(arr, 1).astype(float), 0.5)
     loops = [np.column_stack([c[:, 1], c[:, 0]]) - 1.0 for c in raw]      # (x, y), undo the padding
     loops = [c[:-1] if np.allclose(c[0], c[-1]) else c for c in loops]
     loops = [c for c in loops if len(c) >= 3]
     areas = np.array([abs(signed_area(c)) for c in loops])
     if len(loops) < 2:
-        raise ValueError("mask: expected an inner and an outer border, found fewer than two contours")
+        raise ValueError(f"{name}: expected an inner and an outer border, found fewer than two contours")
     order = np.argsort(areas)[::-1]
     epi = loops[order[0]]
     # the endocardium is the largest remaining loop lying inside the epicardium

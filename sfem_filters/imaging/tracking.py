@@ -256,8 +256,5 @@ def track_masks(masks, options: TrackingOptions | None = None) -> BoundaryTracks
         raise ValueError(f"masks: expected at least 2 frames, got {len(m)}")
     borders = []
     for t in range(len(m)):
-        try:
-            borders.append(mask_borders(m[t], opts.n_endo, opts.n_epi))
-        except ValueError as exc:
-            raise ValueError(f"masks[{t}]: {str(exc).split(': ', 1)[-1]}") from None
+        borders.append(mask_borders(m[t], opts.n_endo, opts.n_epi, name=f"masks[{t}]"))
     return track_borders(borders, opts)

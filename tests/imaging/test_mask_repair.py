@@ -1,0 +1,133 @@
+"""Masks with a defect of a pixel or two are mended into a ring; larger defects stay errors that name the mask.
+
+The cases we are not given may carry masks resampled to a coarse grid; a stray pixel, a pinhole or a
+one-pixel cut must not stop the routes (the meshing and the border tracking need one ring around one
+cavity), and must not change the anatomy either: the repair gives back the ring the defect was made in.
+"""
+import os
+import warnings
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings, strategies as st
+from scipy.ndimage import binary_erosion
+
+from sfem_filters.cardiac.strain_route import image_settings, masks_can_be_fused
+from sfem_filters.imaging import check_myocardium_mask, mask_borders, read_dense_sim, repair_myocardium_mask
+from sfem_filters.imaging.contours import MAX_REPAIR_FRACTION
+
+DATA = Path(os.environ.get("SFEM_FILTERS_DATA", Path(__file__).resolve().parents[3] / "shared" / "data"))
+CASE = DATA / "dense_sim" / "phantom_subject_1"
+
+
+def annulus(n=48, cx=23.5, cy=23.5, inner=8.0, outer=13.0):
+    yy, xx = np.mgrid[0:n, 0:n]
+    d = np.hypot(xx - cx, yy - cy)
+    return (d >= inner) & (d <= outer)
+
+
+rings = st.builds(annulus, cx=st.floats(21.0, 26.0), cy=st.floats(21.0, 26.0), inner=st.floats(6.0, 9.0),
+                  outer=st.floats(12.0, 15.0))
+
+
+def test_a_ring_is_left_as_it_is():
+    ring = annulus()
+    out, changes = repair_myocardium_mask(ring)
+    assert changes == "" and np.array_equal(out, ring)
+
+
+@settings(max_examples=40, deadline=None)
+@given(ring=rings, pick=st.integers(0, 10 ** 6))
+def test_a_pinhole_in_the_wall_is_filled(ring, pick):
+    inner = np.argwhere(binary_erosion(ring))                 # a pixel of the wall, not on its border
+    r, c = inner[pick % len(inner)]
+    holed = ring.copy()
+    holed[r, c] = False
+    out, changes = repair_myocardium_mask(holed)
+    assert np.array_equal(out, ring) and "hole" in changes
+
+
+@settings(max_examples=40, deadline=None)
+@given(ring=rings, corner=st.sampled_from([(0, 0), (0, 47), (47, 0), (47, 47), (2, 23), (23, 45)]))
+def test_a_stray_pixel_is_removed(ring, corner):
+    stray = ring.copy()
+    stray[corner] = True
+    assert not ring[corner]
+    out, changes = repair_myocardium_mask(stray)
+    assert np.array_equal(out, ring) and "stray" in changes
+
+
+@settings(max_examples=40, deadline=None)
+@given(ring=rings, angle=st.floats(0.0, 2 * np.pi), width=st.sampled_from([1.0, 1.6]))
+def test_a_narrow_cut_through_the_wall_is_closed(ring, angle, width):
+    yy, xx = np.mgrid[0:48, 0:48]
+    centre = np.argwhere(ring).mean(axis=0)[::-1]
+    # the pixels closer than width / 2 to a ray from the centre: a cut one or two pixels wide
+    d = np.abs(-(xx - centre[0]) * np.sin(angle) + (yy - centre[1]) * np.cos(angle))
+    ahead = (xx - centre[0]) * np.cos(angle) + (yy - centre[1]) * np.sin(angle) > 0
+    cut = ring & ahead & (d < width / 2)
+    broken = ring & ~cut
+    try:
+        check_myocardium_mask(broken)
+        return                                                # the ray only grazed the ring: no cut made
+    except ValueError:
+        pass
+    out, changes = repair_myocardium_mask(broken)
+    check_myocardium_mask(out)
+    assert np.all(out[ring & ~cut])                           # the ring's tissue is kept
+    assert np.sum(out != ring) <= MAX_REPAIR_FRACTION * ring.sum()
+    # a diagonal band may leave the tissue 8-connected across it: then it is pockets of background, filled
+    assert ("cut" in changes) or ("hole" in changes)
+
+
+@pytest.mark.parametrize("mask, message", [
+    (np.zeros((20, 20), bool), "masks\\[4\\]: expected some tissue"),
+    (annulus() | annulus(cx=40.0, cy=40.0, inner=0.0, outer=5.0), "masks\\[4\\]: expected one connected piece"),
+    (annulus() & (np.mgrid[0:48, 0:48][1] < 24), "masks\\[4\\]: expected a ring around exactly one cavity"),
+    (annulus() | annulus(inner=3.0, outer=5.0), "masks\\[4\\]: expected one connected piece"),
+    (annulus(inner=4.0) & ~annulus(inner=9.0, outer=10.0) | annulus(inner=0, outer=2), "masks\\[4\\]"),
+])
+def test_larger_defects_stay_errors_naming_the_mask(mask, message):
+    with pytest.raises(ValueError, match=message):
+        repair_myocardium_mask(mask, "masks[4]")
+
+
+def test_the_borders_of_a_mended_mask_warn_and_name_it():
+    stray = annulus()
+    stray[0, 0] = True
+    with pytest.warns(RuntimeWarning, match=r"masks\[3\]: not one ring.*removed 1 stray piece"):
+        b = mask_borders(stray, name="masks[3]")
+    clean = mask_borders(annulus())
+    assert np.allclose(b.endo, clean.endo) and np.allclose(b.epi, clean.epi)
+
+
+def test_a_frame_mask_that_cannot_be_mended_leaves_the_dense_route_on_the_phase_alone():
+    ring = annulus()
+    moved = annulus(outer=14.0)
+    good = np.stack([ring, moved, moved])
+    assert masks_can_be_fused(good)
+    bad = good.copy()
+    bad[2] = moved & (np.mgrid[0:48, 0:48][1] < 24)            # half a ring: no cavity, a wide cut
+    with pytest.warns(RuntimeWarning, match=r"index \[2\].*phase alone"):
+        assert not masks_can_be_fused(bad)
+
+
+@pytest.mark.skipif(not (CASE / "config.yaml").is_file(), reason="the DENSE-Sim case is not here")
+def test_image_settings_fuse_mended_masks_and_fall_back_from_broken_ones():
+    case = read_dense_sim(CASE)
+    assert image_settings(case).border_masks
+    masks = case.masks.copy()
+    wall = np.argwhere(binary_erosion(masks[3]))
+    masks[3, wall[0][0], wall[0][1]] = False                   # a pinhole: mended, still fused
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert image_settings(replace(case, masks=masks)).border_masks
+    masks[5] = False                                           # no myocardium in one frame: the phase alone
+    with pytest.warns(RuntimeWarning, match=r"index \[5\]"):
+        assert not image_settings(replace(case, masks=masks)).border_masks
+    # asked for explicitly, no check and no warning: the route then says what is wrong
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert image_settings(replace(case, masks=masks), border_masks=True).border_masks
