@@ -58,6 +58,7 @@ posterior at the mode: :func:`exact_laplace`, :func:`with_covariance`), and here
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -312,6 +313,12 @@ class IteratedSmoother:
         finally:
             if bar is not None:
                 bar.close()
+        edge = (best == kmax and best + 1.0 not in evidence) or (best == kmin and best - 1.0 not in evidence)
+        if edge and best != 0.0:
+            warnings.warn(f"{description}: the evidence for the {kind} noise level is highest at the end of "
+                          f"noise_range ({symbol} x {4.0 ** best:.3g}; range {self.noise_range[0]:.3g} to "
+                          f"{self.noise_range[1]:.3g}): the level may lie beyond it; widen noise_range",
+                          RuntimeWarning, stacklevel=3)
         scale = 4.0 ** best
         chosen, scaled = fits[best], scaled_noise(model, scale)
         guard = self.safeguards if self.safeguards is not None else Safeguards()

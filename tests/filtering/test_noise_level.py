@@ -1,5 +1,7 @@
 """The process and measurement noise levels estimated by maximum evidence
 (``IteratedSmoother(process_noise="estimate")``, ``measurement_noise="estimate"``)."""
+import warnings
+
 import numpy as np
 import pytest
 from helpers import BiasModel
@@ -158,3 +160,19 @@ def test_estimate_needs_a_scalable_model_and_sane_settings():
                           (dict(noise_tol=0.0), "noise_tol: expected a positive")]:
         with pytest.raises(ValueError, match=match):
             IteratedSmoother(**kwargs)
+
+
+@pytest.mark.filterwarnings("ignore:filter inconsistent")
+def test_a_level_at_the_end_of_the_range_is_warned_about_and_one_inside_is_not():
+    """Data made with 16 times the model's Q: a range that stops at 4 leaves the evidence's best at its
+    end (the search cannot see beyond it) and says so; a range that holds 16 finds it without a word."""
+    rng = np.random.default_rng(5)
+    model, y = _data(rng, 3, 2, 2, 120, 16.0)
+    with pytest.warns(RuntimeWarning, match=r"highest at the end of noise_range \(Q x 4;.*widen noise_range"):
+        short = IteratedSmoother(process_noise="estimate", damping=0.0, noise_range=(4.0 ** -2, 4.0)).run(model, y)
+    assert short.process_noise_scale == 4.0
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        warnings.filterwarnings("ignore", "filter inconsistent")
+        wide = IteratedSmoother(process_noise="estimate", damping=0.0).run(model, y)
+    assert 4.0 < wide.process_noise_scale < 4.0 ** 3
