@@ -70,7 +70,7 @@ def reference_mesh(mask, pixel_size_m: float, mesh: str = "gmsh", element_px: fl
         return tissue_mesh(np.column_stack([cols, rows]).astype(float) * s)[0]
     h = positive("element_px", element_px, "pixels")
     n = 4 * int(m.sum()) + 16
-    b = mask_borders(m, n_endo=max(16, n // 3), n_epi=max(16, n // 2), name="reference mask")
+    b = mask_borders(m, n_endo=max(16, n // 3), n_epi=max(16, n // 2), name="reference_mask")
     return polygon_mesh(b.epi * s, [b.endo * s], size=h * s)
 
 

@@ -635,9 +635,9 @@ def masks_move(masks) -> bool:
 def masks_can_be_fused(masks) -> bool:
     """Whether every frame's mask is one ring around one cavity, up to a defect of a pixel or two.
 
-    The masks' data come from their borders, tracked frame to frame (:func:`border_data`), which
-    needs a ring in every frame; :func:`sfem_filters.imaging.repair_myocardium_mask` mends small
-    defects. When a frame's mask cannot be mended, this warns (naming the frames) and returns
+    The masks' data come from their borders, tracked frame to frame
+    (:mod:`sfem_filters.cardiac.border_data`), which needs a ring in every frame;
+    :func:`sfem_filters.imaging.repair_myocardium_mask` mends small defects. When a frame's mask cannot be mended, this warns (naming the frames) and returns
     False, so that a default that would fuse the masks uses the phase alone instead of stopping.
 
     Parameters

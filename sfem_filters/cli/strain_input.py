@@ -109,6 +109,7 @@ def _dense_settings(args, src: dict) -> StrainRouteSettings:
     if level is not None and not fuse:
         raise ValueError("--phase-noise-level: weighs the phase data against the masks, which this run does not fuse "
                          + ("(--no-masks)" if getattr(args, "masks_fusion", None) is False
+                            else "(a frame's mask cannot be made one ring; the warning above names it)" if moving
                             else "(no mask of every frame that moves)"))
     overrides = {"start_deg": args.segment_start, "border_masks": bool(fuse)}
     given = {"phase_noise_level": level, "process_profile": args.process_profile,

@@ -313,12 +313,14 @@ class IteratedSmoother:
         finally:
             if bar is not None:
                 bar.close()
-        edge = (best == kmax and best + 1.0 not in evidence) or (best == kmin and best - 1.0 not in evidence)
+        # the walk stopped at an end of the range while the evidence still rose by more than noise_tol
+        inward = best - 1.0 if best == kmax else best + 1.0
+        edge = best in (kmin, kmax) and inward in evidence and evidence[best] > evidence[inward] + self.noise_tol
         if edge and best != 0.0:
             warnings.warn(f"{description}: the evidence for the {kind} noise level is highest at the end of "
                           f"noise_range ({symbol} x {4.0 ** best:.3g}; range {self.noise_range[0]:.3g} to "
                           f"{self.noise_range[1]:.3g}): the level may lie beyond it; widen noise_range",
-                          RuntimeWarning, stacklevel=3)
+                          RuntimeWarning, stacklevel=4)      # run (through its BLAS-threads decorator)
         scale = 4.0 ** best
         chosen, scaled = fits[best], scaled_noise(model, scale)
         guard = self.safeguards if self.safeguards is not None else Safeguards()

@@ -50,8 +50,9 @@ from .segmentation import dice, segment_sequence
 from .tracking import BoundaryTracks, TrackingOptions, track_borders, track_masks
 
 __all__ = ["bending_energy", "segment_bending_energy", "goodness_uniqueness", "match_confidence",
-           "local_phase_coherence", "velocity_coherence", "weighted_std", "Borders", "check_myocardium_mask", "repair_myocardium_mask",
-           "curvature", "mask_borders", "resample_closed", "pixel_depth", "midwall_pixels", "VelocityData", "sample_bilinear", "sample_velocity",
+           "local_phase_coherence", "velocity_coherence", "weighted_std", "Borders", "check_myocardium_mask",
+           "repair_myocardium_mask", "curvature", "mask_borders", "resample_closed", "pixel_depth", "midwall_pixels",
+           "VelocityData", "sample_bilinear", "sample_velocity",
            "synthetic_phase_contrast", "ImageSeries", "make_image_series", "read_images", "dice",
            "segment_sequence", "BoundaryTracks", "TrackingOptions", "track_borders", "track_masks",
            "DenseCase", "LagrangianDisplacement", "make_dense_case", "read_dense_sim", "read_dense_dicom",

@@ -63,18 +63,36 @@ def _enclosed(arr) -> np.ndarray:
     return label(((lab != 0) & (lab != lab[0, 0]))[1:-1, 1:-1], connectivity=1)
 
 
+def _cavity(arr, budget: float) -> tuple:
+    """The enclosed background regions of ``arr``, their sizes, and the label of the one that is clearly
+    the cavity (larger than the holes the repair may fill, and at least twice any other), else None."""
+    enc = _enclosed(arr)
+    sizes = np.bincount(enc.ravel())[1:] if enc.max() else np.zeros(0, int)
+    if sizes.size == 0:
+        return enc, sizes, None
+    top = np.sort(sizes)[::-1]
+    if top[0] <= budget or (sizes.size > 1 and top[0] < 2 * top[1]):
+        return enc, sizes, None
+    return enc, sizes, 1 + int(np.argmax(sizes))
+
+
 def repair_myocardium_mask(mask, name: str = "mask", max_fraction: float = MAX_REPAIR_FRACTION) -> tuple:
     """A myocardium mask made one ring around one cavity by the smallest changes, or an error.
 
     A mask drawn or resampled on a coarse grid can carry defects of a pixel or two that do not
     change the anatomy but break the ring the meshing and the border tracking need: a stray piece
-    of tissue beside the wall, a pinhole in it, a one-pixel cut through it. Each is mended here in
-    turn, and only while all the changes together stay within ``max_fraction`` of the tissue:
+    of tissue beside the wall, a pinhole in it, a one-pixel cut through it (a cut ring with one
+    pinhole even passes :func:`check_myocardium_mask`, the pinhole as its cavity). A ring around a
+    cavity is returned as it is; otherwise each defect is mended in turn, and only while all the changes together stay
+    within ``max_fraction`` of the tissue:
 
     1. pieces of tissue other than the largest are removed (8-connected pieces);
-    2. enclosed background regions other than the largest (the cavity) are filled;
-    3. a ring without a cavity (cut through) is closed by a 3 x 3 morphological closing, which
-       bridges a gap of a pixel or two (and fills one-pixel notches of the border).
+    2. when no enclosed background region is clearly the cavity (larger than the holes this may
+       fill and at least twice any other), the cavity has leaked through a cut: a 3 x 3
+       morphological closing bridges a gap of a pixel or two (and fills one-pixel notches of the
+       border), and must leave a region that is clearly the cavity (else a mask that was one
+       piece around one small enclosed region is returned as given);
+    3. enclosed background regions other than the cavity (pinholes) are filled.
 
     Parameters
     ----------
@@ -97,9 +115,17 @@ def repair_myocardium_mask(mask, name: str = "mask", max_fraction: float = MAX_R
         (two large pieces, a second large cavity, a wide cut, no cavity at all).
     """
     arr = as_mask(name, mask, 2).copy()
+    if not 0.0 <= max_fraction < 1.0:
+        raise ValueError(f"max_fraction: expected a fraction of the tissue in [0, 1), got {max_fraction!r}")
     if not arr.any():
         raise ValueError(f"{name}: expected some tissue, got an empty mask")
+    try:
+        ring = check_myocardium_mask(arr, name).copy()       # one piece around one enclosed region
+    except ValueError:
+        ring = None
     budget = max_fraction * arr.sum()
+    if ring is not None and _cavity(ring, budget)[2] is not None:
+        return ring, ""                                      # a ring around a cavity: nothing to mend
     changes, changed = [], 0
     lab = _pieces(arr)
     if lab.max() > 1:
@@ -111,19 +137,25 @@ def repair_myocardium_mask(mask, name: str = "mask", max_fraction: float = MAX_R
                              f"(sizes {sorted(sizes.tolist(), reverse=True)} px): more than a stray pixel or two")
         arr[drop] = False
         changes.append(f"removed {sizes.size - 1} stray piece(s) of {int(drop.sum())} px")
-    enc = _enclosed(arr)
-    if enc.max() == 0:
-        closed = binary_closing(arr, np.ones((3, 3), bool))
+    enc, sizes, cavity = _cavity(arr, budget)
+    if cavity is None:
+        # no region that is clearly the cavity: a cut lets it out (what is enclosed are pinholes at most);
+        # a 3 x 3 closing, on a padded copy so that the image's edge erodes nothing, bridges it
+        closed = arr | binary_closing(np.pad(arr, 2), np.ones((3, 3), bool))[2:-2, 2:-2]
         added = int((closed & ~arr).sum())
-        if _enclosed(closed).max() == 0 or changed + added > budget:
-            raise ValueError(f"{name}: expected a ring around exactly one cavity, got no enclosed cavity "
-                             f"(the ring is cut by more than two pixels, or there is no cavity)")
+        enc_c, sizes_c, cavity_c = _cavity(closed, budget)
+        if (cavity_c is None or changed + added > budget) and ring is not None:
+            return ring, ""                                  # a ring around a small cavity, as it was given
+        if cavity_c is None or changed + added > budget:
+            got = (f"{sizes.size} enclosed background regions (sizes {sorted(sizes.tolist(), reverse=True)} px), "
+                   f"none clearly the cavity" if sizes.size else "no enclosed cavity")
+            raise ValueError(f"{name}: expected a ring around exactly one cavity, got {got} (a cut of more than "
+                             f"two pixels, a second cavity, or none)")
         arr, changed = closed, changed + added
         changes.append(f"closed a cut in the ring ({added} px added)")
-        enc = _enclosed(arr)
-    if enc.max() > 1:
-        sizes = np.bincount(enc.ravel())[1:]
-        fill = (enc > 0) & (enc != 1 + int(np.argmax(sizes)))
+        enc, sizes, cavity = enc_c, sizes_c, cavity_c
+    fill = (enc > 0) & (enc != cavity)
+    if fill.any():
         changed += int(fill.sum())
         if changed > budget:
             raise ValueError(f"{name}: expected a ring around exactly one cavity, got {sizes.size} enclosed "

@@ -168,9 +168,10 @@ def test_a_level_at_the_end_of_the_range_is_warned_about_and_one_inside_is_not()
     end (the search cannot see beyond it) and says so; a range that holds 16 finds it without a word."""
     rng = np.random.default_rng(5)
     model, y = _data(rng, 3, 2, 2, 120, 16.0)
-    with pytest.warns(RuntimeWarning, match=r"highest at the end of noise_range \(Q x 4;.*widen noise_range"):
+    with pytest.warns(RuntimeWarning, match=r"highest at the end of noise_range \(Q x 4;.*widen noise_range") as rec:
         short = IteratedSmoother(process_noise="estimate", damping=0.0, noise_range=(4.0 ** -2, 4.0)).run(model, y)
     assert short.process_noise_scale == 4.0
+    assert any(w.filename == __file__ for w in rec if "noise_range" in str(w.message))    # points at the caller
     with warnings.catch_warnings():
         warnings.simplefilter("error", RuntimeWarning)
         warnings.filterwarnings("ignore", "filter inconsistent")

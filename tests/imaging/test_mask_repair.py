@@ -82,16 +82,59 @@ def test_a_narrow_cut_through_the_wall_is_closed(ring, angle, width):
     assert ("cut" in changes) or ("hole" in changes)
 
 
+def _two_cavities():
+    m = np.zeros((30, 40), bool)
+    m[5:25, 5:35] = True
+    m[10:20, 9:18] = m[10:20, 22:31] = False              # two equal cavities: neither is the one
+    return m
+
+
+def _tiny_cavity(pinhole=0):
+    m = np.zeros((20, 20), bool)
+    m[5:15, 5:15] = True
+    m[9, 9] = False                                         # a one-pixel cavity: a ring as check_myocardium_mask has it
+    m[12, 12:12 + pinhole] = False                          # and a pinhole as large: which is the cavity?
+    return m
+
+
 @pytest.mark.parametrize("mask, message", [
     (np.zeros((20, 20), bool), "masks\\[4\\]: expected some tissue"),
     (annulus() | annulus(cx=40.0, cy=40.0, inner=0.0, outer=5.0), "masks\\[4\\]: expected one connected piece"),
     (annulus() & (np.mgrid[0:48, 0:48][1] < 24), "masks\\[4\\]: expected a ring around exactly one cavity"),
     (annulus() | annulus(inner=3.0, outer=5.0), "masks\\[4\\]: expected one connected piece"),
-    (annulus(inner=4.0) & ~annulus(inner=9.0, outer=10.0) | annulus(inner=0, outer=2), "masks\\[4\\]"),
+    (_two_cavities(), "masks\\[4\\]: expected a ring around exactly one cavity, got 2 enclosed background regions"),
+    (_tiny_cavity(pinhole=2), "masks\\[4\\]: .*none clearly the cavity"),
 ])
 def test_larger_defects_stay_errors_naming_the_mask(mask, message):
     with pytest.raises(ValueError, match=message):
         repair_myocardium_mask(mask, "masks[4]")
+
+
+def test_a_ring_around_a_small_cavity_is_left_as_given():
+    m = _tiny_cavity()
+    out, changes = repair_myocardium_mask(m)
+    assert changes == "" and np.array_equal(out, m)
+
+
+def test_a_cut_ring_with_a_pinhole_is_closed_not_taken_for_a_ring_around_the_pinhole():
+    ring = annulus()
+    broken = ring.copy()
+    broken[23, 31:40] = False                               # a one-pixel cut on the right
+    wall = np.argwhere(binary_erosion(ring) & (np.mgrid[0:48, 0:48][1] < 20))
+    broken[tuple(wall[0])] = False                          # and a pinhole on the left
+    check_myocardium_mask(broken)                           # passes: one piece around one "cavity", the pinhole
+    out, changes = repair_myocardium_mask(broken)
+    assert np.array_equal(out, ring) and "cut" in changes
+
+
+def test_a_cut_at_the_image_edge_is_closed_without_losing_the_edge():
+    ring = annulus(n=40, cx=19.5, cy=19.5, inner=12.0, outer=22.0)   # clipped by the image's edges
+    check_myocardium_mask(ring)
+    broken = ring.copy()
+    broken[19, 30:] = False                                 # cut through to the right edge
+    out, changes = repair_myocardium_mask(broken)
+    assert "cut" in changes and not np.any(ring & ~out)     # no tissue lost at the edge
+    assert np.sum(out != ring) <= MAX_REPAIR_FRACTION * ring.sum()
 
 
 def test_the_borders_of_a_mended_mask_warn_and_name_it():
