@@ -90,7 +90,7 @@ from ..fem.loads import penalty_stiffness
 from ..fem.material import Material
 from ..fem.mesh import TriMesh
 from ..fem.observation import point_observation_matrix
-from ..filtering.iterated import IteratedSmoother
+from ..filtering.iterated import IteratedSmoother, check_noise_range
 from ..filtering.linearised import linearise
 from ..filtering.smoother import smooth
 from ..imaging.contours import repair_myocardium_mask
@@ -198,13 +198,7 @@ class ContourRouteSettings:
             raise ValueError(f"along_border: expected 'none' or 'tracked', got {self.along_border!r}")
         if self.process_noise not in ("fixed", "estimate"):
             raise ValueError(f"process_noise: expected 'fixed' or 'estimate', got {self.process_noise!r}")
-        try:
-            low, high = (float(v) for v in self.noise_range)
-        except (TypeError, ValueError):
-            raise ValueError(f"noise_range: expected two factors (low, high), got {self.noise_range!r}") from None
-        if not 0 < low <= 1 <= high < float("inf"):
-            raise ValueError(f"noise_range: expected 0 < low <= 1 <= high (factors on Q), got {self.noise_range!r}")
-        object.__setattr__(self, "noise_range", (low, high))
+        object.__setattr__(self, "noise_range", check_noise_range(self.noise_range))
         if isinstance(self.min_landmarks, bool) or int(self.min_landmarks) != self.min_landmarks \
                 or self.min_landmarks < 8:
             raise ValueError(f"min_landmarks: expected an integer >= 8, got {self.min_landmarks!r}")

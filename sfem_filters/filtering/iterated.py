@@ -73,12 +73,24 @@ from .memory import check_memory
 from .protocol import check_model, scaled_measurement_noise, scaled_process_noise
 from .safeguards import Safeguards
 
-__all__ = ["IteratedSmoother", "SmootherResult", "MapObjective", "iterated_smoother", "open_loop", "exact_laplace",
-           "with_covariance", "step_in_sd", "NOISE_LEVELS"]
+__all__ = ["IteratedSmoother", "check_noise_range", "SmootherResult", "MapObjective", "iterated_smoother", "open_loop",
+           "exact_laplace", "with_covariance", "step_in_sd", "NOISE_LEVELS"]
 
 #: How a noise level is set (``process_noise=``, ``measurement_noise=``): as the model gives it, or
 #: by type-II maximum likelihood.
 NOISE_LEVELS = ("fixed", "estimate")
+
+
+def check_noise_range(noise_range) -> tuple:
+    """``noise_range`` as ``(low, high)`` floats, ``0 < low <= 1 <= high`` (factors on Q or R), or a
+    ValueError naming it (:class:`IteratedSmoother` ``noise_range``)."""
+    try:
+        low, high = (float(v) for v in noise_range)
+    except (TypeError, ValueError):
+        raise ValueError(f"noise_range: expected two factors (low, high), got {noise_range!r}") from None
+    if not (0.0 < low <= 1.0 <= high < np.inf):
+        raise ValueError(f"noise_range: expected 0 < low <= 1 <= high (factors on Q), got {noise_range!r}")
+    return low, high
 
 
 @dataclass
@@ -194,12 +206,7 @@ class IteratedSmoother:
             raise ValueError(f"process_noise: expected 'fixed' or 'estimate', got {self.process_noise!r}")
         if self.measurement_noise not in NOISE_LEVELS:
             raise ValueError(f"measurement_noise: expected 'fixed' or 'estimate', got {self.measurement_noise!r}")
-        try:
-            low, high = (float(v) for v in self.noise_range)
-        except (TypeError, ValueError):
-            raise ValueError(f"noise_range: expected two factors (low, high), got {self.noise_range!r}") from None
-        if not (0.0 < low <= 1.0 <= high < np.inf):
-            raise ValueError(f"noise_range: expected 0 < low <= 1 <= high (factors on Q), got {self.noise_range!r}")
+        check_noise_range(self.noise_range)
         positive("noise_tol", self.noise_tol)
         if self.laplace not in ("gauss-newton", "exact"):
             raise ValueError(f"laplace: expected 'gauss-newton' or 'exact', got {self.laplace!r}")
