@@ -16,7 +16,7 @@ from .._validate import as_float_array, integer, non_negative, positive, probabi
 from .history import History
 from .protocol import LoadResponse, n_parameters
 
-__all__ = ["nis_summary", "innovation_rms", "WHITENINGS", "DEFAULT_WHITENING", "whitened_innovations", "whiteness", "effect_score", "rank_effects",
+__all__ = ["nis_summary", "nis_excess_runs", "innovation_rms", "WHITENINGS", "DEFAULT_WHITENING", "whitened_innovations", "whiteness", "effect_score", "rank_effects",
            "consistency", "material_drift", "prior_conflict", "chi2_logsf", "chi2_z"]
 
 
@@ -52,6 +52,52 @@ def nis_summary(history, loop: int | None = None, level: float = 0.95) -> dict:
     return {"nis_mean_over_dof": float(np.mean(nis / m)),
             "nis_fraction_outside_95": float(np.mean((nis < lo) | (nis > hi))),
             "nis": nis, "dof": m, "band_low": lo, "band_high": hi}
+
+
+def nis_excess_runs(nis, n_obs, scale: float = 1.0, level: float = 0.999, min_frames: int = 4) -> list:
+    """Runs of consecutive frames whose NIS exceeds its ``level`` chi-square bound, after a noise scale.
+
+    The check of :meth:`sfem_filters.filtering.safeguards.Safeguards.check_nis` on a finished run,
+    where a common noise scale ``c`` has been estimated (``NIS_t / c ~ chi2(m_t)`` for a filter
+    consistent at that scale, e.g. ``c`` the type-II maximum-likelihood scale, the mean NIS per
+    row): what is left are the frames where the innovations exceed even the fitted noise level,
+    i.e. where the model's motion (its process noise) falls short of the data's for a while.
+
+    Parameters
+    ----------
+    nis : (F,) array
+        Each frame's ``e_t^T S_t^-1 e_t`` (NaN where nothing was observed).
+    n_obs : (F,) array
+        Rows observed in each frame.
+    scale : float
+        The noise scale ``c`` the covariances are multiplied by (1: as given).
+    level : float
+        Quantile of ``chi2(m_t)`` above which a frame counts.
+    min_frames : int
+        Frames in a row that make a run.
+
+    Returns
+    -------
+    list of (int, int)
+        First and last frame (inclusive) of each run, in order.
+    """
+    nis = as_float_array("nis", nis, shape=(None,), allow_nan=True)
+    m = as_float_array("n_obs", n_obs, shape=(len(nis),))
+    c = positive("scale", scale)
+    level = probability("level", level)
+    k = integer("min_frames", min_frames, 1)
+    over = np.zeros(len(nis), bool)
+    ok = np.isfinite(nis) & (m > 0)
+    over[ok] = nis[ok] / c > stats.chi2.ppf(level, m[ok])
+    runs, start = [], None
+    for t, o in enumerate(np.append(over, False)):
+        if o and start is None:
+            start = t
+        elif not o and start is not None:
+            if t - start >= k:
+                runs.append((start, t - 1))
+            start = None
+    return runs
 
 
 def innovation_rms(history, loop: int | None = None, rows_of_points=None) -> float:

@@ -198,3 +198,31 @@ def test_on_the_given_phantom_the_first_frames_follow_the_truth():
     # the global curves within 2 points of the truth's over these early frames
     assert np.max(np.abs(r.global_curves["Ecc"] - np.nanmean(te, axis=1))) < 0.02
     assert np.max(np.abs(r.global_curves["Err"] - np.nanmean(tr, axis=1))) < 0.02
+
+
+def test_frames_where_the_data_outrun_the_model_are_named_once_and_kept_in_the_settings():
+    """A ring that thickens smoothly: no frame is flagged. The same ring shaken across the wall at frames 4-11
+    (half a pixel back and forth, faster than the model's motion can follow): one warning naming those frames
+    and their times, the same frames in the settings, and the NIS per row that shows it."""
+    from dataclasses import replace
+    mask = annulus_mask(4.0, 8.5, 24)
+    tracks, _ = thickening_ring_tracks(mask, frames=16)
+    cfg = StrainRouteSettings(element_px=2.0, process_profile="constant")
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        r = dense_strain(tracks, mask, PX, cfg)
+    assert r.settings["nis_excess_frames"] == [] and not [w for w in seen if "faster than" in str(w.message)]
+    d = tracks.points - tracks.points.mean(axis=0)
+    rr = np.linalg.norm(d, axis=1)
+    shake = np.zeros(16)
+    shake[4:12] = 0.5 * (-1.0) ** np.arange(8)
+    shaken = replace(tracks, displacement=tracks.displacement - shake[:, None, None] * (d / rr[:, None])[None])
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        r = dense_strain(shaken, mask, PX, cfg)
+    runs = r.settings["nis_excess_frames"]
+    assert len(runs) == 1 and 4 <= runs[0][0] <= 6 and runs[0][1] == 11
+    msgs = [str(w.message) for w in seen if "faster than the model's motion" in str(w.message)]
+    assert len(msgs) == 1 and f"frames {runs[0][0]}-11 (" in msgs[0] and "187 ms)" in msgs[0]
+    nis = np.array(r.settings["nis_per_row"]) / r.settings["noise_scale_ml"]
+    assert np.all(nis[runs[0][0]:12] > 1.0) and np.all(nis[12:] < 1.0)
