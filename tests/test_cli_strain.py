@@ -57,6 +57,10 @@ def test_strain_writes_the_issue_json_with_bands_around_the_curves(short_case, t
     assert d["settings"]["noise_snr"] == 30
     printed = capsys.readouterr()
     assert "reference pixels x 6 frames" in printed.out and "progress" not in printed.err
+    # the case has a ground truth: the summary line shows its global peaks beside ours
+    t = d["truth"]["global"]
+    assert (f"the case's ground truth {100 * np.nanmin(np.array(t['Ecc'], float)):.2f}% / "
+            f"{100 * np.nanmax(np.array(t['Err'], float)):.2f}%;") in printed.out
 
 
 @pytest.mark.needs_data(CASE)

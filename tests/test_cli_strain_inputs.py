@@ -446,3 +446,27 @@ def test_masks_with_small_defects_are_mended_and_a_broken_frame_leaves_the_phase
     assert main(["strain", str(folder), "--json", str(out), "--quiet", "--with-masks"]) == 2
     err = capsys.readouterr().err
     assert "masks[3]" in err and "Traceback" not in err
+
+
+def test_a_case_folder_missing_a_file_is_told_which(tmp_path, capsys):
+    folder = tmp_path / "case"
+    folder.mkdir()
+    for name in ("phase_x.npy", "phase_y.npy", "magnitude.npy", "LV_mask_time_lowres.npy"):
+        np.save(folder / name, np.zeros((2, 4, 4), np.float32))
+    err = _err(capsys, ["strain", str(folder), "--json", str(tmp_path / "x.json")])
+    assert "(a DENSE-Sim case folder? it has phase_x.npy, phase_y.npy, magnitude.npy, LV_mask_time_lowres.npy but " \
+           "not config.yaml)" in err
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert "(none of a DENSE-Sim case's files and no DICOM file)" in _err(
+        capsys, ["strain", str(empty), "--json", str(tmp_path / "x.json")])
+
+
+def test_the_segment_start_is_taken_modulo_360():
+    from sfem_filters.cli._common import _angle_deg
+    import argparse
+    assert _angle_deg("400") == 40.0 and _angle_deg("-30") == 330.0 and _angle_deg("0") == 0.0
+    assert _angle_deg("360") == 0.0 and _angle_deg("719.5") == 359.5
+    for bad in ("nan", "inf", "north"):
+        with pytest.raises(argparse.ArgumentTypeError, match="a finite number"):
+            _angle_deg(bad)

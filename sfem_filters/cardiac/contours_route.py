@@ -417,7 +417,7 @@ def contour_strain(masks, pixel_size_m: float, frame_times_s, settings: ContourR
     info = {"n_landmarks": L, "n_endo": int(np.sum(tracks.contour == 0)), "n_epi": int(np.sum(tracks.contour == 1)),
             "landmarks_moved_into_mesh": int(np.count_nonzero(moved)), "normal_noise_floor_px": floor_n,
             "normal_sd_px_used": float(s_n.max()), "tangential_sd_px_rms": float(np.sqrt(np.mean(s_t ** 2))),
-            "process_std_px": q / s, "initial_std_px": u0_sd / s, "frame_interval_s": T, "E_Pa": E,
+            "process_std_px": q / s, "initial_std_px": u0_sd / s, "frame_interval_s": T, "fixed_E_Pa": E,
             "alpha_per_s": alpha, "wall_thickness_px": wall / s, "n_nodes": mesh.n_nodes,
             "n_elements": mesh.n_elements, "n_border_dofs": int(len(bdofs)), "dim_state": int(model.dim_state),
             "mean_match_confidence": float(np.mean(tracks.step_confidence[1:])),
@@ -428,6 +428,7 @@ def contour_strain(masks, pixel_size_m: float, frame_times_s, settings: ContourR
                          "energy (Eqs. 35-37)",
             "interior": "process and initial noise of precision the plane-strain stiffness (nu as set): the "
                         "interior's mean is the elastic extension of the border",
+            "material": "fixed, not estimated: fixed_E_Pa shapes the interior's prior (no stiffness estimate)",
             "estimator": "IteratedSmoother (material fixed: one Kalman-RTS pass), then a covariance pass",
             "strain": "Green-Lagrange of the linear triangles' element gradient",
             "sd": "delta method at the posterior mean, full smoothed covariance of U"}

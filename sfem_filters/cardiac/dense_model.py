@@ -567,7 +567,7 @@ def build_dense_model(mesh: TriMesh, tracks: LagrangianDisplacement, pixel_size_
                           R_frames=R, process_profile=profile)
     info = {"n_points_moved_into_mesh": int(np.count_nonzero(moved)), "largest_move_px": float(moved.max() / s),
             "noise_floor_px": floor_px, "tracks_sd_rms_px": sd_rms, "sd_scale": sd_scale,
-            "process_std_px": q / s, "frame_interval_s": T, "E_Pa": E, "alpha_per_s": alpha,
+            "process_std_px": q / s, "frame_interval_s": T, "fixed_E_Pa": E, "alpha_per_s": alpha,
             "wall_thickness_px": _wall_thickness(mesh) / s,
             "initial_std_px": u0_sd / s, "observation_tissue_weight_mean": float(scaling.tissue.mean()),
             "observation_background_offset_rms_px": float(np.sqrt(np.mean(scaling.offset ** 2))),

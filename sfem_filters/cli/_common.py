@@ -54,6 +54,11 @@ def _finite_float(text: str) -> float:
     return _number(text, lambda v: True, "a finite number")
 
 
+def _angle_deg(text: str) -> float:
+    """An argparse type: an angle in degrees, any finite number, taken modulo 360 into [0, 360)."""
+    return float(_finite_float(text)) % 360.0
+
+
 def _non_negative_float(text: str) -> float:
     return _number(text, lambda v: v >= 0, "a number >= 0")
 

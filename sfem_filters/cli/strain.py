@@ -16,7 +16,7 @@ from ..imaging import conventional_from_displacement, mask_centre, truth_at_poin
 from ..imaging.spline_strain import spline_strain
 from ..imaging.strain_report import spline_block, strain_csv, truth_block, with_peaks
 from ..plotting.strain import strain_figures
-from ._common import _finite_float, _message, _non_negative_float, _non_negative_int, _positive_float, \
+from ._common import _angle_deg, _finite_float, _message, _non_negative_float, _non_negative_int, _positive_float, \
     _progress, _progress_options, _write_json
 from .strain_input import ACQUISITION, _dense_settings, _resolution_px, _strain_input
 
@@ -49,9 +49,9 @@ def add_parser(sub) -> None:
     s.add_argument("--route", choices=("dense", "contours"), default="dense",
                    help="dense (default): from the DENSE phase; contours: from the masks alone (tracked "
                         "endo- and epicardial borders, the interior from the physics; no phase)")
-    s.add_argument("--segment-start", type=_finite_float, default=0.0, metavar="DEG",
-                   help="start of segment 0: degrees about the centre from the image's +x axis towards +y "
-                        "(default 0; the anterior RV insertion when you know it)")
+    s.add_argument("--segment-start", type=_angle_deg, default=0.0, metavar="DEG",
+                   help="start of segment 0: degrees about the centre from the image's +x axis towards +y, "
+                        "taken modulo 360 (default 0; the anterior RV insertion when you know it)")
     s.add_argument("--conventional-sigma", type=_non_negative_float, default=1.0, metavar="PX",
                    help="Gaussian smoothing (pixels, inside the mask) of the conventional analysis beside ours "
                         "(default 1; 0 none)")
@@ -171,15 +171,21 @@ def cmd_strain(args) -> int:
     if "spline" not in out:
         out["spline"] = _dense_spline(tracks, ours.centre, args.segment_start, say)
     out["seconds"] = time.perf_counter() - t0
+    out = _strain_extras(case, out, say)
     g = ours.global_curves
     peak_cc, peak_rr = int(np.nanargmin(g["Ecc"])), int(np.nanargmax(g["Err"]))
+    truth = ""
+    if "truth" in out:
+        tg = out["truth"]["global"]
+        truth = (f"; the case's ground truth {100 * np.nanmin(np.asarray(tg['Ecc'], float)):.2f}% / "
+                 f"{100 * np.nanmax(np.asarray(tg['Err'], float)):.2f}%")
     print(f"{len(ours.points)} reference pixels x {len(ours.frame_times_s)} frames; global peak Ecc "
           f"{100 * g['Ecc'][peak_cc]:.2f}% (95% {100 * g['Ecc_lo'][peak_cc]:.2f} to {100 * g['Ecc_hi'][peak_cc]:.2f}) "
           f"at {ours.frame_times_s[peak_cc]:.3f} s, Err {100 * g['Err'][peak_rr]:.2f}% "
           f"(95% {100 * g['Err_lo'][peak_rr]:.2f} to {100 * g['Err_hi'][peak_rr]:.2f}) at "
           f"{ours.frame_times_s[peak_rr]:.3f} s; conventional (sigma {args.conventional_sigma:g} px) "
-          f"{100 * np.nanmin(conv.global_Ecc):.2f}% / {100 * np.nanmax(conv.global_Err):.2f}%; {out['seconds']:.0f} s")
-    out = _strain_extras(case, out, say)
+          f"{100 * np.nanmin(conv.global_Ecc):.2f}% / {100 * np.nanmax(conv.global_Err):.2f}%{truth}; "
+          f"{out['seconds']:.0f} s")
     _write_json(args.json, out)
     if args.csv:
         say(f"writing the CSV table {args.csv}")
@@ -191,6 +197,7 @@ def cmd_strain(args) -> int:
         if "material" not in out:
             say("no stiffness figure: the route holds the material fixed (its settings say so), so there is no "
                 "stiffness per segment with an sd to draw")
+    say(f"finished in {time.perf_counter() - t0:.0f} s, from reading the input to the last file written")
     return 0
 
 

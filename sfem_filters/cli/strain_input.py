@@ -20,7 +20,8 @@ from ..imaging.dense import check_resolution_px
 _IMAGE_ONLY = (("ke", "--ke"), ("masks", "--masks"), ("directions", "--directions"), ("phase_range", "--phase-range"))
 _DICOM_ARGUMENTS = {"ke_cycles_per_mm": "--ke", "masks": "--masks", "directions": "--directions",
                     "phase_range": "--phase-range"}
-_CASE_FILES = "config.yaml, phase_x.npy, phase_y.npy, magnitude.npy and LV_mask_time_lowres.npy"
+_CASE_NAMES = ("config.yaml", "phase_x.npy", "phase_y.npy", "magnitude.npy", "LV_mask_time_lowres.npy")
+_CASE_FILES = ", ".join(_CASE_NAMES[:-1]) + " and " + _CASE_NAMES[-1]
 
 
 def _strain_input(args, say) -> dict:
@@ -51,8 +52,12 @@ def _strain_input(args, say) -> dict:
         case, info = _dicom_case(args, path)
         per_frame = info["masks_shape"] is not None and len(info["masks_shape"]) == 3
     else:
+        present = [f for f in _CASE_NAMES if os.path.isfile(os.path.join(path, f))]
+        hint = (f" (a DENSE-Sim case folder? it has {', '.join(present)} but not "
+                f"{', '.join(f for f in _CASE_NAMES if f not in present)})" if present else
+                " (none of a DENSE-Sim case's files and no DICOM file)")
         raise ValueError(f"path: expected a DENSE-Sim case folder with {_CASE_FILES}, a folder of DENSE DICOM files or "
-                         f"a sequence .npz, got {path!r}")
+                         f"a sequence .npz, got {path!r}{hint}")
     if args.snr is not None:
         say(f"adding complex noise at SNR {args.snr:g} (seed {args.seed})")
         case = add_complex_noise(case, args.snr, args.seed)
