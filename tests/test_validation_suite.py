@@ -180,6 +180,11 @@ def test_render_rewrites_the_table_from_the_stored_results_keeping_their_provena
     assert first == header(stored["provenance"])
     assert second.startswith(f"*Table rendered from that run's stored results by `python -m validation render {name}")
     assert rest.strip() == claim(name).markdown(stored["results"]).strip()
+    # the claim's extra part (the summary the README shows) is rewritten alike, under the same two lines
+    summary = (tmp_path / f"{name}_summary.md").read_text().split("\n", 2)
+    assert summary[:2] == [first, second]
+    assert summary[2].strip() == claim(name).summary_markdown(stored["results"]).strip()
+    assert summary[2].strip() in rest                                               # the page's first table
     assert json.loads((tmp_path / f"{name}.json").read_text()) == stored            # the results are untouched
     missing = _run("render", "table1", "--out", str(tmp_path), check=False)
     assert missing.returncode == 2 and "no stored results" in missing.stderr

@@ -172,9 +172,17 @@ def run_claim(module, tier: str, out_dir, command: str) -> dict:
     with open(out_dir / f"{module.NAME}.json", "w") as f:
         json.dump(payload, f, indent=2, allow_nan=False)
         f.write("\n")
-    with open(out_dir / f"{module.NAME}.md", "w") as f:
-        f.write(header(prov) + "\n\n" + module.markdown(results).rstrip() + "\n")
+    _write_markdown(module, out_dir, header(prov) + "\n\n", results)
     return payload
+
+
+def _write_markdown(module, out_dir, head: str, results: dict) -> None:
+    """``<NAME>.md`` from ``module.markdown``, and ``<NAME>_<part>.md`` from each of ``module.EXTRA_MARKDOWN``
+    (``{part: function of the results}``, e.g. a short summary the README shows), each under ``head``."""
+    parts = {"": module.markdown, **{f"_{k}": v for k, v in getattr(module, "EXTRA_MARKDOWN", {}).items()}}
+    for suffix, make in parts.items():
+        with open(Path(out_dir) / f"{module.NAME}{suffix}.md", "w") as f:
+            f.write(head + make(results).rstrip() + "\n")
 
 
 def render_claim(module, out_dir, command: str) -> dict:
@@ -186,9 +194,7 @@ def render_claim(module, out_dir, command: str) -> dict:
     commit = (code.get("git_commit") or "unknown")[:10]
     note = (f"*Table rendered from that run's stored results by `{command}` at commit {commit}"
             f"{' with uncommitted changes' if code.get('git_dirty') else ''}.*")
-    with open(Path(out_dir) / f"{module.NAME}.md", "w") as f:
-        f.write(header(payload["provenance"]) + "\n" + note + "\n\n" + module.markdown(payload["results"]).rstrip()
-                + "\n")
+    _write_markdown(module, out_dir, header(payload["provenance"]) + "\n" + note + "\n\n", payload["results"])
     return payload
 
 

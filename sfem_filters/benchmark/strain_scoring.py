@@ -15,7 +15,11 @@ the same pixels:
 * coverage: the percentage of (segment, frame) pairs whose true segment mean lies in the
   estimate's 95% band (when bands are given), with the band's mean width; likewise, when
   given, of the (frame, pixel) pairs by the pixel bands and of the frames by the global
-  curve's band (the spec's coverage is the segments'; these two are reported beside).
+  curve's band (the spec's coverage is the segments'; these two are reported beside);
+* coverage at the peak: the percentage of the six segments whose true mean, at the frame of the
+  true segment curve's own peak, lies in the band there (the frames users read a peak at; an
+  average over every frame can hide bands that miss exactly there), and likewise whether the
+  global band holds the true global curve at its peak frame (100 or 0).
 
 >>> import numpy as np
 >>> from sfem_filters.benchmark.strain_scoring import score_strain
@@ -48,7 +52,8 @@ class StrainScore:
     when no bands were given; ``coverage_pct`` pools the Ecc and Err segment-frames.
     ``n_valid`` / ``n_total``: (frame, pixel) pairs scored / given. ``*_pixels_*`` and
     ``*_global_*``: coverage and mean width of the pixel and global-curve bands (``None`` when
-    not given).
+    not given). ``coverage_pct_peak_*``: of the six segments at each one's true peak frame;
+    ``coverage_pct_global_peak_*``: of the global curve at its true peak frame (100 or 0).
     """
 
     pixel_rmse_Ecc: float
@@ -78,6 +83,10 @@ class StrainScore:
     coverage_pct_global_Err: float | None = None
     band_width_global_Ecc: float | None = None
     band_width_global_Err: float | None = None
+    coverage_pct_peak_Ecc: float | None = None
+    coverage_pct_peak_Err: float | None = None
+    coverage_pct_global_peak_Ecc: float | None = None
+    coverage_pct_global_peak_Err: float | None = None
 
     def to_dict(self) -> dict:
         """The metrics as plain floats, ints and ``None`` (JSON-ready)."""
@@ -100,6 +109,18 @@ def _coverage(band, true_seg, name: str):
         raise ValueError(f"{name}: expected finite bands where the truth is known, got none")
     inside = (true_seg >= lo) & (true_seg <= hi)
     return int(inside[ok].sum()), int(ok.sum()), float(np.mean((hi - lo)[ok])) * PCT
+
+
+def _covered_at_peak(band, true_curves, kind: str) -> float:
+    """Percentage of the curves (rows of ``true_curves``, (k, F)) whose true value at its own peak frame lies in
+    the band ``(lo, hi)`` ((k, F) each) there; curves without a finite peak or band are left out."""
+    hits = []
+    for k in range(true_curves.shape[0]):
+        _, t = curve_peak(true_curves[k], kind)
+        lo, hi, v = band[0][k][t], band[1][k][t], true_curves[k][t]
+        if t >= 0 and np.isfinite(lo) and np.isfinite(hi):
+            hits.append(lo <= v <= hi)
+    return PCT * float(np.mean(hits)) if hits else float("nan")
 
 
 def score_strain(ecc, err, truth_ecc, truth_err, points, centre, start_deg: float = 0.0, ecc_band=None,
@@ -165,6 +186,8 @@ def score_strain(ecc, err, truth_ecc, truth_err, points, centre, start_deg: floa
                 raise ValueError(f"{q.lower()}_band: expected a pair (lo, hi) of (6, F) arrays, got {len(band)} items")
             k_in, k_n, width = _coverage(band, seg_true, f"{q.lower()}_band")
             out[f"coverage_pct_{q}"], out[f"band_width_{q}"] = PCT * k_in / k_n, width
+            out[f"coverage_pct_peak_{q}"] = _covered_at_peak(
+                (np.asarray(band[0], float), np.asarray(band[1], float)), seg_true, kind)
             cov_in, cov_n = cov_in + k_in, cov_n + k_n
         for name, bands, tru in (("pixels", pixel_bands, e["truth_" + q.lower()]),
                                  ("global", global_bands, global_curve(e["truth_" + q.lower()]))):
@@ -175,6 +198,9 @@ def score_strain(ecc, err, truth_ecc, truth_err, points, centre, start_deg: floa
                                  f"and 'Err', each a pair (lo, hi), got {type(bands).__name__}")
             k_in, k_n, width = _coverage(bands[q], tru, f"{'pixel' if name == 'pixels' else name}_bands[{q!r}]")
             out[f"coverage_pct_{name}_{q}"], out[f"band_width_{name}_{q}"] = PCT * k_in / k_n, width
+            if name == "global":
+                out[f"coverage_pct_global_peak_{q}"] = _covered_at_peak(
+                    (np.asarray(bands[q][0], float)[None], np.asarray(bands[q][1], float)[None]), tru[None], kind)
     both = ecc_band is not None and err_band is not None
     out["coverage_pct"] = PCT * cov_in / cov_n if both else None
     return StrainScore(**out, n_valid=int(valid.sum()), n_total=int(valid.size))

@@ -110,3 +110,25 @@ def test_pixel_and_global_band_coverage_and_width():
     assert s.coverage_pct_Ecc is None                                      # no segment bands given
     with pytest.raises(ValueError, match="global_bands"):
         score_strain(truth, truth, truth, truth, PTS, C, global_bands={"Ecc": (g, g)})
+
+
+def test_coverage_at_the_peak_reads_each_curves_own_peak_frame():
+    """Three frames; each segment's truth peaks (Err: max) at a frame of its own; a band that misses only there
+    drops the peak coverage and barely the all-frame coverage."""
+    F = 3
+    peak_frame = np.array([0, 1, 2, 0, 1, 2])
+    seg_true = np.full((6, F), 0.05)
+    seg_true[np.arange(6), peak_frame] = 0.20                     # the peaks
+    truth = seg_true.T.copy()                                     # one pixel a segment: (F, 6)
+    lo, hi = seg_true - 0.01, seg_true + 0.01
+    hi[[1, 4], peak_frame[[1, 4]]] = 0.15                         # two segments' bands miss at their peak only
+    lo[[1, 4], peak_frame[[1, 4]]] = 0.10
+    s = score_strain(-truth, truth, -truth, truth, PTS, C, ecc_band=(-seg_true - 0.01, -seg_true + 0.01),
+                     err_band=(lo, hi), global_bands={"Ecc": (-truth.mean(1) - 0.01, -truth.mean(1) + 0.01),
+                                                      "Err": (truth.mean(1) - 0.01, truth.mean(1) - 0.005)})
+    assert s.coverage_pct_peak_Err == pytest.approx(100 * 4 / 6)
+    assert s.coverage_pct_Err == pytest.approx(100 * 16 / 18)
+    assert s.coverage_pct_peak_Ecc == pytest.approx(100.0)        # Ecc's peak is its minimum: the same frames
+    assert s.coverage_pct_global_peak_Ecc == 100.0 and s.coverage_pct_global_peak_Err == 0.0
+    none = score_strain(truth, truth, truth, truth, PTS, C)
+    assert none.coverage_pct_peak_Err is None and none.coverage_pct_global_peak_Err is None
