@@ -34,6 +34,7 @@ extensions = [
     "sphinx.ext.autodoc",
     "sphinx.ext.autosummary",
     "sphinx.ext.mathjax",
+    "sphinx-mathjax-offline",      # MathJax copied into the site: the maths renders without a network (clinics' networks)
     "sphinx.ext.viewcode",
     "numpydoc",
     "sphinxarg.ext",
