@@ -504,6 +504,10 @@ def dense_strain(tracks: LagrangianDisplacement, reference_mask, pixel_size_m: f
         raise ValueError("masks: given, but settings.border_masks is False; set border_masks=True to observe them "
                          "(or leave masks out)")
     centre = mask_centre(mask) if cfg.centre is None else np.asarray(cfg.centre, float)
+    tracks, n_stray = _without_stray_pixels(tracks, mask)
+    if n_stray:
+        say(f"{n_stray} reference pixel(s) outside the mended ring: not observed; their strain is the nearest "
+            "tissue's")
     say(f"meshing the reference myocardium ({cfg.mesh}, {cfg.element_px:g} px)")
     mesh = reference_mesh(mask, s, cfg.mesh, cfg.element_px)
     border = None
@@ -626,6 +630,7 @@ def dense_strain(tracks: LagrangianDisplacement, reference_mask, pixel_size_m: f
                           + (", plus the excess error variance against the linearised unsmoothed "
                              "finite-difference strain, less its noise variance" if cfg.discrepancy else ""),
                     "noise_scale_ml": c_ml,
+                    "reference_pixels_not_observed": int(n_stray),
                     "nis_per_row": (np.asarray(sm.nis, float) / np.maximum(np.asarray(sm.n_obs, float), 1)).tolist(),
                     "nis_excess_frames": [[int(a), int(b)] for a, b in excess],
                     "process_fraction_evidence": ({f"{k:g}": v for k, v in q_table.items()} if q_table
@@ -639,6 +644,32 @@ def dense_strain(tracks: LagrangianDisplacement, reference_mask, pixel_size_m: f
                             Err=err, Ecr=ecr, Ecc_sd=total_sd["Ecc"], Err_sd=total_sd["Err"], global_curves=glob,
                             segment_curves=segs, displacement=disp_px, seconds=seconds, settings=settings_out,
                             mesh=mesh, Ecc_sd_model=sd_cc, Err_sd_model=sd_rr)
+
+
+def _without_stray_pixels(tracks: LagrangianDisplacement, reference_mask) -> tuple:
+    """The tracks with the data of the reference pixels that the mask's repair removed set missing, and how many.
+
+    A stray piece of the reference mask (a pixel or two apart from the ring,
+    :func:`sfem_filters.imaging.repair_myocardium_mask`) is not meshed: its pixel centre lies outside
+    the mesh, and observing its phase at the nearest boundary point would put another place's motion
+    there. So it is not observed (NaN, as an untracked point); its strain is still reported, at that
+    nearest point, and scored.
+    """
+    mask = np.asarray(reference_mask, bool)
+    try:
+        repaired, changes = repair_myocardium_mask(mask, "reference_mask")
+    except ValueError:
+        return tracks, 0                  # not mendable: the mesher's own error names the mask
+    rows, cols = np.nonzero(mask)
+    stray = ~repaired[rows, cols]
+    if not stray.any():
+        return tracks, 0
+    disp = np.array(tracks.displacement, float)
+    disp[:, stray] = np.nan
+    conf = np.array(tracks.confidence, float)
+    conf[:, stray] = np.nan
+    return replace(tracks, displacement=disp, confidence=conf,
+                   n_untracked=int(np.count_nonzero(np.isnan(disp[..., 0])))), int(stray.sum())
 
 
 def masks_move(masks) -> bool:

@@ -226,3 +226,48 @@ def test_frames_where_the_data_outrun_the_model_are_named_once_and_kept_in_the_s
     assert len(msgs) == 1 and f"frames {runs[0][0]}-11 (" in msgs[0] and "187 ms)" in msgs[0]
     nis = np.array(r.settings["nis_per_row"]) / r.settings["noise_scale_ml"]
     assert np.all(nis[runs[0][0]:12] > 1.0) and np.all(nis[12:] < 1.0)
+
+
+def test_a_stray_reference_pixel_is_not_observed_but_is_reported():
+    """A pixel apart from the ring in the reference mask (mended away before meshing) carries a wild track: it is
+    not observed, so the strain does not depend on its track at all, stays within a mesh change of the ring's
+    alone, and the stray pixel gets the nearest tissue's strain, finite, with the count in the settings."""
+    from sfem_filters.imaging.dense import LagrangianDisplacement
+    mask = annulus_mask(4.0, 8.5, 24)
+    tracks, _ = thickening_ring_tracks(mask)
+    rows, cols = np.nonzero(mask)
+    bigger = mask.copy()
+    bigger[int(rows.max()), int(cols.max()) + 3] = True              # two empty pixels between it and the ring
+    # the same centre for all (the spec's centre is the whole reference mask's, stray pixel included)
+    cfg = StrainRouteSettings(element_px=2.0, centre=tuple(mask_centre(bigger)))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        alone = dense_strain(tracks, mask, PX, cfg)
+    X = reference_points(bigger)
+    where = {tuple(p): i for i, p in enumerate(tracks.points.astype(int))}
+    k = [where.get((int(x), int(y))) for x, y in X.astype(int)]
+    s = int(np.flatnonzero([i is None for i in k])[0])
+    idx = np.array([0 if i is None else i for i in k])
+
+    def spread(a, fill):
+        out = np.array(a, float)[:, idx]
+        out[:, s] = fill
+        return out
+
+    runs = []
+    for wild in (5.0, -3.0):
+        t = LagrangianDisplacement(points=X, displacement=spread(tracks.displacement, wild),
+                                   sd=spread(tracks.sd, 0.05), confidence=spread(tracks.confidence, 1.0),
+                                   frame_times_s=tracks.frame_times_s, n_untracked=0, noise_sd=tracks.noise_sd)
+        with warnings.catch_warnings(record=True) as seen:
+            warnings.simplefilter("always")
+            runs.append(dense_strain(t, bigger, PX, cfg))
+        assert any("reference_mask: not one ring" in str(w.message) for w in seen)   # the mending's own warning
+    r = runs[0]
+    for q in ("Ecc", "Err", "Ecc_sd", "Err_sd"):
+        np.testing.assert_allclose(getattr(runs[1], q), getattr(r, q), rtol=0, atol=1e-12)
+    assert r.settings["reference_pixels_not_observed"] == 1 and alone.settings["reference_pixels_not_observed"] == 0
+    ring = np.delete(np.arange(len(X)), s)
+    # the mesh of the mended mask is resampled from a border of one more pixel's count: a mesh change, no more
+    assert np.max(np.abs(r.Err[:, ring] - alone.Err)) < 0.005 and np.max(np.abs(r.Ecc[:, ring] - alone.Ecc)) < 0.005
+    assert np.all(np.isfinite(r.Err[:, s])) and np.all(np.isfinite(r.Err_sd[:, s]))
