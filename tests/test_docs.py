@@ -81,3 +81,17 @@ def test_every_tutorial_ran_and_has_a_figure(site):
         images = re.findall(rf'src="(\.\./_images/sphx_glr_{source.stem}_\d+\.png)"', page.read_text())
         assert images, f"tutorial {source.name} has no figure"
         assert all((page.parent / img).is_file() for img in images)
+
+
+def test_the_maths_renders_without_a_network(site):
+    """MathJax ships with the site (sphinx-mathjax-offline): a page with maths loads it from _static, not a CDN."""
+    html = (site / "how-to" / "cli.html").read_text()
+    assert r"\(e_{yy}\)" in html                                   # the page has maths for MathJax to render
+    scripts = re.findall(r'<script[^>]+src="([^"]*mathjax[^"]*)"', html, flags=re.I)
+    assert scripts and all(s.startswith("../_static/mathjax/") for s in scripts), scripts
+    assert (site / "_static" / "mathjax" / "tex-chtml.js").is_file()
+
+
+def test_the_strain_how_to_is_reachable_from_the_landing_page_and_the_how_to_index(site):
+    for page in (site / "index.html", site / "how-to" / "index.html"):
+        assert 'href="how-to/strain.html' in page.read_text() or 'href="strain.html' in page.read_text(), page
