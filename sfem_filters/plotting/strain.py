@@ -228,9 +228,10 @@ def peaks_bullseye(report: dict, path) -> None:
                 fig.colorbar(pc, ax=axes[i, j], shrink=0.7, location="bottom", label=bar)
         if shared:
             fig.colorbar(pc, ax=axes[i, :], shrink=0.85, label=bar)
-    fig.suptitle(f"Peak strain and time to peak (ms after encoding) per segment k;\nsegment k spans "
-                 f"{start:g} + 60k to {start:g} + 60(k + 1) deg from the image's +x axis towards +y,\ndrawn as the "
-                 f"image is shown (x right, y down: clockwise); centre: the global curve's peak", fontsize=10)
+    first = "the image's +x axis" if start % 360 == 0 else f"{start % 360:g} deg from the image's +x axis"
+    fig.suptitle(f"Peak strain and time to peak (ms after encoding) per segment k;\nsix 60-degree segments, k = 0 "
+                 f"starting at {first}, k rising towards +y,\ndrawn as the image is shown (x right, y down: "
+                 f"clockwise); centre: the global curve's peak", fontsize=10)
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
@@ -259,7 +260,7 @@ def stiffness_bullseye(report: dict, path) -> None:
         pc = _ring(ax, v, scale, start, [f"{k}: {x:.2f}" for k, x in enumerate(v)])
         ax.set_title(what, fontsize=10)
         fig.colorbar(pc, ax=ax, shrink=0.85, label=f"{what}\n(dimensionless)")
-    fig.suptitle(f"Material per segment (segment k from {start:g} + 60k deg, image orientation)")
+    fig.suptitle(f"Material per segment (six 60-degree segments, k = 0 from {start % 360:g} deg, image orientation)")
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
