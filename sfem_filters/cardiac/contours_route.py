@@ -432,7 +432,7 @@ def contour_strain(masks, pixel_size_m: float, frame_times_s, settings: ContourR
             "estimator": "IteratedSmoother (material fixed: one Kalman-RTS pass), then a covariance pass",
             "strain": "Green-Lagrange of the linear triangles' element gradient",
             "sd": "delta method at the posterior mean, full smoothed covariance of U"}
-    say(f"done in {seconds:.1f} s")
+    say(f"the route's estimate and bands in {seconds:.1f} s")
     return ContourStrain(points=X, frame_times_s=times.copy(), centre=np.asarray(centre, float),
                          start_deg=float(cfg.start_deg), labels=labels, Ecc=ecc, Err=err, Ecr=ecr, Ecc_sd=sd_cc,
                          Err_sd=sd_rr, global_curves=glob, segment_curves=segs, displacement=disp_px,

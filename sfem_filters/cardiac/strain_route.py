@@ -638,7 +638,7 @@ def dense_strain(tracks: LagrangianDisplacement, reference_mask, pixel_size_m: f
                     "discrepancy_sd": {"what": "[tau0 (fraction), k (relative)], tau_t^2 = tau0^2 + k^2 m_t^2; "
                                                "one model for the global curve, one for the six segments",
                                        **tau_report}}
-    say(f"done in {seconds:.1f} s")
+    say(f"the route's estimate and bands in {seconds:.1f} s")
     return DenseRouteStrain(points=X.copy(), frame_times_s=np.asarray(tracks.frame_times_s, float).copy(),
                             centre=np.asarray(centre, float), start_deg=float(cfg.start_deg), labels=labels, Ecc=ecc,
                             Err=err, Ecr=ecr, Ecc_sd=total_sd["Ecc"], Err_sd=total_sd["Err"], global_curves=glob,
