@@ -378,6 +378,11 @@ def test_sequence_input_errors_name_what_is_missing(tmp_path, capsys):
     assert "--ke: is for DENSE images" in run("ke", extra=("--ke", "0.1"))
     assert "--snr: is for DENSE images" in run("snr", extra=("--snr", "30"))
     assert "--route contours: expected the myocardium masks" in run("contours", extra=("--route", "contours"))
+    assert "--border-starts: averages the masks' border data, which this run does not fuse (no mask of every " \
+           "frame that moves)" in run("starts", extra=("--border-starts", "4"))
+    with pytest.raises(SystemExit) as stop:
+        main(["strain", str(tmp_path / "no_px.npz"), "--json", out, "--border-starts", "0"])
+    assert stop.value.code == 2 and "expected an integer >= 1 contour start angles" in capsys.readouterr().err
     assert "--resolution-px acquisition: a sequence file carries no acquisition" in run(
         "res_seq", extra=("--resolution-px", "acquisition"))
     for bad in ("0.5", "nan", "wide"):                   # argparse's own error: usage and exit status 2

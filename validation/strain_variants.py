@@ -13,13 +13,16 @@ runs the DENSE route's default for images (:func:`sfem_filters.cardiac.dense_cas
   difference is the route's own dependence on the orientation (Gmsh meshes the outline afresh;
   the masks' landmarks are resampled from the point at angle 0 about the cavity centre);
 * **every second frame** of the noisy case (half the frame rate, the frame times kept), scored
-  beside the case as given scored on the same frames.
+  beside the case as given scored on the same frames;
+* as given, mirrored and transposed again with the masks' border data averaged over
+  :data:`STARTS` contour start angles (``border_starts``, ``--border-starts``; rows "..., 8 contour
+  starts"), which removes the landmarks' dependence on where the contours start.
 
 Each run is scored against its own truth with the strain page's metrics
 (:func:`sfem_filters.benchmark.score_strain`; segments from 0 degrees in each variant's own image,
 so the segment rows of a mirrored case cover other tissue than the unmirrored's: compare their
 means, the global curve and the pixels, which cover the same tissue). Quick tier: the phantom, its
-first 6 frames, as given and mirrored.
+first 6 frames, as given, mirrored and as given over the contour starts.
 """
 from __future__ import annotations
 
@@ -38,9 +41,13 @@ from .strain_dense_sim import METRICS, _truncated, case_folders
 NAME = "strain_variants"
 NEEDS_DATA = True
 TITLE = "The same heart mirrored, transposed or at half the frame rate: the DENSE route's strain"
-FULL_COST = "about 5 min"
-VARIANTS = ("as given", "mirrored", "transposed", "every 2nd frame")
-TIERS = {"quick": {"cases": ["phantom_subject_1"], "frames": 6, "variants": ["as given", "mirrored"],
+FULL_COST = "about 10 min"
+#: Contour start angles of the averaged rows (:class:`sfem_filters.cardiac.StrainRouteSettings` ``border_starts``).
+STARTS = 8
+AVERAGED = f", {STARTS} contour starts"
+VARIANTS = ("as given", "mirrored", "transposed", "every 2nd frame", "as given" + AVERAGED, "mirrored" + AVERAGED,
+            "transposed" + AVERAGED)
+TIERS = {"quick": {"cases": ["phantom_subject_1"], "frames": 6, "variants": ["as given", "mirrored", "as given" + AVERAGED],
                    "snr": 30.0, "seed": 0},
          "full": {"cases": [], "frames": None, "variants": list(VARIANTS), "snr": 30.0, "seed": 0}}
 TOLERANCES = {"*": (1e-6, 1e-9), "seconds": None}
@@ -106,9 +113,10 @@ def case_rows(folder, settings) -> list:
     make = {"as given": lambda c: c, "mirrored": mirrored, "transposed": transposed,
             "every 2nd frame": every_other_frame}
     for variant in settings["variants"]:
-        case = make[variant](noisy)
+        turn = variant.removesuffix(AVERAGED)
+        case = make[turn](noisy)
         t0 = time.perf_counter()
-        r = dense_case_strain(case, image_settings(case))
+        r = dense_case_strain(case, image_settings(case, **({"border_starts": STARTS} if turn != variant else {})))
         seconds = time.perf_counter() - t0
         truth = truth_at_points(case)
         if variant == "as given":
@@ -140,11 +148,14 @@ def markdown(results: dict) -> str:
              fmt(r["seconds"], ".0f") if r["seconds"] is not None else ""] for r in results["rows"]]
     spread = []
     for case in dict.fromkeys(r["case"] for r in results["rows"]):
-        same = [r for r in results["rows"] if r["case"] == case and r["variant"] in ("as given", "mirrored", "transposed")]
-        if len(same) > 1:
-            g = [r["global_peak_error_Err"] for r in same]
-            spread.append(f"{case}: global peak error of Err from {min(g):+.2f} to {max(g):+.2f} over "
-                          f"{', '.join(r['variant'] for r in same)}")
+        for suffix in ("", AVERAGED):
+            names = [v + suffix for v in ("as given", "mirrored", "transposed")]
+            same = [r for r in results["rows"] if r["case"] == case and r["variant"] in names]
+            if len(same) > 1:
+                g = [r["global_peak_error_Err"] for r in same]
+                spread.append(f"{case}{' with the masks over ' + str(STARTS) + ' contour starts' if suffix else ''}: "
+                              f"global peak error of Err from {min(g):+.2f} to {max(g):+.2f} over "
+                              f"{', '.join(r['variant'].removesuffix(suffix) for r in same)}")
     return (md_table(cols, body) + f"\n\nOne noise draw (SNR {results['snr']:g}, seed {results['seed']}) added to each "
             "case as given; every variant transforms those noisy images, so the rows of a case see the same noise. "
             "Strain in percentage points (Green-Lagrange), peak errors signed (estimate - truth), band coverage of the "

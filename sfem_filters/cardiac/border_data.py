@@ -34,7 +34,7 @@ from ..imaging.tracking import BoundaryTracks, TrackingOptions, track_masks
 from .dense_model import observation_points, temporal_noise_floor
 
 __all__ = ["QUANTISATION_SD_PX", "LANDMARK_SPACING_PX", "MIN_LANDMARKS", "contour_landmark_tracks", "landmark_sd",
-           "border_node_data", "BorderData", "mask_border_data"]
+           "border_node_data", "BorderData", "mask_border_data", "mean_border_data"]
 
 #: Sd (px) of a border placed by a binary mask: uniform within one pixel, ``1 / sqrt(12)``.
 QUANTISATION_SD_PX = 1.0 / np.sqrt(12.0)
@@ -45,7 +45,7 @@ MIN_LANDMARKS = 16
 
 
 def contour_landmark_tracks(masks, spacing_px: float = LANDMARK_SPACING_PX,
-                            min_landmarks: int = MIN_LANDMARKS) -> BoundaryTracks:
+                            min_landmarks: int = MIN_LANDMARKS, start_deg: float = 0.0) -> BoundaryTracks:
     """Endo- and epicardial landmarks of ``masks[0]``, tracked through the masks (Eqs. 35-37).
 
     The number of landmarks of each contour is its length (pixels) over ``spacing_px``, at least
@@ -56,12 +56,15 @@ def contour_landmark_tracks(masks, spacing_px: float = LANDMARK_SPACING_PX,
     ----------
     masks : (F + 1, H, W) bool array
         Myocardium masks, index 0 the reference.
+    start_deg : float
+        Where the contours start, degrees about the cavity centre from +x towards +y
+        (:func:`sfem_filters.imaging.mask_borders`).
     """
     m = np.asarray(masks, bool)
     b = mask_borders(m[0], 64, 96, name="masks[0]")
     lengths = [float(np.sum(np.linalg.norm(np.diff(np.vstack([c, c[:1]]), axis=0), axis=1))) for c in (b.endo, b.epi)]
     n = [max(int(min_landmarks), int(round(L / positive("spacing_px", spacing_px, "pixels")))) for L in lengths]
-    return track_masks(m, TrackingOptions(n_endo=n[0], n_epi=n[1]))
+    return track_masks(m, TrackingOptions(n_endo=n[0], n_epi=n[1], start_deg=float(start_deg)))
 
 
 def _normals(tracks: BoundaryTracks) -> np.ndarray:
@@ -235,3 +238,36 @@ def mask_border_data(mesh: TriMesh, tracks: BoundaryTracks, pixel_size_m: float,
     H, y, R, nodes = border_node_data(mesh, D, tracks.displacement[1:], s_n, s_t if tangential else None, s)
     return BorderData(H=H, y=y, R=R, nodes=nodes, tracks=tracks, sd_normal_px=s_n, sd_tangent_px=s_t,
                       floor_px=float(floor), moved_m=moved)
+
+
+def mean_border_data(data) -> BorderData:
+    """The mean of several :class:`BorderData` of one mesh (the same masks tracked from several contour starts).
+
+    The landmarks of a binary border, resampled at equal arc length from a start point, sit on its
+    staircase at positions that depend on that start by a fraction of their spacing, and so does each
+    border node's datum: the same heart turned on the image grid gives another draw. The mean over
+    starts spread evenly around the contour removes that dependence (it integrates over the start).
+    Only the data change: each node's datum is the mean over the starts of its normal motion, its
+    variance the mean of theirs (not divided by their number: the starts see one staircase, so
+    their errors are correlated, as :func:`border_node_data` says of neighbouring landmarks). The
+    nodes are those with data in every start; the tracks and sds reported are the first start's.
+    """
+    data = list(data)
+    if not data or not all(isinstance(d, BorderData) for d in data):
+        raise TypeError("data: expected a non-empty sequence of BorderData of one mesh")
+    if any(d.sd_tangent_px is not None and d.H.shape[0] != len(d.nodes) for d in data):
+        raise ValueError("data: expected normal data only (one row per node), got tangential rows too")
+    nodes = data[0].nodes
+    for d in data[1:]:
+        nodes = np.intersect1d(nodes, d.nodes)
+    if nodes.size == 0:
+        raise ValueError("data: expected border nodes with data in every start, got none in common")
+    rows = [np.searchsorted(d.nodes, nodes) for d in data]
+    y = np.mean([d.y[:, r] for d, r in zip(data, rows)], axis=0)
+    var = np.mean([np.diagonal(d.R, axis1=1, axis2=2)[:, r] for d, r in zip(data, rows)], axis=0)
+    R = np.zeros((y.shape[0], nodes.size, nodes.size))
+    R[:, np.arange(nodes.size), np.arange(nodes.size)] = var
+    d0 = data[0]
+    return BorderData(H=sp.csr_matrix(d0.H[rows[0]]), y=y, R=R, nodes=nodes, tracks=d0.tracks,
+                      sd_normal_px=d0.sd_normal_px, sd_tangent_px=d0.sd_tangent_px,
+                      floor_px=float(np.mean([d.floor_px for d in data])), moved_m=d0.moved_m)

@@ -194,7 +194,7 @@ from typing import ClassVar
 import numpy as np
 import scipy.sparse as sp
 
-from .._validate import as_float_array, as_mask, positive
+from .._validate import as_float_array, as_mask, integer, positive
 from ..imaging.contours import repair_myocardium_mask
 from ..imaging.dense import check_resolution_px
 from ..fem.mesh import TriMesh
@@ -208,7 +208,7 @@ from ..imaging.dense import DenseCase, LagrangianDisplacement, background_signal
 from ..imaging.strain import N_SEGMENTS, Z95, StrainEstimate, displacement_gradient, global_curve, green_strain, \
     json_list, mask_centre, project_strain, segment_labels
 from ..resources import limits_blas_threads
-from .border_data import BorderData, contour_landmark_tracks, mask_border_data
+from .border_data import BorderData, contour_landmark_tracks, mask_border_data, mean_border_data
 from .dense_model import INFORMATION_FLOOR, MESHES, PROCESS_FRACTIONS, PROCESS_PROFILES, RELAXATION_CYCLES, \
     NodalFitModel, build_dense_model, compliant_modulus, concentrated_log_evidence, nodal_fit, observation_points, \
     ObservationScaling, observation_operator, phase_noise_level, process_fraction_ml, process_profile_from_data, \
@@ -291,6 +291,11 @@ class StrainRouteSettings:
         border node's motion across the border, from landmarks tracked through the masks by
         bending-energy matching, with the contours route's sd, stacked with the phase data in one
         model (module docstring, step 2, *fused with the masks*). Default False: the phase alone.
+    border_starts : int
+        With ``border_masks``: the masks' border data are the mean over this many contour start
+        angles spread evenly about the cavity (:func:`sfem_filters.cardiac.border_data.mean_border_data`),
+        so that they do not depend on where the contours happen to start, i.e. on how the heart
+        lies on the image grid. Default 1: the start at the +x direction alone.
     process_profile : {"data", "constant"}
         How the process noise varies over the frame intervals. ``"data"`` (default): each
         interval's process sd the larger of the level of ``process_fraction`` and the one the
@@ -322,6 +327,7 @@ class StrainRouteSettings:
     border_masks: bool = False
     phase_noise_level: str = "stated"
     process_profile: str = "data"
+    border_starts: int = 1
 
     def __post_init__(self):
         if self.mesh not in MESHES:
@@ -339,6 +345,7 @@ class StrainRouteSettings:
             raise ValueError("phase_noise_level: 'evidence' weighs the phase data against the masks; it needs "
                              "border_masks=True (alone, a common level changes no estimate: noise_scale does that)")
         positive("element_px", self.element_px, "pixels")
+        integer("border_starts", self.border_starts, 1)
         object.__setattr__(self, "resolution_px", check_resolution_px(self.resolution_px))
         if self.E is not None:
             positive("E", self.E, "Pa")
@@ -415,13 +422,16 @@ def curve_discrepancy(diffs, estimates) -> np.ndarray:
     return tau
 
 
-def border_masks_data(masks, reference_mask, n_frames: int, mesh: TriMesh, pixel_size_m: float) -> BorderData:
+def border_masks_data(masks, reference_mask, n_frames: int, mesh: TriMesh, pixel_size_m: float,
+                      starts: int = 1) -> BorderData:
     """The myocardium masks as border-node data on the DENSE route's mesh (module docstring, step 2).
 
     The contours route's data exactly (:func:`sfem_filters.cardiac.border_data.mask_border_data`,
     its default landmark spacing, least landmarks and sd rule: the larger of the mask's
     quantisation and the landmarks' own temporal noise floor across the border; no number chosen
-    here).
+    here); with ``starts > 1``, their mean over that many contour start angles spread evenly about
+    the cavity (:func:`sfem_filters.cardiac.border_data.mean_border_data`,
+    ``StrainRouteSettings.border_starts``).
 
     Parameters
     ----------
@@ -451,7 +461,13 @@ def border_masks_data(masks, reference_mask, n_frames: int, mesh: TriMesh, pixel
     empty = np.flatnonzero(~m.any(axis=(1, 2)))
     if empty.size:
         raise ValueError(f"masks: expected myocardium in every frame's mask, got none in mask(s) {empty.tolist()}")
-    return mask_border_data(mesh, contour_landmark_tracks(m), pixel_size_m)
+    k = integer("starts", starts, 1)
+    data = [mask_border_data(mesh, contour_landmark_tracks(m), pixel_size_m)]
+    for j in range(1, k):                  # a mended mask warns once (the first start), not once per start
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            data.append(mask_border_data(mesh, contour_landmark_tracks(m, start_deg=360.0 * j / k), pixel_size_m))
+    return data[0] if k == 1 else mean_border_data(data)
 
 
 @limits_blas_threads
@@ -514,7 +530,7 @@ def dense_strain(tracks: LagrangianDisplacement, reference_mask, pixel_size_m: f
     if cfg.border_masks:
         say("tracking the myocardium masks' borders (bending energy, Eqs. 35-37): their motion across the border "
             "joins the phase data")
-        border = border_masks_data(masks, mask, tracks.displacement.shape[0], mesh, s)
+        border = border_masks_data(masks, mask, tracks.displacement.shape[0], mesh, s, starts=cfg.border_starts)
     q_table = None
     if cfg.process_fraction is None:
         say(f"choosing the process noise by its evidence ({len(PROCESS_FRACTIONS)} filter passes)")

@@ -16,8 +16,8 @@ from ..imaging import conventional_from_displacement, mask_centre, truth_at_poin
 from ..imaging.spline_strain import spline_strain
 from ..imaging.strain_report import spline_block, strain_csv, truth_block, with_peaks
 from ..plotting.strain import strain_figures
-from ._common import _angle_deg, _finite_float, _message, _non_negative_float, _non_negative_int, _positive_float, \
-    _progress, _progress_options, _write_json
+from ._common import _angle_deg, _finite_float, _int_at_least, _message, _non_negative_float, _non_negative_int, \
+    _positive_float, _progress, _progress_options, _write_json
 from .strain_input import ACQUISITION, _dense_settings, _resolution_px, _strain_input
 
 
@@ -106,6 +106,11 @@ def add_parser(sub) -> None:
                         "share), never below the constant level, so a short systole is not flattened; constant: "
                         "one level, 0.1 of the data's temporal noise floor per frame (the docs' validation page "
                         "reports both)")
+    s.add_argument("--border-starts", type=_int_at_least(1, " contour start angles"), default=None, metavar="N",
+                   help="dense route with the masks fused: average the masks' border data over N contour start "
+                        "angles spread evenly about the cavity, so that they do not depend on where the contours "
+                        "start, i.e. on how the heart lies on the image grid (default 1; 8 makes them nearly "
+                        "independent of it; N - 1 more border trackings)")
     s.add_argument("--csv", metavar="PATH",
                    help="also write the report as one tidy CSV table (one row per method, region = pixel, global "
                         "or segment, frame and component; PATH ending .gz is compressed); see the how-to page "
@@ -124,7 +129,8 @@ def cmd_strain(args) -> int:
     case, tracks = src["case"], src["tracks"]
     if args.route == "contours":       # the masks alone (no phase): tracked borders, interior from the physics
         for name, flag in (("resolution_px", "--resolution-px"), ("masks_fusion", "--with-masks/--no-masks"),
-                           ("phase_noise_level", "--phase-noise-level"), ("process_profile", "--process-profile")):
+                           ("phase_noise_level", "--phase-noise-level"), ("process_profile", "--process-profile"),
+                           ("border_starts", "--border-starts")):
             if getattr(args, name, None) is not None:
                 raise ValueError(f"{flag}: is for the dense route; the contours route observes the masks' tracked "
                                  f"borders alone and chooses its process noise by its evidence")

@@ -116,8 +116,14 @@ def _dense_settings(args, src: dict) -> StrainRouteSettings:
                          + ("(--no-masks)" if getattr(args, "masks_fusion", None) is False
                             else "(a frame's mask cannot be made one ring; the warning above names it)" if moving
                             else "(no mask of every frame that moves)"))
+    starts = getattr(args, "border_starts", None)
+    if starts is not None and not fuse:
+        raise ValueError("--border-starts: averages the masks' border data, which this run does not fuse "
+                         + ("(--no-masks)" if getattr(args, "masks_fusion", None) is False
+                            else "(a frame's mask cannot be made one ring; the warning above names it)" if moving
+                            else "(no mask of every frame that moves)"))
     overrides = {"start_deg": args.segment_start, "border_masks": bool(fuse)}
-    given = {"phase_noise_level": level, "process_profile": args.process_profile,
+    given = {"phase_noise_level": level, "process_profile": args.process_profile, "border_starts": starts,
              "resolution_px": None if value in (None, ACQUISITION) else float(value)}
     overrides.update({k: v for k, v in given.items() if v is not None})
     return image_settings(case, **overrides) if case is not None else route_settings(**overrides)

@@ -211,15 +211,16 @@ def curvature(xy) -> np.ndarray:
     return num / den
 
 
-def _orient_and_start(xy, centre):
+def _orient_and_start(xy, centre, start_rad: float = 0.0):
     if signed_area(xy) < 0:
         xy = xy[::-1]
     d = xy - centre
-    k = int(np.argmin(np.abs(np.arctan2(d[:, 1], d[:, 0]))))
+    k = int(np.argmin(np.abs(np.angle(np.exp(1j * (np.arctan2(d[:, 1], d[:, 0]) - start_rad))))))
     return np.roll(xy, -k, axis=0)
 
 
-def mask_borders(mask, n_endo: int = 64, n_epi: int = 96, smooth: float = 0.0, name: str = "mask") -> Borders:
+def mask_borders(mask, n_endo: int = 64, n_epi: int = 96, smooth: float = 0.0, name: str = "mask",
+                 start_deg: float = 0.0) -> Borders:
     """Endo- and epicardial contours of a myocardium mask (marching squares at level 1/2).
 
     A mask with a defect of a pixel or two (a stray piece, a pinhole, a one-pixel cut) is mended
@@ -235,6 +236,11 @@ def mask_borders(mask, n_endo: int = 64, n_epi: int = 96, smooth: float = 0.0, n
         Gaussian smoothing of the raw border, in raw border points (0: none).
     name : str
         How errors and the repair's warning name the mask.
+    start_deg : float
+        Where the contours start (and their resampling begins): the point closest in angle to
+        this direction about the cavity centre, degrees from +x towards +y (default 0, the
+        module's rule). The points of a binary border resampled at equal arc length depend on it
+        by a fraction of their spacing.
 
     Returns
     -------
@@ -257,10 +263,13 @@ def mask_borders(mask, n_endo: int = 64, n_epi: int = 96, smooth: float = 0.0, n
     # the endocardium is the largest remaining loop lying inside the epicardium
     endo = loops[order[1]]
     centre = polygon_centroid(endo)
-    endo = _orient_and_start(smooth_closed(endo, smooth), centre)
-    epi = _orient_and_start(smooth_closed(epi, smooth), centre)
-    endo = _orient_and_start(resample_closed(endo, n_endo), centre)
-    epi = _orient_and_start(resample_closed(epi, n_epi), centre)
+    a = np.deg2rad(float(start_deg))
+    if not np.isfinite(a):
+        raise ValueError(f"start_deg: expected a finite angle in degrees, got {start_deg!r}")
+    endo = _orient_and_start(smooth_closed(endo, smooth), centre, a)
+    epi = _orient_and_start(smooth_closed(epi, smooth), centre, a)
+    endo = _orient_and_start(resample_closed(endo, n_endo), centre, a)
+    epi = _orient_and_start(resample_closed(epi, n_epi), centre, a)
     return Borders(endo=endo, epi=epi, centre=polygon_centroid(endo))
 
 

@@ -45,6 +45,9 @@ class TrackingOptions:
         Constants of the confidence (Eq. 37).
     sigma_floor, sigma_scale : float
         Error model of one tracking step: ``sqrt(floor^2 + scale^2 (1 - c))`` px.
+    start_deg : float
+        Where every frame's contours start (:func:`sfem_filters.imaging.mask_borders`), degrees
+        about the cavity centre from +x towards +y.
     """
 
     n_endo: int = 48
@@ -57,6 +60,7 @@ class TrackingOptions:
     k_u: float = 1.0
     sigma_floor: float = 0.3
     sigma_scale: float = 1.0
+    start_deg: float = 0.0
 
     def __post_init__(self):
         for name in ("n_endo", "n_epi"):
@@ -71,6 +75,8 @@ class TrackingOptions:
         for name in ("curvature_smoothing", "regularisation", "k_g", "k_u", "sigma_scale"):
             non_negative(name, getattr(self, name))
         positive("sigma_floor", self.sigma_floor, "px")
+        if not np.isfinite(float(self.start_deg)):
+            raise ValueError(f"start_deg: expected a finite angle in degrees, got {self.start_deg!r}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -256,5 +262,5 @@ def track_masks(masks, options: TrackingOptions | None = None) -> BoundaryTracks
         raise ValueError(f"masks: expected at least 2 frames, got {len(m)}")
     borders = []
     for t in range(len(m)):
-        borders.append(mask_borders(m[t], opts.n_endo, opts.n_epi, name=f"masks[{t}]"))
+        borders.append(mask_borders(m[t], opts.n_endo, opts.n_epi, name=f"masks[{t}]", start_deg=opts.start_deg))
     return track_borders(borders, opts)

@@ -186,3 +186,59 @@ def test_the_phase_level_by_evidence_needs_the_masks_and_is_the_mean_nis_of_the_
     assert np.nansum(fw.nis) / np.sum(fw.n_obs) == pytest.approx(1.0, rel=1e-6)
     r = dense_strain(tracks, ref, PX, cfg, masks=masks)
     assert r.settings["phase_noise_scale"] == pytest.approx(c)
+
+
+def test_contours_start_where_asked_and_the_tracking_follows():
+    from sfem_filters.imaging.contours import mask_borders
+    ref = _ring()[0]
+    for start in (0.0, 90.0, -45.0, 200.0):
+        b = mask_borders(ref, 48, 64, start_deg=start)
+        for c in (b.endo, b.epi):
+            a = np.degrees(np.arctan2(c[0, 1] - b.centre[1], c[0, 0] - b.centre[0]))
+            assert abs((a - start + 180) % 360 - 180) < 360 / len(c)          # within one point's spacing
+    with pytest.raises(ValueError, match="start_deg"):
+        mask_borders(ref, start_deg=float("nan"))
+    masks = _ring()[2]
+    t = contour_landmark_tracks(masks, start_deg=90.0)
+    p0 = t.points[t.contour == 0][0] - t.borders[0].centre
+    assert abs(np.degrees(np.arctan2(p0[1], p0[0])) - 90.0) < 10.0
+
+
+def test_the_mean_over_contour_starts_depends_on_where_they_start_far_less_than_one_start_does(ring):
+    """Eight starts 45 degrees apart against the same eight turned by 22.5 degrees: their means differ by a
+    fraction of what two single starts 22.5 degrees apart do (the start's draw averages out)."""
+    from sfem_filters.cardiac.border_data import mean_border_data
+    ref, tracks, masks, _ = ring
+    mesh = reference_mesh(ref, PX, "gmsh", 2.0)
+    one = {a: mask_border_data(mesh, contour_landmark_tracks(masks, start_deg=a), PX) for a in np.arange(16) * 22.5}
+    even = mean_border_data([one[a] for a in np.arange(8) * 45.0])
+    odd = mean_border_data([one[a] for a in np.arange(8) * 45.0 + 22.5])
+    assert np.array_equal(even.nodes, odd.nodes) and even.y.shape == one[0.0].y.shape
+
+    def rms(a, b):
+        return float(np.sqrt(np.mean((a.y - b.y) ** 2)))
+
+    single = np.mean([rms(one[a], one[a + 22.5]) for a in np.arange(8) * 45.0])
+    assert single > 0 and rms(even, odd) < 0.5 * single
+    # the mean's variance is the starts' mean variance (their errors share one staircase), not a eighth of it
+    assert np.allclose(np.diagonal(even.R, axis1=1, axis2=2),
+                       np.mean([np.diagonal(one[a].R, axis1=1, axis2=2) for a in np.arange(8) * 45.0], axis=0))
+    # one BorderData is its own mean; tangential rows are refused
+    same = mean_border_data([one[0.0]])
+    assert np.array_equal(same.y, one[0.0].y) and (same.H != one[0.0].H).nnz == 0
+    with pytest.raises(ValueError, match="normal data only"):
+        mean_border_data([mask_border_data(mesh, contour_landmark_tracks(masks), PX, tangential=True)])
+    with pytest.raises(TypeError, match="BorderData"):
+        mean_border_data([])
+
+
+def test_the_route_takes_border_starts_and_names_a_bad_value(ring):
+    ref, tracks, masks, _ = ring
+    cfg = StrainRouteSettings(element_px=2.0, border_masks=True, border_starts=4)
+    r = dense_strain(tracks, ref, PX, cfg, masks=masks)
+    assert r.settings["border_starts"] == 4 and np.all(np.isfinite(r.Err))
+    one = dense_strain(tracks, ref, PX, replace(cfg, border_starts=1), masks=masks)
+    assert not np.allclose(r.Err, one.Err)                     # the masks' data differ, so does the estimate
+    assert np.max(np.abs(r.Err - one.Err)) < 0.02              # by a fraction of a pixel's quantisation
+    with pytest.raises(ValueError, match="border_starts"):
+        StrainRouteSettings(border_masks=True, border_starts=0)
