@@ -111,17 +111,14 @@ def _dense_settings(args, src: dict) -> StrainRouteSettings:
         raise ValueError(f"--with-masks: expected the myocardium mask of every frame, moving with the wall, got {got}")
     fuse = (moving and masks_can_be_fused(masks)) if fuse is None else fuse
     level = getattr(args, "phase_noise_level", None)
-    if level is not None and not fuse:
-        raise ValueError("--phase-noise-level: weighs the phase data against the masks, which this run does not fuse "
-                         + ("(--no-masks)" if getattr(args, "masks_fusion", None) is False
-                            else "(a frame's mask cannot be made one ring; the warning above names it)" if moving
-                            else "(no mask of every frame that moves)"))
     starts = getattr(args, "border_starts", None)
-    if starts is not None and not fuse:
-        raise ValueError("--border-starts: averages the masks' border data, which this run does not fuse "
-                         + ("(--no-masks)" if getattr(args, "masks_fusion", None) is False
-                            else "(a frame's mask cannot be made one ring; the warning above names it)" if moving
-                            else "(no mask of every frame that moves)"))
+    why = ("(--no-masks)" if getattr(args, "masks_fusion", None) is False
+           else "(a frame's mask cannot be made one ring; the warning above names it)" if moving
+           else "(no mask of every frame that moves)")
+    for flag, given_value, what in (("--phase-noise-level", level, "weighs the phase data against the masks"),
+                                    ("--border-starts", starts, "averages the masks' border data")):
+        if given_value is not None and not fuse:
+            raise ValueError(f"{flag}: {what}, which this run does not fuse {why}")
     overrides = {"start_deg": args.segment_start, "border_masks": bool(fuse)}
     given = {"phase_noise_level": level, "process_profile": args.process_profile, "border_starts": starts,
              "resolution_px": None if value in (None, ACQUISITION) else float(value)}
