@@ -1,11 +1,29 @@
 """Argument checks shared by the public entry points.
 
 Every check raises ``ValueError`` (or ``TypeError``) with a message that names the
-argument, says what was expected and what was given.
+argument, says what was expected and what was given. :func:`user_stacklevel` points a
+warning at the user's own call.
 """
 from __future__ import annotations
 
+import os
+import sys
+
 import numpy as np
+
+_PACKAGE = os.path.dirname(os.path.abspath(__file__)) + os.sep
+
+
+def user_stacklevel() -> int:
+    """``stacklevel`` for :func:`warnings.warn` that names the first caller outside sfem_filters.
+
+    Called from the function that warns: however many of the library's own frames (decorators,
+    internal helpers) lie between it and the user's code, the warning points at the user's line.
+    """
+    frame, level = sys._getframe(1), 1
+    while frame is not None and os.path.abspath(frame.f_code.co_filename).startswith(_PACKAGE):
+        frame, level = frame.f_back, level + 1
+    return level
 
 
 def _describe(value) -> str:

@@ -194,7 +194,7 @@ from typing import ClassVar
 import numpy as np
 import scipy.sparse as sp
 
-from .._validate import as_float_array, as_mask, integer, positive
+from .._validate import as_float_array, as_mask, integer, positive, user_stacklevel
 from ..imaging.contours import repair_myocardium_mask
 from ..imaging.dense import check_resolution_px
 from ..fem.mesh import TriMesh
@@ -592,7 +592,7 @@ def dense_strain(tracks: LagrangianDisplacement, reference_mask, pixel_size_m: f
                       f"the encoding (their innovations stay above the 99.9% bound for 4 frames or more in a row, "
                       f"even at the fitted noise level): the strain there may lag the data, its peaks flattened, by "
                       f"more than the 95% bands hold; read those frames with care (JSON: "
-                      f"settings.nis_excess_frames)", RuntimeWarning, stacklevel=2)
+                      f"settings.nis_excess_frames)", RuntimeWarning, stacklevel=user_stacklevel())
     C = c_ml * _covariance_from_blocks(sm.variances["gradient"], ops[0].shape[0])       # (F, m, 4, 4)
     E = green_strain(grad)
     ecc, err, ecr = project_strain(E, X, centre)

@@ -222,8 +222,10 @@ def test_frames_where_the_data_outrun_the_model_are_named_once_and_kept_in_the_s
         r = dense_strain(shaken, mask, PX, cfg)
     runs = r.settings["nis_excess_frames"]
     assert len(runs) == 1 and 4 <= runs[0][0] <= 6 and runs[0][1] == 11
-    msgs = [str(w.message) for w in seen if "faster than the model's motion" in str(w.message)]
+    hits = [w for w in seen if "faster than the model's motion" in str(w.message)]
+    msgs = [str(w.message) for w in hits]
     assert len(msgs) == 1 and f"frames {runs[0][0]}-11 (" in msgs[0] and "187 ms)" in msgs[0]
+    assert hits[0].filename == __file__                       # it points at the caller's line, not the library's
     nis = np.array(r.settings["nis_per_row"]) / r.settings["noise_scale_ml"]
     assert np.all(nis[runs[0][0]:12] > 1.0) and np.all(nis[12:] < 1.0)
 
