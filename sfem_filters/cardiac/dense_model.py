@@ -565,7 +565,10 @@ def build_dense_model(mesh: TriMesh, tracks: LagrangianDisplacement, pixel_size_
                           alpha=alpha, beta=NOMINAL["beta"], measurement_std=1.0,
                           process_std=(q, q / T), initial_std=(u0_sd, u0_sd / T), effects=effs, penalty=penalty,
                           R_frames=R, process_profile=profile)
-    info = {"n_points_moved_into_mesh": int(np.count_nonzero(moved)), "largest_move_px": float(moved.max() / s),
+    seen = np.any(np.isfinite(tracks.displacement[..., 0]), axis=0)     # points with data (observed)
+    moved_seen = np.where(seen, moved, 0.0)
+    info = {"n_points_moved_into_mesh": int(np.count_nonzero(moved_seen)),
+            "largest_move_px": float(moved_seen.max() / s),
             "noise_floor_px": floor_px, "tracks_sd_rms_px": sd_rms, "sd_scale": sd_scale,
             "process_std_px": q / s, "frame_interval_s": T, "fixed_E_Pa": E, "alpha_per_s": alpha,
             "wall_thickness_px": _wall_thickness(mesh) / s,

@@ -174,12 +174,8 @@ The DENSE route of issue 42 (items 3 and 4), as a library function, :func:`dense
    (:func:`sfem_filters.filtering.diagnostics.nis_excess_runs`), are frames where the data move
    faster than the model's process noise lets the estimate follow, so the strain there may lag
    the data by more than the bands hold. One warning names them (frames and ms) and
-   ``settings["nis_excess_frames"]`` keeps them, beside ``settings["nis_per_row"]``. On DENSE-Sim
-   they are early systole and early filling. Measured, not adopted: raising the process noise
-   over such a run, by the factor of largest evidence, brings the in-vivo case's radial peak
-   closer to the truth at SNR 8 but costs the phantom's bands their coverage (the estimate then
-   follows the tracks' bias, which the excess error of (b), measured against those tracks,
-   cannot see).
+   ``settings["nis_excess_frames"]`` keeps them, beside ``settings["nis_per_row"]`` (each frame's
+   NIS per observed row as the pass gives it, not divided by ``c``).
 
 Units: pixels for points and displacements at the interface (x = column, y = row), SI inside
 (the mesh in metres, from the case's pixel size); strain is a fraction; times in s.
@@ -345,7 +341,10 @@ class StrainRouteSettings:
             raise ValueError("phase_noise_level: 'evidence' weighs the phase data against the masks; it needs "
                              "border_masks=True (alone, a common level changes no estimate: noise_scale does that)")
         positive("element_px", self.element_px, "pixels")
-        integer("border_starts", self.border_starts, 1)
+        object.__setattr__(self, "border_starts", integer("border_starts", self.border_starts, 1))
+        if self.border_starts > 1 and not self.border_masks:
+            raise ValueError(f"border_starts: averages the masks' border data over contour starts; it needs "
+                             f"border_masks=True, got border_starts={self.border_starts} without the masks")
         object.__setattr__(self, "resolution_px", check_resolution_px(self.resolution_px))
         if self.E is not None:
             positive("E", self.E, "Pa")
@@ -462,11 +461,11 @@ def border_masks_data(masks, reference_mask, n_frames: int, mesh: TriMesh, pixel
     if empty.size:
         raise ValueError(f"masks: expected myocardium in every frame's mask, got none in mask(s) {empty.tolist()}")
     k = integer("starts", starts, 1)
-    data = [mask_border_data(mesh, contour_landmark_tracks(m), pixel_size_m)]
-    for j in range(1, k):                  # a mended mask warns once (the first start), not once per start
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            data.append(mask_border_data(mesh, contour_landmark_tracks(m, start_deg=360.0 * j / k), pixel_size_m))
+    data = [mask_border_data(mesh, contour_landmark_tracks(m), pixel_size_m)]   # warns of a mended mask
+    if k > 1:
+        mended = np.stack([repair_myocardium_mask(f, f"masks[{t}]")[0] for t, f in enumerate(m)])
+        data += [mask_border_data(mesh, contour_landmark_tracks(mended, start_deg=360.0 * j / k), pixel_size_m)
+                 for j in range(1, k)]                                          # the same masks, already mended
     return data[0] if k == 1 else mean_border_data(data)
 
 
@@ -684,7 +683,9 @@ def _without_stray_pixels(tracks: LagrangianDisplacement, reference_mask) -> tup
     disp[:, stray] = np.nan
     conf = np.array(tracks.confidence, float)
     conf[:, stray] = np.nan
-    return replace(tracks, displacement=disp, confidence=conf,
+    sd = np.array(tracks.sd, float)
+    sd[:, stray] = np.nan
+    return replace(tracks, displacement=disp, sd=sd, confidence=conf,
                    n_untracked=int(np.count_nonzero(np.isnan(disp[..., 0])))), int(stray.sum())
 
 

@@ -129,11 +129,13 @@ def cmd_strain(args) -> int:
     case, tracks = src["case"], src["tracks"]
     if args.route == "contours":       # the masks alone (no phase): tracked borders, interior from the physics
         for name, flag in (("resolution_px", "--resolution-px"), ("masks_fusion", "--with-masks/--no-masks"),
-                           ("phase_noise_level", "--phase-noise-level"), ("process_profile", "--process-profile"),
-                           ("border_starts", "--border-starts")):
+                           ("phase_noise_level", "--phase-noise-level"), ("process_profile", "--process-profile")):
             if getattr(args, name, None) is not None:
                 raise ValueError(f"{flag}: is for the dense route; the contours route observes the masks' tracked "
                                  f"borders alone and chooses its process noise by its evidence")
+        if getattr(args, "border_starts", None) is not None:
+            raise ValueError("--border-starts: is for the dense route with the masks fused; the contours route tracks "
+                             "its landmarks from one contour start")
         if src["masks"] is None:
             raise ValueError("--route contours: expected the myocardium masks of the reference and of every frame; the "
                              "sequence file has no reference_mask and frame_masks (use --route dense)")

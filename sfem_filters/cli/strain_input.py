@@ -112,6 +112,7 @@ def _dense_settings(args, src: dict) -> StrainRouteSettings:
     fuse = (moving and masks_can_be_fused(masks)) if fuse is None else fuse
     level = getattr(args, "phase_noise_level", None)
     starts = getattr(args, "border_starts", None)
+    starts = None if starts == 1 else starts                 # the default: nothing to average, fused or not
     why = ("(--no-masks)" if getattr(args, "masks_fusion", None) is False
            else "(a frame's mask cannot be made one ring; the warning above names it)" if moving
            else "(no mask of every frame that moves)")

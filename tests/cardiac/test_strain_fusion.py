@@ -242,3 +242,20 @@ def test_the_route_takes_border_starts_and_names_a_bad_value(ring):
     assert np.max(np.abs(r.Err - one.Err)) < 0.02              # by a fraction of a pixel's quantisation
     with pytest.raises(ValueError, match="border_starts"):
         StrainRouteSettings(border_masks=True, border_starts=0)
+    with pytest.raises(ValueError, match="border_starts: averages the masks' border data .* needs border_masks=True"):
+        StrainRouteSettings(border_starts=8)
+    assert type(StrainRouteSettings(border_masks=True, border_starts=8.0).border_starts) is int
+
+
+def test_more_starts_warn_of_a_mended_mask_once(ring):
+    import warnings
+    ref, tracks, masks, _ = ring
+    pinhole = masks.copy()
+    assert masks[3, 16, 25] and masks[3, 15:18, 24:27].all()  # mid-wall, right of the cavity
+    pinhole[3, 16, 25] = False                               # a pinhole in one frame's wall
+    mesh = reference_mesh(ref, PX, "gmsh", 2.0)
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        border_masks_data(pinhole, ref, tracks.displacement.shape[0], mesh, PX, starts=4)
+    mended = [w for w in seen if "masks[3]: not one ring" in str(w.message)]
+    assert len(mended) == 1, [str(w.message) for w in seen]
