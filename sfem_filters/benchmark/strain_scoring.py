@@ -117,8 +117,10 @@ def _covered_at_peak(band, true_curves, kind: str) -> float:
     hits = []
     for k in range(true_curves.shape[0]):
         _, t = curve_peak(true_curves[k], kind)
+        if t < 0:
+            continue                                         # no finite truth on this curve
         lo, hi, v = band[0][k][t], band[1][k][t], true_curves[k][t]
-        if t >= 0 and np.isfinite(lo) and np.isfinite(hi):
+        if np.isfinite(lo) and np.isfinite(hi):
             hits.append(lo <= v <= hi)
     return PCT * float(np.mean(hits)) if hits else float("nan")
 

@@ -255,7 +255,7 @@ def mean_border_data(data) -> BorderData:
     data = list(data)
     if not data or not all(isinstance(d, BorderData) for d in data):
         raise TypeError("data: expected a non-empty sequence of BorderData of one mesh")
-    if any(d.sd_tangent_px is not None and d.H.shape[0] != len(d.nodes) for d in data):
+    if any(d.H.shape[0] != len(d.nodes) for d in data):
         raise ValueError("data: expected normal data only (one row per node), got tangential rows too")
     nodes = data[0].nodes
     for d in data[1:]:
