@@ -99,12 +99,15 @@ def test_default_for_images_fuses_the_masks_through_the_point_spread_and_each_pa
     assert d["route"] == "dense" and s["border_masks"] is True and s["phase_noise_level"] == "evidence"
     assert s["resolution_px"] == pytest.approx(128 / 60)               # config.yaml N_im / N_im_pre_spiral
     assert s["process_profile"] == "data"
-    assert s["border_rows"] == s["border_nodes"] > 20 and s["border_landmarks"] > s["border_nodes"]
+    assert s["border_rows"] == s["border_nodes"] > 20 and s["border_correspondence"] == "phase"
+    assert s["border_landmarks"] is None                                 # the phase places the border, no landmarks
     assert s["phase_noise_scale"] > 0 and s["phase_noise_scale"] != 1.0
+    assert s["mask_noise_level"] == "evidence" and s["mask_noise_scale"] > 0 and s["mask_noise_scale"] != 1.0
     assert np.array(d["global"]["Err"], float).shape == (6,)
     assert np.all(np.isfinite(np.array(d["strain"]["Err"], float)))
     runs = {"stated": ["--phase-noise-level", "stated"], "alone": ["--no-masks"], "point": ["--resolution-px", "1"],
-            "constant": ["--process-profile", "constant"]}
+            "constant": ["--process-profile", "constant"], "landmarks": ["--border-correspondence", "landmarks"],
+            "starts": ["--border-starts", "2"], "mask_stated": ["--mask-noise-level", "stated"]}
     got = {}
     for name, extra in runs.items():
         path = tmp_path / f"{name}.json"
@@ -116,6 +119,11 @@ def test_default_for_images_fuses_the_masks_through_the_point_spread_and_each_pa
     assert alone["border_masks"] is False and alone["phase_noise_level"] == "stated" and "border_rows" not in alone
     assert got["point"]["settings"]["resolution_px"] == 1.0 and got["point"]["settings"]["border_masks"] is True
     assert got["constant"]["settings"]["process_profile"] == "constant"
+    for name in ("landmarks", "starts"):                     # --border-starts implies the landmarks it averages
+        lm = got[name]["settings"]
+        assert lm["border_correspondence"] == "landmarks" and lm["border_landmarks"] > lm["border_nodes"]
+    assert got["starts"]["settings"]["border_starts"] == 2
+    assert got["mask_stated"]["settings"]["mask_noise_scale"] == 1.0
     base = np.array(d["global"]["Err"], float)
     for name, rep in got.items():                    # each part changes the estimate: none is ignored
         assert np.max(np.abs(np.array(rep["global"]["Err"], float) - base)) > 1e-6, name
@@ -146,6 +154,16 @@ def test_mask_options_errors_name_the_argument(short_case, tmp_path, capsys):
         in capsys.readouterr().err
     assert main(["strain", str(short_case), "--json", out, "--no-masks", "--phase-noise-level", "evidence"]) == 2
     assert "which this run does not fuse (--no-masks)" in capsys.readouterr().err
+    assert main(["strain", str(short_case), "--json", out, "--border-starts", "4", "--border-correspondence", "phase",
+                 "--quiet"]) == 2
+    assert "--border-starts: averages landmarks tracked from several contour starts; with --border-correspondence " \
+           "phase there are none" in capsys.readouterr().err
+    assert main(["strain", str(short_case), "--json", out, "--no-masks", "--mask-noise-level", "evidence"]) == 2
+    assert "--mask-noise-level: weighs the masks against the phase data, which this run does not fuse (--no-masks)" \
+        in capsys.readouterr().err
+    assert main(["strain", str(short_case), "--json", out, "--no-masks", "--border-correspondence", "landmarks"]) == 2
+    assert "--border-correspondence: places the masks' border data, which this run does not fuse (--no-masks)" \
+        in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main(["strain", str(short_case), "--json", out, "--no-masks", "--with-masks"])
     assert "not allowed with argument" in capsys.readouterr().err
@@ -154,7 +172,8 @@ def test_mask_options_errors_name_the_argument(short_case, tmp_path, capsys):
 @pytest.mark.needs_data(CASE)
 def test_the_contours_route_refuses_the_dense_routes_options(short_case, tmp_path, capsys):
     for extra in (["--process-profile", "data"], ["--resolution-px", "2"], ["--no-masks"],
-                  ["--phase-noise-level", "stated"]):
+                  ["--phase-noise-level", "stated"], ["--border-correspondence", "phase"],
+                  ["--mask-noise-level", "stated"]):
         assert main(["strain", str(short_case), "--json", str(tmp_path / "c.json"), "--route", "contours",
                      *extra, "--quiet"]) == 2
         err = capsys.readouterr().err

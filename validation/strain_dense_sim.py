@@ -15,16 +15,19 @@ shared by every method (:func:`sfem_filters.imaging.phase_to_displacement`), the
   :attr:`sfem_filters.imaging.DenseCase.resolution_px`, with the complex signal around the
   myocardium from the images, :func:`sfem_filters.imaging.dense.background_signal`), the case's
   myocardium masks of every frame fused in (``border_masks=True``: each border node's motion across
-  the border, the contours route's data and sd) with the phase data at their own maximum-likelihood
+  the border, read where the phase data's own smoothed estimate puts the node,
+  ``border_correspondence="phase"``, with the contours route's sd rule) with the phase data at their own maximum-likelihood
   level (``phase_noise_level="evidence"``), the process noise per frame interval from the data's own
   acceleration (``process_profile="data"``), the linear smoother, Green-Lagrange strain of the
   recovered gradient with delta-method sd, the maximum-likelihood noise scale and the excess-error
   term in the 95% bands;
-* at the first seed of each case and SNR, seven ablations of the route (the error budget): each of
-  the four choices above left out in turn (:data:`ABLATIONS`), the route's earlier default (the
-  phase alone at the pixel centres with one process level) and that with its process noise chosen
-  by its evidence (``process_fraction=None``, type-II maximum likelihood), and the nodal
-  least-squares fit of each frame alone (no dynamics, no bands);
+* at the first seed of each case and SNR, the error budget (:data:`ABLATIONS`): the point spread,
+  the masks and the process profile each left out in turn; the masks at their stated level, and
+  both sources at theirs; the masks' border data from the contours route's landmarks instead
+  (tracked by bending-energy matching); the route's earlier default (the phase alone at the pixel
+  centres with one process level) and that with its process noise chosen by its evidence
+  (``process_fraction=None``, type-II maximum likelihood); and the nodal least-squares fit of each
+  frame alone (no dynamics, no bands);
 
 each scored by :func:`sfem_filters.benchmark.score_strain` (pixel RMSE, global and segment peak
 errors in percentage points; coverage of the true segment curves by the 95% bands, with their mean
@@ -79,7 +82,9 @@ OURS = "ours (DENSE route)"
 #: process level) and that with its process noise chosen by the evidence.
 ABLATIONS = {"ours, point observation (no PSF)": {"resolution_px": 1.0},
              "ours, without the masks (phase alone)": {"border_masks": False},
-             "ours, masks at the phase data's stated level": {"phase_noise_level": "stated"},
+             "ours, masks at their stated level": {"mask_noise_level": "stated"},
+             "ours, both sources at their stated levels": {"phase_noise_level": "stated", "mask_noise_level": "stated"},
+             "ours, masks' border by landmark tracking (earlier default)": {"border_correspondence": "landmarks"},
              "ours, constant process noise": {"process_profile": "constant"},
              "ours, earlier default (phase alone, point observation, constant process noise)":
                  {"resolution_px": 1.0, "border_masks": False, "process_profile": "constant"},

@@ -10,13 +10,16 @@ runs the DENSE route's default for images (:func:`sfem_filters.cardiac.dense_cas
 * the noisy images **mirrored** left to right (``numpy.fliplr`` of every image, mask and truth; the
   x encoding changes sign) and **transposed** (rows and columns swapped; the two encodings swap):
   the same tissue, the same noise pixel for pixel, the same truth at the same tissue, so any
-  difference is the route's own dependence on the orientation (Gmsh meshes the outline afresh;
-  the masks' landmarks are resampled from the point at angle 0 about the cavity centre);
+  difference is the route's own dependence on the orientation (Gmsh meshes the outline afresh; the
+  masks' border data are read where the phase data's own estimate puts each border node, so they
+  have no contour start);
 * **every second frame** of the noisy case (half the frame rate, the frame times kept), scored
   beside the case as given scored on the same frames;
-* as given, mirrored and transposed again with the masks' border data averaged over
-  :data:`STARTS` contour start angles (``border_starts``, ``--border-starts``; rows "..., 8 contour
-  starts"), which removes the landmarks' dependence on where the contours start.
+* as given, mirrored and transposed again with the masks' border data from landmarks tracked by
+  bending-energy matching (``border_correspondence="landmarks"``, the route's default before the
+  phase placed the border), averaged over :data:`STARTS` contour start angles (``border_starts``,
+  ``--border-starts``; rows "..., landmarks over 8 contour starts"), which removes the landmarks'
+  dependence on where the contours start.
 
 Each run is scored against its own truth with the strain page's metrics
 (:func:`sfem_filters.benchmark.score_strain`; segments from 0 degrees in each variant's own image,
@@ -44,7 +47,7 @@ TITLE = "The same heart mirrored, transposed or at half the frame rate: the DENS
 FULL_COST = "about 10 min"
 #: Contour start angles of the averaged rows (:class:`sfem_filters.cardiac.StrainRouteSettings` ``border_starts``).
 STARTS = 8
-AVERAGED = f", {STARTS} contour starts"
+AVERAGED = f", landmarks over {STARTS} contour starts"
 VARIANTS = ("as given", "mirrored", "transposed", "every 2nd frame", "as given" + AVERAGED, "mirrored" + AVERAGED,
             "transposed" + AVERAGED)
 TIERS = {"quick": {"cases": ["phantom_subject_1"], "frames": 6, "variants": ["as given", "mirrored", "as given" + AVERAGED],
@@ -116,7 +119,7 @@ def case_rows(folder, settings) -> list:
         turn = variant.removesuffix(AVERAGED)
         case = make[turn](noisy)
         t0 = time.perf_counter()
-        r = dense_case_strain(case, image_settings(case, **({"border_starts": STARTS} if turn != variant else {})))
+        r = dense_case_strain(case, image_settings(case, **({"border_starts": STARTS, "border_correspondence": "landmarks"} if turn != variant else {})))
         seconds = time.perf_counter() - t0
         truth = truth_at_points(case)
         if variant == "as given":
@@ -153,7 +156,8 @@ def markdown(results: dict) -> str:
             same = [r for r in results["rows"] if r["case"] == case and r["variant"] in names]
             if len(same) > 1:
                 g = [r["global_peak_error_Err"] for r in same]
-                spread.append(f"{case}{' with the masks over ' + str(STARTS) + ' contour starts' if suffix else ''}: "
+                label = f" with the masks' landmarks over {STARTS} contour starts" if suffix else ""
+                spread.append(f"{case}{label}: "
                               f"global peak error of Err from {min(g):+.2f} to {max(g):+.2f} over "
                               f"{', '.join(r['variant'].removesuffix(suffix) for r in same)}")
     return (md_table(cols, body) + f"\n\nOne noise draw (SNR {results['snr']:g}, seed {results['seed']}) added to each "

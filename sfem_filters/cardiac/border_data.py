@@ -29,12 +29,15 @@ import scipy.sparse as sp
 from .._validate import positive
 from ..fem.mesh import TriMesh
 from ..fem.observation import point_observation_matrix
+from ..geometry import nearest_on_closed_polyline
 from ..imaging.contours import mask_borders
 from ..imaging.tracking import BoundaryTracks, TrackingOptions, track_masks
 from .dense_model import observation_points, temporal_noise_floor
+from .myocardium import lv_geometry
 
 __all__ = ["QUANTISATION_SD_PX", "LANDMARK_SPACING_PX", "MIN_LANDMARKS", "contour_landmark_tracks", "landmark_sd",
-           "border_node_data", "BorderData", "mask_border_data", "mean_border_data"]
+           "border_node_data", "BorderData", "mask_border_data", "mean_border_data", "guided_border_data",
+           "GUIDED_VERTICES_PER_PX", "GUIDED_SAMPLES_PER_EDGE"]
 
 #: Sd (px) of a border placed by a binary mask: uniform within one pixel, ``1 / sqrt(12)``.
 QUANTISATION_SD_PX = 1.0 / np.sqrt(12.0)
@@ -42,6 +45,13 @@ QUANTISATION_SD_PX = 1.0 / np.sqrt(12.0)
 LANDMARK_SPACING_PX = 1.0
 #: Fewest landmarks per contour (a small ring still gets a smooth border).
 MIN_LANDMARKS = 16
+#: Vertices per pixel of border length of the frames' contours searched by :func:`guided_border_data`
+#: (the marching-squares border, whose vertices are half a pixel apart, resampled finer so that the
+#: resampling cuts its corners by a negligible fraction of a pixel).
+GUIDED_VERTICES_PER_PX = 8
+#: Points per boundary edge at which :func:`guided_border_data` reads the border's offset (each node's datum
+#: their hat-weighted mean over its two edges, as :func:`border_node_data` averages the landmarks on them).
+GUIDED_SAMPLES_PER_EDGE = 4
 
 
 def contour_landmark_tracks(masks, spacing_px: float = LANDMARK_SPACING_PX,
@@ -93,6 +103,18 @@ def landmark_sd(tracks: BoundaryTracks, normal_sd_px: float) -> tuple:
     return s_n, s_t, floor
 
 
+def _node_normals(mesh: TriMesh) -> np.ndarray:
+    """(n_nodes, 2) outward normals of the border nodes, unnormalised (the sum of their two boundary edges'
+    unit normals); zero off the border."""
+    edges = mesh.boundary_edges()
+    e = mesh.nodes[edges[:, 1]] - mesh.nodes[edges[:, 0]]
+    out = np.column_stack([e[:, 1], -e[:, 0]]) / np.linalg.norm(e, axis=1, keepdims=True)   # tissue on the left
+    normal = np.zeros((mesh.n_nodes, 2))
+    np.add.at(normal, edges[:, 0], out)
+    np.add.at(normal, edges[:, 1], out)
+    return normal
+
+
 def border_node_data(mesh: TriMesh, D, displacement_px, sd_normal_px, sd_tangent_px, pixel_size_m: float) -> tuple:
     """The landmarks' motion as data on the border nodes: each node's normal and tangential displacement.
 
@@ -134,12 +156,7 @@ def border_node_data(mesh: TriMesh, D, displacement_px, sd_normal_px, sd_tangent
         The border nodes with data.
     """
     s = positive("pixel_size_m", pixel_size_m, "m")
-    edges = mesh.boundary_edges()
-    e = mesh.nodes[edges[:, 1]] - mesh.nodes[edges[:, 0]]
-    out = np.column_stack([e[:, 1], -e[:, 0]]) / np.linalg.norm(e, axis=1, keepdims=True)   # tissue on the left
-    normal = np.zeros((mesh.n_nodes, 2))
-    np.add.at(normal, edges[:, 0], out)
-    np.add.at(normal, edges[:, 1], out)
+    normal = _node_normals(mesh)
     Wx = sp.csr_matrix(D)[0::2, 0::2].toarray()                          # (L, n_nodes) hat weights
     Wx[Wx < 1e-6] = 0.0
     total = Wx.sum(axis=0)
@@ -175,28 +192,32 @@ class BorderData:
     H : (m, n_dofs) sparse matrix
         Row ``n_a`` (and ``t_a`` with tangential data) on border node a's dofs, node by node.
     y : (F, m) array
-        The data (m): each node's hat-weighted mean landmark motion across (and along) the border.
+        The data (m): each node's motion across (and along) the border, the hat-weighted mean of its
+        landmarks' (:func:`mask_border_data`) or the border's offset at the point a guide names
+        (:func:`guided_border_data`).
     R : (F, m, m) array
         Their diagonal covariance (m^2).
     nodes : (k,) int array
         The border nodes with data.
-    tracks : BoundaryTracks
-        The landmarks tracked through the masks (index 0 the reference).
+    tracks : BoundaryTracks or None
+        The landmarks tracked through the masks (index 0 the reference); None for guided data.
     sd_normal_px, sd_tangent_px : (F, L) arrays
-        The landmarks' sd across and along the border (pixels).
+        The landmarks' sd across and along the border (pixels); for guided data the nodes' sd
+        across, (F, k), and None along.
     floor_px : float
-        The temporal noise floor of the landmarks' motion across the border (pixels).
+        The temporal noise floor of the data's motion across the border (pixels).
     moved_m : (L,) array
-        How far each landmark was moved into the mesh (m, :func:`observation_points`).
+        How far each landmark was moved into the mesh (m, :func:`observation_points`); empty for
+        guided data.
     """
 
     H: sp.csr_matrix
     y: np.ndarray
     R: np.ndarray
     nodes: np.ndarray
-    tracks: BoundaryTracks
+    tracks: BoundaryTracks | None
     sd_normal_px: np.ndarray
-    sd_tangent_px: np.ndarray
+    sd_tangent_px: np.ndarray | None
     floor_px: float
     moved_m: np.ndarray
 
@@ -271,3 +292,102 @@ def mean_border_data(data) -> BorderData:
     return BorderData(H=sp.csr_matrix(d0.H[rows[0]]), y=y, R=R, nodes=nodes, tracks=d0.tracks,
                       sd_normal_px=d0.sd_normal_px, sd_tangent_px=d0.sd_tangent_px,
                       floor_px=float(np.mean([d.floor_px for d in data])), moved_m=d0.moved_m)
+
+
+def guided_border_data(mesh: TriMesh, frame_masks, guide_px, pixel_size_m: float,
+                       normal_sd_px: float = QUANTISATION_SD_PX) -> BorderData:
+    """The masks' data on the border nodes, each node's place along the border named by a guide.
+
+    Landmarks tracked by bending-energy matching (:func:`mask_border_data`) find where each border
+    point went from the contours' shape alone; along a smooth stretch of border nothing holds them,
+    they slide, and a slid landmark's motion projected on the reference normal misreads the border's
+    motion across itself (the error grows as the slide squared over the border's radius). A guide
+    that knows the motion along the border (the phase data's own estimate, which sees it well)
+    removes the search: at frame ``t`` the guide puts a border point of reference position ``X`` at
+    ``p = X + g_t(X)``; the frame's mask border (the endocardial contour for a point of the
+    endocardium, the epicardial for one of the epicardium) is searched for its point ``q`` nearest
+    to ``p`` (:func:`sfem_filters.geometry.nearest_on_closed_polyline`), and ``q - X`` is the
+    border's motion at the material point the guide names. Border node ``a`` (outward normal
+    ``n_a``) observes ``n_a . (q - X)`` averaged with hat weights over
+    :data:`GUIDED_SAMPLES_PER_EDGE` points on each of its two boundary edges (the guide interpolated
+    linearly along the edge), as :func:`border_node_data` averages the landmarks on them: a local
+    mean over the node's support, not one point of the binary border's staircase. The guide's error
+    across the border does not enter (``q`` lies on the mask's border wherever ``p`` is); its error
+    along the border moves ``q`` along the border and changes the datum by that error times the
+    border's turn between ``X`` and ``q``, a small fraction of it. The masks alone say where the
+    border is.
+
+    Sd across the border: the larger of ``normal_sd_px`` (a binary border's quantisation) and the
+    data's own temporal noise floor (:func:`sfem_filters.cardiac.dense_model.temporal_noise_floor`),
+    the rule of :func:`landmark_sd`. Normal data only (the guide, not the masks, knows the motion
+    along the border).
+
+    Parameters
+    ----------
+    mesh : TriMesh
+        Mesh of the reference myocardium (m): an annulus (:func:`sfem_filters.cardiac.myocardium.lv_geometry`).
+    frame_masks : (F, H, W) bool array
+        Each frame's myocardium mask (the frames after the reference).
+    guide_px : (F, n_nodes, 2) array
+        The guide's displacement of every mesh node at each frame (pixels, x = column, y = row).
+    pixel_size_m : float
+        Pixel size (m).
+    normal_sd_px : float
+        Least sd across the border (pixels).
+
+    Returns
+    -------
+    BorderData
+        One row per border node (``tracks`` None, ``sd_tangent_px`` None).
+    """
+    s = positive("pixel_size_m", pixel_size_m, "m")
+    sd0 = positive("normal_sd_px", normal_sd_px, "pixels")
+    m = np.asarray(frame_masks, bool)
+    if m.ndim != 3:
+        raise ValueError(f"frame_masks: expected (F, H, W) masks, got shape {m.shape}")
+    F = m.shape[0]
+    g = np.asarray(guide_px, float)
+    if g.shape != (F, mesh.n_nodes, 2):
+        raise ValueError(f"guide_px: expected the displacement of the mesh's {mesh.n_nodes} nodes at the masks' {F} "
+                         f"frames, (F, n_nodes, 2) = ({F}, {mesh.n_nodes}, 2), got shape {g.shape}")
+    geometry = lv_geometry(mesh)
+    normal = _node_normals(mesh)
+    X = mesh.nodes / s
+    t = (np.arange(GUIDED_SAMPLES_PER_EDGE) + 0.5) / GUIDED_SAMPLES_PER_EDGE          # along each edge
+    curves, samples = [], []
+    for side, edges in enumerate((geometry.endo_edges, geometry.epi_edges)):
+        e = np.asarray(edges)
+        if not np.all(np.isfinite(g[:, e.ravel()])):
+            raise ValueError("guide_px: expected a finite displacement of every border node at every frame")
+        length = float(np.sum(np.linalg.norm(X[e[:, 1]] - X[e[:, 0]], axis=1)))
+        curves.append(max(64, int(np.ceil(GUIDED_VERTICES_PER_PX * length))))
+        samples.append(e)
+    nodes = np.unique(np.concatenate([e.ravel() for e in samples]))
+    n = normal[nodes] / np.linalg.norm(normal[nodes], axis=1, keepdims=True)
+    where = np.full(mesh.n_nodes, -1)
+    where[nodes] = np.arange(len(nodes))
+    d = np.zeros((F, len(nodes)))
+    weight = np.zeros(len(nodes))
+    for e in samples:                                   # the hat weights of each sample on its edge's two nodes
+        for end, w in ((0, 1.0 - t), (1, t)):
+            np.add.at(weight, np.repeat(where[e[:, end]], len(t)), np.tile(w, len(e)))
+    for f in range(F):
+        b = mask_borders(m[f], curves[0], curves[1], name=f"masks[{f + 1}]")
+        for e, curve in zip(samples, (b.endo, b.epi)):
+            Xs = (X[e[:, 0], None] * (1.0 - t)[:, None] + X[e[:, 1], None] * t[:, None]).reshape(-1, 2)
+            gs = (g[f, e[:, 0], None] * (1.0 - t)[:, None] + g[f, e[:, 1], None] * t[:, None]).reshape(-1, 2)
+            off = nearest_on_closed_polyline(curve, Xs + gs) - Xs        # the border's motion at each sample
+            for end, w in ((0, 1.0 - t), (1, t)):
+                k = np.repeat(where[e[:, end]], len(t))
+                np.add.at(d[f], k, np.tile(w, len(e)) * np.sum(n[k] * off, axis=1))
+    d /= weight
+    floor = temporal_noise_floor(d[..., None]) if F >= 3 else 0.0
+    sd = np.full(d.shape, max(sd0, floor))
+    k = len(nodes)
+    R = np.zeros((F, k, k))
+    R[:, np.arange(k), np.arange(k)] = (sd * s) ** 2
+    rows = np.repeat(np.arange(k), 2)
+    cols = np.column_stack([2 * nodes, 2 * nodes + 1]).ravel()
+    H = sp.csr_matrix((n.ravel(), (rows, cols)), shape=(k, mesh.n_dofs))
+    return BorderData(H=H, y=d * s, R=R, nodes=nodes, tracks=None, sd_normal_px=sd, sd_tangent_px=None,
+                      floor_px=float(floor), moved_m=np.zeros(0))

@@ -21,7 +21,7 @@ from ..fem.mesh import TriMesh
 from ..fem.observation import blurred_observation_matrix, point_observation_matrix, sample_interpolation
 from ..fem.polygon_mesh import polygon_mesh
 from ..filtering.linearised import linearise
-from ..filtering.smoother import kalman_forward
+from ..filtering.smoother import kalman_forward, smooth_backward
 from ..imaging.contours import mask_borders
 from ..imaging.dense import LagrangianDisplacement, BackgroundSignal, psf_samples
 from ..model import SFEMModel
@@ -33,8 +33,8 @@ from .strain_bands import noise_scale
 __all__ = ["MESHES", "INFORMATION_FLOOR", "RELAXATION_CYCLES", "PROCESS_FRACTIONS", "reference_mesh",
            "observation_points", "nodal_fit", "NodalFitModel", "compliant_modulus", "temporal_noise_floor",
            "build_dense_model", "concentrated_log_evidence", "process_fraction_ml", "observation_operator",
-           "ObservationScaling", "phase_noise_level", "PROCESS_PROFILES", "PROFILE_HARMONICS", "smooth_motion_basis",
-           "process_profile_from_data"]
+           "ObservationScaling", "phase_noise_level", "phase_only_pass", "mask_noise_level_ml", "MASK_LEVELS",
+           "PROCESS_PROFILES", "PROFILE_HARMONICS", "smooth_motion_basis", "process_profile_from_data"]
 
 #: How the reference myocardium is meshed (``mesh=``).
 MESHES = ("gmsh", "pixels")
@@ -44,6 +44,9 @@ INFORMATION_FLOOR = 1e-8
 RELAXATION_CYCLES = 10.0
 #: Candidates of the process noise fraction compared by their evidence (:func:`process_fraction_ml`).
 PROCESS_FRACTIONS = (0.1, 0.3, 1.0, 3.0)
+#: Candidate factors on the masks' variance compared by their evidence (:func:`mask_noise_level_ml`): from
+#: masks far better than their stated sd (a border node's datum averages its support) to masks drawn worse.
+MASK_LEVELS = (1.0 / 64, 1.0 / 16, 1.0 / 4, 1.0, 4.0, 16.0)
 #: How the process noise varies over the frame intervals (``StrainRouteSettings.process_profile``).
 PROCESS_PROFILES = ("constant", "data")
 #: Angular harmonics of the smooth motion whose acceleration sets the ``"data"`` profile: up to 3, what six
@@ -601,7 +604,7 @@ def _stack_border(H, y, R, border, mesh: TriMesh, pixel_size_m: float) -> tuple:
     Rs[:, n:, n:] = Rb
     sd = np.sqrt(np.diagonal(Rb, axis1=1, axis2=2))
     info = {"border_rows": int(m), "border_nodes": int(len(border.nodes)),
-            "border_landmarks": int(len(border.tracks.points)),
+            "border_landmarks": None if border.tracks is None else int(len(border.tracks.points)),
             "border_sd_px_range": [float(sd.min() / pixel_size_m), float(sd.max() / pixel_size_m)],
             "border_normal_noise_floor_px": float(border.floor_px)}
     return sp.vstack([H, Hb], format="csr"), np.hstack([y, yb]), Rs, info
@@ -621,10 +624,35 @@ def phase_noise_level(mesh: TriMesh, tracks: LagrangianDisplacement, pixel_size_
     (which holds neither the phase texture's correlation nor the tracks' bias, and so comes out
     several times too small on DENSE-Sim: the route's ``noise_scale_ml``).
     """
-    model, y, _, _ = build_dense_model(mesh, tracks, pixel_size_m, settings, background)
-    fw = kalman_forward(linearise(model, np.zeros((y.shape[0], model.dim_x))), y, store=False,
-                        check_every_frame=False)
-    return noise_scale(fw.nis, fw.n_obs)
+    return phase_only_pass(mesh, tracks, pixel_size_m, settings, background)[0]
+
+
+def phase_only_pass(mesh: TriMesh, tracks: LagrangianDisplacement, pixel_size_m: float,
+                    settings: StrainRouteSettings, background=None, smooth: bool = False) -> tuple:
+    """One filter pass of the phase data alone: their own noise level and, with ``smooth``, their smoothed motion.
+
+    The noise level is :func:`phase_noise_level`'s (the mean normalised innovation squared); the
+    smoothed nodal displacements (RTS means of the same pass, which no common noise level changes)
+    are the guide of the masks' border data (:func:`sfem_filters.cardiac.border_data.guided_border_data`:
+    where each border node is along the border).
+
+    Returns
+    -------
+    (c, U)
+        ``c`` the level (dimensionless); ``U`` (F, n_nodes, 2) the smoothed displacement of every
+        node in pixels, or None without ``smooth``.
+    """
+    s = positive("pixel_size_m", pixel_size_m, "m")
+    model, y, _, _ = build_dense_model(mesh, tracks, s, settings, background)
+    lin = linearise(model, np.zeros((y.shape[0], model.dim_x)))
+    fw = kalman_forward(lin, y, store="mean" if smooth else False, check_every_frame=False)
+    c = noise_scale(fw.nis, fw.n_obs)
+    if not smooth:
+        return c, None
+    states = lin.to_model(smooth_backward(lin, fw).smoothed[:, :model.n_restart])
+    U = np.zeros((y.shape[0], mesh.n_dofs))
+    U[:, model.dofmap.free] = states[:, :model.dim_x // 2]
+    return c, U.reshape(y.shape[0], mesh.n_nodes, 2) / s
 
 
 def _wall_thickness(mesh: TriMesh) -> float:
@@ -651,6 +679,72 @@ def concentrated_log_evidence(log_likelihood: float, nis_sum: float, n_obs: int)
         raise ValueError(f"nis_sum, n_obs: expected a positive NIS sum over some observed rows, got {nis_sum}, {n}")
     c = float(nis_sum) / n
     return float(log_likelihood) + 0.5 * float(nis_sum) - 0.5 * n * np.log(c) - 0.5 * n, c
+
+
+def _concentrated_evidence_of(model, y) -> tuple:
+    """One Kalman filter pass of ``model`` (nothing stored): its :func:`concentrated_log_evidence` and ``c``."""
+    fw = kalman_forward(linearise(model, np.zeros((y.shape[0], model.dim_x))), y, store=False, check_every_frame=False)
+    return concentrated_log_evidence(fw.log_likelihood, float(np.nansum(fw.nis)), int(np.sum(fw.n_obs)))
+
+
+def _best_on_log_grid(values, evidence) -> float:
+    """The candidate of largest evidence, refined by the vertex of the parabola through it and its two neighbours
+    in log (kept within them) when it is not at an end of the grid."""
+    k = int(np.argmax(evidence))
+    if 0 < k < len(values) - 1:
+        x = np.log(values[k - 1:k + 2])
+        a, b, _ = np.polyfit(x, evidence[k - 1:k + 2], 2)
+        return float(np.exp(np.clip(-b / (2 * a), x[0], x[2]))) if a < 0 else float(values[k])
+    return float(values[k])
+
+
+def mask_noise_level_ml(mesh: TriMesh, tracks: LagrangianDisplacement, pixel_size_m: float,
+                        settings: StrainRouteSettings, border, phase_scale: float = 1.0, background=None,
+                        candidates=MASK_LEVELS, progress=None) -> tuple:
+    """The masks' noise level beside the phase data's, by type-II maximum likelihood (variance components).
+
+    The fused model (:func:`build_dense_model` with ``border``) is run, one Kalman filter pass each,
+    with the masks' covariance ``R_b`` times each candidate factor, the phase data's covariances at
+    ``phase_scale`` (their own level, :func:`phase_noise_level`); the common noise level is profiled
+    out (:func:`concentrated_log_evidence`), so what is compared is how the data's variance divides
+    between the two sources. The best candidate is refined by the parabola in ``log`` factor through
+    it and its neighbours. The masks' stated sd (a binary border's quantisation, or the border data's
+    own temporal noise floor) says nothing of how well the masks were drawn, nor of how much the
+    averaging over a border node's support removes; the evidence of both sources together does (a
+    mask whose border disagrees with the phase data's motion from frame to frame is given less
+    weight, one that agrees more). What it cannot see is an error the masks and the phase data share,
+    or one the motion's smoothness absorbs.
+
+    Parameters
+    ----------
+    border : BorderData
+        The masks' data on this mesh (:func:`sfem_filters.cardiac.border_data.guided_border_data` or
+        :func:`~sfem_filters.cardiac.border_data.mask_border_data`).
+    phase_scale : float
+        The phase data's level (dimensionless).
+    candidates : sequence of float
+        Factors on the masks' variance (dimensionless, > 0).
+
+    Returns
+    -------
+    (factor, table)
+        The chosen factor on ``R_b`` and ``{candidate: [log-evidence, c]}``.
+    """
+    say = progress if progress is not None else (lambda msg: None)
+    fs = sorted(float(positive("candidates", v)) for v in candidates)
+    if not fs:
+        raise ValueError("candidates: expected at least one factor on the masks' variance, got none")
+    if not hasattr(border, "R"):
+        raise TypeError(f"border: expected a BorderData, got {type(border).__name__}")
+    table, evid = {}, []
+    for f in fs:
+        model, y, _, _ = build_dense_model(mesh, tracks, pixel_size_m, settings, background,
+                                           replace(border, R=border.R * f), phase_scale=phase_scale)
+        ev, c = _concentrated_evidence_of(model, y)
+        table[f] = [ev, c]
+        evid.append(ev)
+        say(f"masks' variance x {f:g}: log-evidence {ev:.1f}")
+    return _best_on_log_grid(np.array(fs), np.array(evid)), table
 
 
 def process_fraction_ml(mesh: TriMesh, tracks: LagrangianDisplacement, pixel_size_m: float,
@@ -687,17 +781,8 @@ def process_fraction_ml(mesh: TriMesh, tracks: LagrangianDisplacement, pixel_siz
     for q in qs:
         model, y, _, _ = build_dense_model(mesh, tracks, pixel_size_m, replace(settings, process_fraction=q),
                                            background, border)
-        fw = kalman_forward(linearise(model, np.zeros((y.shape[0], model.dim_x))), y, store=False,
-                            check_every_frame=False)
-        ev, c = concentrated_log_evidence(fw.log_likelihood, float(np.nansum(fw.nis)), int(np.sum(fw.n_obs)))
+        ev, c = _concentrated_evidence_of(model, y)
         table[q] = [ev, c]
         evid.append(ev)
         say(f"process fraction {q:g}: log-evidence {ev:.1f} (noise scale {c:.2f})")
-    k = int(np.argmax(evid))
-    if 0 < k < len(qs) - 1:
-        x = np.log(qs[k - 1:k + 2])
-        a, b, _ = np.polyfit(x, evid[k - 1:k + 2], 2)
-        best = float(np.exp(np.clip(-b / (2 * a), x[0], x[2]))) if a < 0 else qs[k]
-    else:
-        best = qs[k]
-    return best, table
+    return _best_on_log_grid(np.array(qs), np.array(evid)), table

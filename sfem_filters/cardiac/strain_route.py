@@ -43,12 +43,20 @@ The DENSE route of issue 42 (items 3 and 4), as a library function, :func:`dense
    *Fused with the masks* (``border_masks=True``, ``masks=`` of every frame; Shi & Liu's fusion
    of shape tracking with phase-contrast data in one filter): the endocardial border of a mask
    shows the wall's thickening directly, free of the cavity signal that leaks into the
-   endocardial pixels' phase through the point spread. The masks' data are the contours route's,
-   exactly (:func:`border_masks_data`, :mod:`sfem_filters.cardiac.border_data`): landmarks of
-   the reference mask's borders tracked through the masks by bending-energy matching, each
-   border node's motion *across* the border (the masks do not see the sliding along it), sd the
-   larger of the mask's quantisation ``1 / sqrt(12)`` px and the landmarks' own temporal noise
-   floor across the border. They are stacked below the nodal fit (``H = [I; H_b]``, ``R_t =
+   endocardial pixels' phase through the point spread. The masks' datum is each border node's
+   motion *across* the border (the masks do not see the sliding along it), sd the larger of the
+   mask's quantisation ``1 / sqrt(12)`` px and the data's own temporal noise floor across the
+   border (:func:`border_masks_data`, :mod:`sfem_filters.cardiac.border_data`). Which point of a
+   frame's border a node has become, the masks alone cannot say; the phase data can. So by
+   default (``border_correspondence="phase"``) one filter and RTS pass of the phase data alone
+   (:func:`sfem_filters.cardiac.dense_model.phase_only_pass`, which also gives their noise level
+   below) places each border point, and the datum is the mask border's offset across itself
+   there (:func:`sfem_filters.cardiac.border_data.guided_border_data`: the guide's error across
+   the border does not enter, its error along the border only at second order). The contours
+   route's landmarks, tracked through the masks by bending-energy matching
+   (``border_correspondence="landmarks"``), must find that correspondence from the contours'
+   shape alone and slide along smooth borders, where their motion projected on the reference
+   normal misreads the border's (the validation page's ablation row). They are stacked below the nodal fit (``H = [I; H_b]``, ``R_t =
    blockdiag(J_t^-1, R_b,t)``, :func:`build_dense_model`): independent data of the same
    displacement, so the two likelihoods add and the smoother weighs each by its own noise. The
    masks are of the current frame and the landmarks are Lagrangian, so no Eulerian inversion is
@@ -59,11 +67,17 @@ The DENSE route of issue 42 (items 3 and 4), as a library function, :func:`dense
    phase data's stated sd is several times too small, and the masks' has no such factor. So
    ``phase_noise_level="evidence"`` first scales the phase data's covariances (R, process,
    initial) by their own type-II ML level from one filter pass without the masks
-   (:func:`phase_noise_level`; alone this factor changes no estimate), then stacks the masks at
-   theirs: each source weighed by the noise it shows. Which to use is an empirical question the
-   masks' own accuracy decides (masks that under-report the thickening pull the estimate down);
-   with images, :func:`image_settings` fuses the masks whenever they move, at the evidence level
-   (the command line's default, :func:`dense_case_strain`).
+   (:func:`phase_noise_level`; alone this factor changes no estimate), then stacks the masks.
+   Their stated sd (a binary border's quantisation) says nothing of how well the masks were drawn
+   nor of how much a node's datum, a mean over its support, averages out; so
+   ``mask_noise_level="evidence"`` scales the masks' covariance by the factor of largest evidence
+   of the fused model (:func:`sfem_filters.cardiac.dense_model.mask_noise_level_ml`: variance
+   components by type-II ML, one filter pass per candidate of
+   :data:`~sfem_filters.cardiac.dense_model.MASK_LEVELS`, the common level profiled out): each
+   source weighed by the noise it shows. The evidence sees how the two sources disagree from frame
+   to frame, not an error both share or one the motion's smoothness absorbs. With images,
+   :func:`image_settings` fuses the masks whenever they move, both at their evidence levels (the
+   command line's default, :func:`dense_case_strain`).
 3. **Estimator.** :class:`sfem_filters.model.SFEMModel` (plane-strain linear elasticity, Eq. 19)
    estimated by the Kalman filter and RTS smoother (:mod:`sfem_filters.filtering.smoother`): with
    the material fixed the model is linear and its MAP is one Kalman-RTS pass (what
@@ -204,11 +218,11 @@ from ..imaging.dense import DenseCase, LagrangianDisplacement, background_signal
 from ..imaging.strain import N_SEGMENTS, Z95, StrainEstimate, displacement_gradient, global_curve, green_strain, \
     json_list, mask_centre, project_strain, segment_labels
 from ..resources import limits_blas_threads
-from .border_data import BorderData, contour_landmark_tracks, mask_border_data, mean_border_data
+from .border_data import BorderData, contour_landmark_tracks, guided_border_data, mask_border_data, mean_border_data
 from .dense_model import INFORMATION_FLOOR, MESHES, PROCESS_FRACTIONS, PROCESS_PROFILES, RELAXATION_CYCLES, \
     NodalFitModel, build_dense_model, compliant_modulus, concentrated_log_evidence, nodal_fit, observation_points, \
-    ObservationScaling, observation_operator, phase_noise_level, process_fraction_ml, process_profile_from_data, \
-    reference_mesh, temporal_noise_floor
+    MASK_LEVELS, ObservationScaling, mask_noise_level_ml, observation_operator, phase_noise_level, phase_only_pass, \
+    process_fraction_ml, process_profile_from_data, reference_mesh, temporal_noise_floor
 from .measured import NOMINAL
 from .strain_bands import STRAINS, _component_rows, _covariance_from_blocks, curve_noise_variance, \
     discrepancy_variance, element_gradient_operator, gradient_operators, linearised_disagreement, linearised_rows, \
@@ -222,13 +236,16 @@ __all__ = ["StrainRouteSettings", "DenseStrain", "NodalFitModel", "reference_mes
            "RELAXATION_CYCLES", "Z95", "STRAINS", "gradient_operators", "point_variance", "discrepancy_variance",
            "noise_scale", "DenseRouteStrain", "linearised_disagreement", "curve_noise_variance", "curve_discrepancy",
            "PROCESS_FRACTIONS", "process_fraction_ml", "concentrated_log_evidence", "observation_operator",
-           "ObservationScaling", "border_masks_data", "phase_noise_level", "PHASE_NOISE_LEVELS", "PROCESS_PROFILES",
+           "ObservationScaling", "border_masks_data", "phase_noise_level", "PHASE_NOISE_LEVELS",
+           "BORDER_CORRESPONDENCES", "PROCESS_PROFILES",
            "process_profile_from_data", "image_settings", "route_settings", "dense_case_strain",
            "masks_move", "masks_can_be_fused"]
 
 
 #: How the phase data's noise level is set beside the masks (``StrainRouteSettings.phase_noise_level``).
 PHASE_NOISE_LEVELS = ("stated", "evidence")
+#: How each border node's place along the masks' border is found (``StrainRouteSettings.border_correspondence``).
+BORDER_CORRESPONDENCES = ("phase", "landmarks")
 
 
 @dataclass(frozen=True)
@@ -287,11 +304,27 @@ class StrainRouteSettings:
         border node's motion across the border, from landmarks tracked through the masks by
         bending-energy matching, with the contours route's sd, stacked with the phase data in one
         model (module docstring, step 2, *fused with the masks*). Default False: the phase alone.
+    mask_noise_level : {"stated", "evidence"}
+        With ``border_masks``: the level of the masks' data beside the phase data's. ``"stated"``
+        (default): their sd by the contours route's rule (a binary border's quantisation or the data's
+        own temporal noise floor). ``"evidence"``: that variance times the factor of largest
+        evidence of the fused model among :data:`~sfem_filters.cardiac.dense_model.MASK_LEVELS`
+        (:func:`~sfem_filters.cardiac.dense_model.mask_noise_level_ml`, one filter pass each, the
+        common level profiled out), so that the masks, too, are weighed by the noise they show.
+    border_correspondence : {"phase", "landmarks"}
+        With ``border_masks``: how each border node's place along the masks' border is found.
+        ``"phase"`` (default): named by the phase data's own smoothed motion (one filter and RTS
+        pass of the phase data alone), the datum the mask border's offset across itself there
+        (:func:`sfem_filters.cardiac.border_data.guided_border_data`). ``"landmarks"``: landmarks
+        tracked through the masks by bending-energy matching, the contours route's data
+        (:func:`sfem_filters.cardiac.border_data.mask_border_data`; the route's default before the
+        validation page measured both: along a smooth border the landmarks slide).
     border_starts : int
-        With ``border_masks``: the masks' border data are the mean over this many contour start
-        angles spread evenly about the cavity (:func:`sfem_filters.cardiac.border_data.mean_border_data`),
-        so that they do not depend on where the contours happen to start, i.e. on how the heart
-        lies on the image grid. Default 1: the start at the +x direction alone.
+        With ``border_correspondence="landmarks"``: the masks' border data are the mean over this
+        many contour start angles spread evenly about the cavity
+        (:func:`sfem_filters.cardiac.border_data.mean_border_data`), so that they do not depend on
+        where the contours happen to start, i.e. on how the heart lies on the image grid. Default
+        1: the start at the +x direction alone.
     process_profile : {"data", "constant"}
         How the process noise varies over the frame intervals. ``"data"`` (default): each
         interval's process sd the larger of the level of ``process_fraction`` and the one the
@@ -324,6 +357,8 @@ class StrainRouteSettings:
     phase_noise_level: str = "stated"
     process_profile: str = "data"
     border_starts: int = 1
+    border_correspondence: str = "phase"
+    mask_noise_level: str = "stated"
 
     def __post_init__(self):
         if self.mesh not in MESHES:
@@ -340,11 +375,23 @@ class StrainRouteSettings:
         if self.phase_noise_level == "evidence" and not self.border_masks:
             raise ValueError("phase_noise_level: 'evidence' weighs the phase data against the masks; it needs "
                              "border_masks=True (alone, a common level changes no estimate: noise_scale does that)")
+        if self.mask_noise_level not in PHASE_NOISE_LEVELS:
+            raise ValueError(f"mask_noise_level: expected one of {PHASE_NOISE_LEVELS}, got {self.mask_noise_level!r}")
+        if self.mask_noise_level == "evidence" and not self.border_masks:
+            raise ValueError("mask_noise_level: 'evidence' weighs the masks against the phase data; it needs "
+                             "border_masks=True")
         positive("element_px", self.element_px, "pixels")
         object.__setattr__(self, "border_starts", integer("border_starts", self.border_starts, 1))
         if self.border_starts > 1 and not self.border_masks:
             raise ValueError(f"border_starts: averages the masks' border data over contour starts; it needs "
                              f"border_masks=True, got border_starts={self.border_starts} without the masks")
+        if self.border_correspondence not in BORDER_CORRESPONDENCES:
+            raise ValueError(f"border_correspondence: expected one of {BORDER_CORRESPONDENCES}, got "
+                             f"{self.border_correspondence!r}")
+        if self.border_starts > 1 and self.border_correspondence != "landmarks":
+            raise ValueError(f"border_starts: averages tracked landmarks over contour starts; it needs "
+                             f"border_correspondence='landmarks', got border_starts={self.border_starts} with "
+                             f"{self.border_correspondence!r} (guided border data have no contour start)")
         object.__setattr__(self, "resolution_px", check_resolution_px(self.resolution_px))
         if self.E is not None:
             positive("E", self.E, "Pa")
@@ -422,10 +469,14 @@ def curve_discrepancy(diffs, estimates) -> np.ndarray:
 
 
 def border_masks_data(masks, reference_mask, n_frames: int, mesh: TriMesh, pixel_size_m: float,
-                      starts: int = 1) -> BorderData:
+                      starts: int = 1, guide_px=None) -> BorderData:
     """The myocardium masks as border-node data on the DENSE route's mesh (module docstring, step 2).
 
-    The contours route's data exactly (:func:`sfem_filters.cardiac.border_data.mask_border_data`,
+    With ``guide_px`` (F, n_nodes, 2), the displacement of every node in pixels (the phase data's
+    own smoothed motion, :func:`sfem_filters.cardiac.dense_model.phase_only_pass`): each border
+    node's datum is the frame's mask border's offset across itself at the point the guide names
+    (:func:`sfem_filters.cardiac.border_data.guided_border_data`; ``starts`` must be 1). Without it,
+    the contours route's data exactly (:func:`sfem_filters.cardiac.border_data.mask_border_data`,
     its default landmark spacing, least landmarks and sd rule: the larger of the mask's
     quantisation and the landmarks' own temporal noise floor across the border; no number chosen
     here); with ``starts > 1``, their mean over that many contour start angles spread evenly about
@@ -461,6 +512,10 @@ def border_masks_data(masks, reference_mask, n_frames: int, mesh: TriMesh, pixel
     if empty.size:
         raise ValueError(f"masks: expected myocardium in every frame's mask, got none in mask(s) {empty.tolist()}")
     k = integer("starts", starts, 1)
+    if guide_px is not None:
+        if k > 1:
+            raise ValueError(f"starts: guided border data have no contour start; expected 1, got {k}")
+        return guided_border_data(mesh, m[1:], guide_px, pixel_size_m)
     data = [mask_border_data(mesh, contour_landmark_tracks(m), pixel_size_m)]   # warns of a mended mask
     if k > 1:
         mended = np.stack([repair_myocardium_mask(f, f"masks[{t}]")[0] for t, f in enumerate(m)])
@@ -525,8 +580,19 @@ def dense_strain(tracks: LagrangianDisplacement, reference_mask, pixel_size_m: f
             "tissue's")
     say(f"meshing the reference myocardium ({cfg.mesh}, {cfg.element_px:g} px)")
     mesh = reference_mesh(mask, s, cfg.mesh, cfg.element_px)
-    border = None
-    if cfg.border_masks:
+    border, guide, c_phase = None, None, None
+    if cfg.border_masks and cfg.border_correspondence == "phase":
+        say("the phase data alone (one filter and smoother pass): their own noise level, and where each border "
+            "node is along the masks' border")
+        # with the process level still to be chosen (by evidence, with the masks' rows), the guide takes the default
+        q_guide = StrainRouteSettings.process_fraction if cfg.process_fraction is None else cfg.process_fraction
+        c_phase, guide = phase_only_pass(mesh, tracks, s, replace(cfg, process_fraction=q_guide), background,
+                                         smooth=True)
+        if cfg.process_fraction is None:
+            c_phase = None                   # the level is re-measured below at the chosen process noise
+        say("the myocardium masks' borders at those points: their offset across the border joins the phase data")
+        border = border_masks_data(masks, mask, tracks.displacement.shape[0], mesh, s, guide_px=guide)
+    elif cfg.border_masks:
         say("tracking the myocardium masks' borders (bending energy, Eqs. 35-37): their motion across the border "
             "joins the phase data")
         border = border_masks_data(masks, mask, tracks.displacement.shape[0], mesh, s, starts=cfg.border_starts)
@@ -535,10 +601,16 @@ def dense_strain(tracks: LagrangianDisplacement, reference_mask, pixel_size_m: f
         say(f"choosing the process noise by its evidence ({len(PROCESS_FRACTIONS)} filter passes)")
         q_ml, q_table = process_fraction_ml(mesh, tracks, s, cfg, progress=say, background=background, border=border)
         cfg = replace(cfg, process_fraction=q_ml)
-    c_phase = 1.0
-    if cfg.phase_noise_level == "evidence":
+    if cfg.phase_noise_level != "evidence":
+        c_phase = 1.0
+    elif c_phase is None:
         say("the phase data's own noise level by its evidence (one filter pass without the masks)")
         c_phase = phase_noise_level(mesh, tracks, s, cfg, background)
+    mask_table, f_mask = None, 1.0
+    if cfg.mask_noise_level == "evidence":
+        say(f"the masks' noise level beside the phase data's by their evidence ({len(MASK_LEVELS)} filter passes)")
+        f_mask, mask_table = mask_noise_level_ml(mesh, tracks, s, cfg, border, c_phase, background, progress=say)
+        border = replace(border, R=border.R * f_mask)
     say(f"mesh: {mesh.n_nodes} nodes, {mesh.n_elements} triangles; building the model")
     model, y, info, Xin = build_dense_model(mesh, tracks, s, cfg, background, border, phase_scale=c_phase)
     F, P = tracks.displacement.shape[:2]
@@ -650,6 +722,10 @@ def dense_strain(tracks: LagrangianDisplacement, reference_mask, pixel_size_m: f
                     "nis_excess_frames": [[int(a), int(b)] for a, b in excess],
                     "process_fraction_evidence": ({f"{k:g}": v for k, v in q_table.items()} if q_table
                                                   else "fixed by the settings"),
+                    "mask_noise_scale": f_mask,
+                    "mask_noise_evidence": ({f"{k:g}": v for k, v in mask_table.items()} if mask_table
+                                            else "the masks at their stated level" if cfg.border_masks
+                                            else "no masks"),
                     "discrepancy_sd": {"what": "[tau0 (fraction), k (relative)], tau_t^2 = tau0^2 + k^2 m_t^2; "
                                                "one model for the global curve, one for the six segments",
                                        **tau_report}}
@@ -750,8 +826,9 @@ def image_settings(case, **overrides) -> StrainRouteSettings:
       motion across the border joins the phase data, which the point spread biases at the
       endocardium; with one mask for every frame there is nothing to fuse; False, with a warning,
       when a frame's mask is not a ring that can be mended (:func:`masks_can_be_fused`);
-    * ``phase_noise_level``: ``"evidence"`` with the masks (each source weighed by the noise it
-      shows);
+    * ``phase_noise_level`` and ``mask_noise_level``: ``"evidence"`` with the masks (each source
+      weighed by the noise it shows: the phase data's level from a pass of their own, the masks'
+      beside it from the fused model's evidence);
     * ``process_profile``: ``"data"`` (the :class:`StrainRouteSettings` default).
 
     Parameters
@@ -783,10 +860,10 @@ def route_settings(resolution_px: float = 1.0, moving_masks: bool = False, **ove
         acquisition: point observation).
     moving_masks : bool
         Whether the input holds a mask of every frame that moves (:func:`masks_move`): then they
-        are fused, with the phase data at their evidence level.
+        are fused, the phase data and the masks each at their evidence level.
     **overrides
         Any :class:`StrainRouteSettings` field, which wins; ``border_masks`` given alone also sets
-        the phase level that goes with it.
+        the two levels that go with it.
 
     Returns
     -------
@@ -796,7 +873,8 @@ def route_settings(resolution_px: float = 1.0, moving_masks: bool = False, **ove
     if unknown:
         raise TypeError(f"overrides: expected StrainRouteSettings fields, got {unknown}")
     fuse = bool(overrides.get("border_masks", moving_masks))
-    base = {"resolution_px": resolution_px, "border_masks": fuse, "phase_noise_level": "evidence" if fuse else "stated"}
+    level = "evidence" if fuse else "stated"
+    base = {"resolution_px": resolution_px, "border_masks": fuse, "phase_noise_level": level, "mask_noise_level": level}
     return StrainRouteSettings(**{**base, **overrides})
 
 

@@ -10,7 +10,7 @@ import numpy as np
 
 from ..cardiac import dense_case_strain, dense_strain
 from ..cardiac.dense_model import PROCESS_PROFILES
-from ..cardiac.strain_route import PHASE_NOISE_LEVELS
+from ..cardiac.strain_route import BORDER_CORRESPONDENCES, PHASE_NOISE_LEVELS
 from ..cardiac.contours_route import ContourRouteSettings, contour_spline_strain, contour_strain
 from ..imaging import conventional_from_displacement, mask_centre, truth_at_points
 from ..imaging.spline_strain import spline_strain
@@ -100,17 +100,28 @@ def add_parser(sub) -> None:
                         "phase data's sd times their own maximum-likelihood noise level from one filter pass without "
                         "the masks (each source weighed by the noise it shows; one pass more); stated: the phase "
                         "data's sd as the route states it (their sd scaled to their temporal noise floor)")
+    s.add_argument("--mask-noise-level", choices=PHASE_NOISE_LEVELS, default=None,
+                   help="with the masks fused: the level of the masks' data beside the phase data's. evidence "
+                        "(default): their stated sd (a binary border's quantisation) times the factor of largest "
+                        "evidence of the fused model (6 filter passes), so that masks drawn well or badly are "
+                        "weighed by the noise they show; stated: their stated sd")
     s.add_argument("--process-profile", choices=PROCESS_PROFILES, default=None,
                    help="dense route: the process noise over the cycle. data (default): each frame interval's level "
                         "from the data's own acceleration (the tracks projected on smooth fields, less the noise's "
                         "share), never below the constant level, so a short systole is not flattened; constant: "
                         "one level, 0.1 of the data's temporal noise floor per frame (the docs' validation page "
                         "reports both)")
+    s.add_argument("--border-correspondence", choices=BORDER_CORRESPONDENCES, default=None,
+                   help="dense route with the masks fused: how each border node's place along the masks' border is "
+                        "found. phase (default): where the phase data's own smoothed motion puts it (one filter "
+                        "and smoother pass of the phase alone), the datum the mask border's offset across itself "
+                        "there; landmarks: landmarks tracked through the masks by bending-energy matching (the "
+                        "contours route's data; along a smooth border they slide)")
     s.add_argument("--border-starts", type=_int_at_least(1, " contour start angles"), default=None, metavar="N",
-                   help="dense route with the masks fused: average the masks' border data over N contour start "
-                        "angles spread evenly about the cavity, so that they do not depend on where the contours "
-                        "start, i.e. on how the heart lies on the image grid (default 1; 8 makes them nearly "
-                        "independent of it; N - 1 more border trackings)")
+                   help="dense route with the masks' landmarks (implies --border-correspondence landmarks): average "
+                        "their border data over N contour start angles spread evenly about the cavity, so that "
+                        "they do not depend on where the contours start, i.e. on how the heart lies on the image "
+                        "grid (default 1; 8 makes them nearly independent of it; N - 1 more border trackings)")
     s.add_argument("--csv", metavar="PATH",
                    help="also write the report as one tidy CSV table (one row per method, region = pixel, global "
                         "or segment, frame and component; PATH ending .gz is compressed); see the how-to page "
@@ -129,13 +140,17 @@ def cmd_strain(args) -> int:
     case, tracks = src["case"], src["tracks"]
     if args.route == "contours":       # the masks alone (no phase): tracked borders, interior from the physics
         for name, flag in (("resolution_px", "--resolution-px"), ("masks_fusion", "--with-masks/--no-masks"),
-                           ("phase_noise_level", "--phase-noise-level"), ("process_profile", "--process-profile")):
+                           ("phase_noise_level", "--phase-noise-level"), ("mask_noise_level", "--mask-noise-level"),
+                           ("process_profile", "--process-profile")):
             if getattr(args, name, None) is not None:
                 raise ValueError(f"{flag}: is for the dense route; the contours route observes the masks' tracked "
                                  f"borders alone and chooses its process noise by its evidence")
         if getattr(args, "border_starts", None) is not None:
             raise ValueError("--border-starts: is for the dense route with the masks fused; the contours route tracks "
                              "its landmarks from one contour start")
+        if getattr(args, "border_correspondence", None) is not None:
+            raise ValueError("--border-correspondence: is for the dense route with the masks fused; the contours "
+                             "route has no phase data to place the border by and tracks landmarks")
         if src["masks"] is None:
             raise ValueError("--route contours: expected the myocardium masks of the reference and of every frame; the "
                              "sequence file has no reference_mask and frame_masks (use --route dense)")
@@ -146,7 +161,8 @@ def cmd_strain(args) -> int:
         say("dense route: "
             + (f"observed through a point spread of {settings.resolution_px:.2f} px"
                if settings.resolution_px > 1 else "observed at the pixel centres")
-            + (f", each frame's mask fused with the phase (phase level: {settings.phase_noise_level})"
+            + (f", each frame's mask fused with the phase (border placed by the {settings.border_correspondence}; "
+               f"phase level: {settings.phase_noise_level}, masks' level: {settings.mask_noise_level})"
                if settings.border_masks else ", the phase alone")
             + (", process noise from the data's motion" if settings.process_profile == "data"
                else ", one process level"))

@@ -116,12 +116,24 @@ def _dense_settings(args, src: dict) -> StrainRouteSettings:
     why = ("(--no-masks)" if getattr(args, "masks_fusion", None) is False
            else "(a frame's mask cannot be made one ring; the warning above names it)" if moving
            else "(no mask of every frame that moves)")
+    correspondence = getattr(args, "border_correspondence", None)
+    mask_level = getattr(args, "mask_noise_level", None)
     for flag, given_value, what in (("--phase-noise-level", level, "weighs the phase data against the masks"),
-                                    ("--border-starts", starts, "averages the masks' border data")):
+                                    ("--mask-noise-level", mask_level, "weighs the masks against the phase data"),
+                                    ("--border-starts", starts, "averages the masks' border data"),
+                                    ("--border-correspondence", correspondence, "places the masks' border data")):
         if given_value is not None and not fuse:
             raise ValueError(f"{flag}: {what}, which this run does not fuse {why}")
+    if starts is not None and correspondence == "phase":
+        raise ValueError(f"--border-starts: averages landmarks tracked from several contour starts; with "
+                         f"--border-correspondence phase there are none (give --border-correspondence landmarks, "
+                         f"or leave --border-starts out), got --border-starts {starts}")
+    if starts is not None and correspondence is None:
+        correspondence = "landmarks"                          # the starts are the landmarks' own
     overrides = {"start_deg": args.segment_start, "border_masks": bool(fuse)}
-    given = {"phase_noise_level": level, "process_profile": args.process_profile, "border_starts": starts,
+    given = {"phase_noise_level": level, "mask_noise_level": mask_level, "process_profile": args.process_profile,
+             "border_starts": starts,
+             "border_correspondence": correspondence,
              "resolution_px": None if value in (None, ACQUISITION) else float(value)}
     overrides.update({k: v for k, v in given.items() if v is not None})
     return image_settings(case, **overrides) if case is not None else route_settings(**overrides)

@@ -234,7 +234,7 @@ def test_the_mean_over_contour_starts_depends_on_where_they_start_far_less_than_
 
 def test_the_route_takes_border_starts_and_names_a_bad_value(ring):
     ref, tracks, masks, _ = ring
-    cfg = StrainRouteSettings(element_px=2.0, border_masks=True, border_starts=4)
+    cfg = StrainRouteSettings(element_px=2.0, border_masks=True, border_starts=4, border_correspondence="landmarks")
     r = dense_strain(tracks, ref, PX, cfg, masks=masks)
     assert r.settings["border_starts"] == 4 and np.all(np.isfinite(r.Err))
     one = dense_strain(tracks, ref, PX, replace(cfg, border_starts=1), masks=masks)
@@ -244,7 +244,10 @@ def test_the_route_takes_border_starts_and_names_a_bad_value(ring):
         StrainRouteSettings(border_masks=True, border_starts=0)
     with pytest.raises(ValueError, match="border_starts: averages the masks' border data .* needs border_masks=True"):
         StrainRouteSettings(border_starts=8)
-    assert type(StrainRouteSettings(border_masks=True, border_starts=8.0).border_starts) is int
+    assert type(StrainRouteSettings(border_masks=True, border_starts=8.0,
+                                    border_correspondence="landmarks").border_starts) is int
+    with pytest.raises(ValueError, match="border_starts: averages tracked landmarks .* needs border_correspondence="):
+        StrainRouteSettings(border_masks=True, border_starts=8)          # the default places the border by the phase
 
 
 def test_more_starts_warn_of_a_mended_mask_once(ring):
@@ -259,3 +262,102 @@ def test_more_starts_warn_of_a_mended_mask_once(ring):
         border_masks_data(pinhole, ref, tracks.displacement.shape[0], mesh, PX, starts=4)
     mended = [w for w in seen if "masks[3]: not one ring" in str(w.message)]
     assert len(mended) == 1, [str(w.message) for w in seen]
+
+
+def _true_node_motion(mesh):
+    """(F, n_nodes, 2) px: the ring's exact displacement at the mesh's nodes."""
+    X = mesh.nodes / PX
+    d = X - CENTRE
+    R = np.linalg.norm(d, axis=1)
+    return np.array([((np.sqrt(R ** 2 - A) - R) / R)[:, None] * d for A in AREAS])
+
+
+def test_guided_border_data_read_the_borders_true_motion_across_itself_at_the_guides_point(ring):
+    """With the exact motion as guide, each border node's datum is its true normal displacement, to within the
+    binary masks' quantisation; a guide off by half a pixel along or across the border changes the data by a small
+    fraction of that (the masks, not the guide, say where the border is)."""
+    from sfem_filters.cardiac.border_data import _node_normals, guided_border_data
+    ref, tracks, masks, _ = ring
+    mesh = reference_mesh(ref, PX, "gmsh", 2.0)
+    guide = _true_node_motion(mesh)
+    g = guided_border_data(mesh, masks[1:], guide, PX)
+    n = _node_normals(mesh)[g.nodes]
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    true = np.einsum("fkc,kc->fk", guide[:, g.nodes], n)
+    err = g.y / PX - true
+    assert g.y.shape == (len(AREAS), len(g.nodes)) and g.tracks is None and g.sd_tangent_px is None
+    assert np.sqrt(np.mean(err ** 2)) < QUANTISATION_SD_PX and abs(err.mean()) < 0.1
+    assert np.abs(true).max() > 1.0                                      # the border moves by more than that
+    t = np.column_stack([-n[:, 1], n[:, 0]])
+    for direction in (t, n):                                             # half a pixel along, then across
+        off = guide.copy()
+        off[:, g.nodes] += 0.5 * direction
+        moved = guided_border_data(mesh, masks[1:], off, PX)
+        assert np.sqrt(np.mean((moved.y - g.y) ** 2)) / PX < 0.1
+    # one row per border node, on its normal; the sd the larger of the quantisation and the data's own floor
+    assert g.H.shape == (len(g.nodes), mesh.n_dofs) and np.allclose(abs(g.H).sum(axis=1).A.ravel(),
+                                                                     np.abs(n).sum(axis=1))
+    assert np.allclose(np.sqrt(np.diagonal(g.R, axis1=1, axis2=2)) / PX, max(QUANTISATION_SD_PX, g.floor_px))
+    with pytest.raises(ValueError, match=r"guide_px: expected the displacement of the mesh's"):
+        guided_border_data(mesh, masks[1:], guide[:, :-1], PX)
+    with pytest.raises(ValueError, match="guide_px: expected a finite displacement"):
+        guided_border_data(mesh, masks[1:], np.where(np.arange(mesh.n_nodes)[None, :, None] == g.nodes[0], np.nan,
+                                                     guide), PX)
+    with pytest.raises(ValueError, match="starts: guided border data have no contour start"):
+        border_masks_data(masks, ref, len(AREAS), mesh, PX, starts=2, guide_px=guide)
+
+
+def test_the_route_places_the_border_by_the_phase_by_default_and_names_a_bad_choice(ring):
+    ref, tracks, masks, err = ring
+    cfg = StrainRouteSettings(element_px=2.0, border_masks=True, phase_noise_level="evidence",
+                              process_profile="constant")                 # one process level: the border data alone
+    assert cfg.border_correspondence == "phase"
+    guided = dense_strain(tracks, ref, PX, cfg, masks=masks)
+    landmarks = dense_strain(tracks, ref, PX, replace(cfg, border_correspondence="landmarks"), masks=masks)
+    s = guided.settings
+    assert s["border_correspondence"] == "phase" and s["border_landmarks"] is None
+    assert s["border_rows"] == s["border_nodes"] > 0
+    assert landmarks.settings["border_landmarks"] > 0
+    # on a circle the landmarks do not slide, so both data are near the truth and the estimates near each other;
+    # both pull the lagging phase estimate towards the true thickening
+    alone = dense_strain(tracks, ref, PX, replace(cfg, border_masks=False, phase_noise_level="stated"))
+    rmse = {k: float(np.sqrt(np.mean((r.Err - err) ** 2))) for k, r in (("alone", alone), ("guided", guided),
+                                                                         ("landmarks", landmarks))}
+    assert rmse["guided"] < 0.75 * rmse["alone"] and rmse["landmarks"] < 0.75 * rmse["alone"]
+    assert np.sqrt(np.mean((guided.Err - landmarks.Err) ** 2)) < 0.25 * rmse["landmarks"]
+    # the phase pass that places the border also gives the phase data's own level (no second pass)
+    mesh = reference_mesh(ref, PX, "gmsh", 2.0)
+    assert s["phase_noise_scale"] == pytest.approx(phase_noise_level(mesh, tracks, PX, cfg), rel=1e-9)
+    with pytest.raises(ValueError, match="border_correspondence: expected one of"):
+        StrainRouteSettings(border_masks=True, border_correspondence="bending")
+
+
+def test_the_masks_level_by_evidence_gives_masks_drawn_worse_less_weight():
+    """Tracks without bias, exact masks: the same masks' data with 0.5 px of independent noise added to every
+    border datum (about four times the variance of a binary border's quantisation) get a variance factor several
+    times larger from the evidence of the fused model than the masks as drawn (variance components)."""
+    from sfem_filters.cardiac.dense_model import MASK_LEVELS, mask_noise_level_ml, phase_only_pass
+    ref, tracks, masks, _ = _ring(lag=0.0)
+    mesh = reference_mesh(ref, PX, "gmsh", 2.0)
+    cfg = StrainRouteSettings(element_px=2.0, border_masks=True, phase_noise_level="evidence",
+                              mask_noise_level="evidence")
+    c, guide = phase_only_pass(mesh, tracks, PX, cfg, smooth=True)
+    border = border_masks_data(masks, ref, len(AREAS), mesh, PX, guide_px=guide)
+    clean, table = mask_noise_level_ml(mesh, tracks, PX, cfg, border, c)
+    rng = np.random.default_rng(1)
+    noisy = replace(border, y=border.y + 0.5 * PX * rng.standard_normal(border.y.shape))
+    worse, _ = mask_noise_level_ml(mesh, tracks, PX, cfg, noisy, c)
+    assert sorted(table) == sorted(MASK_LEVELS) and all(np.isfinite(v).all() for v in table.values())
+    assert min(MASK_LEVELS) <= clean <= max(MASK_LEVELS) and worse > 4 * clean
+    # the route reports the factor it used and the evidence of each candidate
+    r = dense_strain(tracks, ref, PX, cfg, masks=masks)
+    assert r.settings["mask_noise_scale"] == pytest.approx(clean, rel=1e-9)
+    assert len(r.settings["mask_noise_evidence"]) == len(MASK_LEVELS)
+    with pytest.raises(ValueError, match="candidates: expected at least one factor"):
+        mask_noise_level_ml(mesh, tracks, PX, cfg, border, c, candidates=())
+    with pytest.raises(TypeError, match="border: expected a BorderData"):
+        mask_noise_level_ml(mesh, tracks, PX, cfg, None, c)
+    with pytest.raises(ValueError, match="mask_noise_level: 'evidence' weighs the masks .* needs border_masks=True"):
+        StrainRouteSettings(mask_noise_level="evidence")
+    with pytest.raises(ValueError, match="mask_noise_level: expected one of"):
+        StrainRouteSettings(border_masks=True, mask_noise_level="fitted")

@@ -101,9 +101,10 @@ def test_image_settings_take_the_acquisition_and_fuse_masks_only_when_they_move(
     case, _ = render_blurred_ring(2.5)
     cfg = image_settings(case)
     assert cfg.resolution_px == case.resolution_px == 2.5
-    assert cfg.border_masks and cfg.phase_noise_level == "evidence" and cfg.process_profile == "data"
+    assert cfg.border_masks and cfg.phase_noise_level == cfg.mask_noise_level == "evidence"
+    assert cfg.process_profile == "data" and cfg.border_correspondence == "phase"
     alone = image_settings(case, border_masks=False)
-    assert not alone.border_masks and alone.phase_noise_level == "stated"
+    assert not alone.border_masks and alone.phase_noise_level == alone.mask_noise_level == "stated"
     assert image_settings(case, resolution_px=1.0).resolution_px == 1.0
     with pytest.raises(TypeError, match="overrides: expected StrainRouteSettings fields, got \\['resolution'\\]"):
         image_settings(case, resolution=1.0)
@@ -114,7 +115,7 @@ def test_image_settings_take_the_acquisition_and_fuse_masks_only_when_they_move(
     assert plain.resolution_px == 1.0 and not plain.border_masks and plain.phase_noise_level == "stated"
     assert route_settings(2.0, True) == replace(cfg, resolution_px=2.0)
     forced = image_settings(still, border_masks=True)                 # fused on request: at the evidence level
-    assert forced.border_masks and forced.phase_noise_level == "evidence"
+    assert forced.border_masks and forced.phase_noise_level == forced.mask_noise_level == "evidence"
     with pytest.raises(TypeError, match="case: expected a DenseCase"):
         image_settings(case.masks)
     with pytest.raises(ValueError, match="masks"):
