@@ -16,11 +16,11 @@ shared by every method (:func:`sfem_filters.imaging.phase_to_displacement`), the
   myocardium from the images, :func:`sfem_filters.imaging.dense.background_signal`), the case's
   myocardium masks of every frame fused in (``border_masks=True``: each border node's motion across
   the border, read where the phase data's own smoothed estimate puts the node,
-  ``border_correspondence="phase"``, with the contours route's sd rule) with the phase data at their own maximum-likelihood
-  level (``phase_noise_level="evidence"``), the process noise per frame interval from the data's own
-  acceleration (``process_profile="data"``), the linear smoother, Green-Lagrange strain of the
-  recovered gradient with delta-method sd, the maximum-likelihood noise scale and the excess-error
-  term in the 95% bands;
+  ``border_correspondence="phase"``, with the contours route's sd rule) with the phase data at their
+  own maximum-likelihood level (``phase_noise_level="evidence"``), the process noise per frame
+  interval from the data's own acceleration (``process_profile="data"``), the linear smoother,
+  Green-Lagrange strain of the recovered gradient with delta-method sd, the maximum-likelihood noise
+  scale and the excess-error term in the 95% bands;
 * at the first seed of each case and SNR, the error budget (:data:`ABLATIONS`): the point spread,
   the masks and the process profile each left out in turn; the masks at their stated level, and
   both sources at theirs; the masks' border data from the contours route's landmarks instead

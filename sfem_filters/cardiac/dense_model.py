@@ -47,6 +47,9 @@ PROCESS_FRACTIONS = (0.1, 0.3, 1.0, 3.0)
 #: Candidate factors on the masks' variance compared by their evidence (:func:`mask_noise_level_ml`): from
 #: masks far better than their stated sd (a border node's datum averages its support) to masks drawn worse.
 MASK_LEVELS = (1.0 / 64, 1.0 / 16, 1.0 / 4, 1.0, 4.0, 16.0)
+#: Where :func:`mask_noise_level_ml` starts its search among :data:`MASK_LEVELS` (it evaluates this candidate and its
+#: two neighbours first, then walks outwards only while the best is at an end).
+MASK_LEVEL_START = 0.25
 #: How the process noise varies over the frame intervals (``StrainRouteSettings.process_profile``).
 PROCESS_PROFILES = ("constant", "data")
 #: Angular harmonics of the smooth motion whose acceleration sets the ``"data"`` profile: up to 3, what six
@@ -708,12 +711,15 @@ def mask_noise_level_ml(mesh: TriMesh, tracks: LagrangianDisplacement, pixel_siz
     ``phase_scale`` (their own level, :func:`phase_noise_level`); the common noise level is profiled
     out (:func:`concentrated_log_evidence`), so what is compared is how the data's variance divides
     between the two sources. The best candidate is refined by the parabola in ``log`` factor through
-    it and its neighbours. The masks' stated sd (a binary border's quantisation, or the border data's
-    own temporal noise floor) says nothing of how well the masks were drawn, nor of how much the
-    averaging over a border node's support removes; the evidence of both sources together does (a
-    mask whose border disagrees with the phase data's motion from frame to frame is given less
-    weight, one that agrees more). What it cannot see is an error the masks and the phase data share,
-    or one the motion's smoothness absorbs.
+    it and its neighbours. The evidence is taken to be unimodal in the factor, so the search starts
+    at :data:`MASK_LEVEL_START` and its two neighbours and walks outwards while the best is at an
+    end of what was evaluated (three or four passes where the masks are about as good as stated or a
+    few times better, every candidate only at an end of the grid). The masks' stated sd (a binary
+    border's quantisation, or the border data's own temporal noise floor) says nothing of how well
+    the masks were drawn, nor of how much the averaging over a border node's support removes; the
+    evidence of both sources together does (a mask whose border disagrees with the phase data's
+    motion from frame to frame is given less weight, one that agrees more). What it cannot see is an
+    error the masks and the phase data share, or one the motion's smoothness absorbs.
 
     Parameters
     ----------
@@ -728,7 +734,7 @@ def mask_noise_level_ml(mesh: TriMesh, tracks: LagrangianDisplacement, pixel_siz
     Returns
     -------
     (factor, table)
-        The chosen factor on ``R_b`` and ``{candidate: [log-evidence, c]}``.
+        The chosen factor on ``R_b`` and ``{candidate: [log-evidence, c]}`` of the candidates evaluated.
     """
     say = progress if progress is not None else (lambda msg: None)
     fs = sorted(float(positive("candidates", v)) for v in candidates)
@@ -736,15 +742,31 @@ def mask_noise_level_ml(mesh: TriMesh, tracks: LagrangianDisplacement, pixel_siz
         raise ValueError("candidates: expected at least one factor on the masks' variance, got none")
     if not hasattr(border, "R"):
         raise TypeError(f"border: expected a BorderData, got {type(border).__name__}")
-    table, evid = {}, []
-    for f in fs:
-        model, y, _, _ = build_dense_model(mesh, tracks, pixel_size_m, settings, background,
-                                           replace(border, R=border.R * f), phase_scale=phase_scale)
-        ev, c = _concentrated_evidence_of(model, y)
-        table[f] = [ev, c]
-        evid.append(ev)
-        say(f"masks' variance x {f:g}: log-evidence {ev:.1f}")
-    return _best_on_log_grid(np.array(fs), np.array(evid)), table
+    table = {}
+
+    def evidence(i):
+        f = fs[i]
+        if f not in table:
+            model, y, _, _ = build_dense_model(mesh, tracks, pixel_size_m, settings, background,
+                                               replace(border, R=border.R * f), phase_scale=phase_scale)
+            table[f] = list(_concentrated_evidence_of(model, y))
+            say(f"masks' variance x {f:g}: log-evidence {table[f][0]:.1f}")
+        return table[f][0]
+
+    # the evidence is taken to be unimodal in the factor: start at the three candidates around the one nearest
+    # MASK_LEVEL_START and walk outwards while the best is at an end of what was evaluated
+    i0 = int(np.argmin(np.abs(np.log(fs) - np.log(MASK_LEVEL_START))))
+    lo, hi = max(i0 - 1, 0), min(i0 + 1, len(fs) - 1)
+    while True:
+        ev = [evidence(i) for i in range(lo, hi + 1)]
+        k = int(np.argmax(ev))
+        if k == 0 and lo > 0:
+            lo -= 1
+        elif k == len(ev) - 1 and hi < len(fs) - 1:
+            hi += 1
+        else:
+            break
+    return _best_on_log_grid(np.array(fs[lo:hi + 1]), np.array(ev)), table
 
 
 def process_fraction_ml(mesh: TriMesh, tracks: LagrangianDisplacement, pixel_size_m: float,

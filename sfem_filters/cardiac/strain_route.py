@@ -40,38 +40,37 @@ The DENSE route of issue 42 (items 3 and 4), as a library function, :func:`dense
    acquisition's width (the command line's default; the validation page's ablation row reports
    the point observation beside it).
 
-   *Fused with the masks* (``border_masks=True``, ``masks=`` of every frame; Shi & Liu's fusion
-   of shape tracking with phase-contrast data in one filter): the endocardial border of a mask
-   shows the wall's thickening directly, free of the cavity signal that leaks into the
-   endocardial pixels' phase through the point spread. The masks' datum is each border node's
-   motion *across* the border (the masks do not see the sliding along it), sd the larger of the
-   mask's quantisation ``1 / sqrt(12)`` px and the data's own temporal noise floor across the
-   border (:func:`border_masks_data`, :mod:`sfem_filters.cardiac.border_data`). Which point of a
-   frame's border a node has become, the masks alone cannot say; the phase data can. So by
-   default (``border_correspondence="phase"``) one filter and RTS pass of the phase data alone
+   *Fused with the masks* (``border_masks=True``, ``masks=`` of every frame; Shi & Liu's fusion of
+   shape tracking with phase-contrast data in one filter): the endocardial border of a mask shows
+   the wall's thickening directly, free of the cavity signal that leaks into the endocardial pixels'
+   phase through the point spread. The masks' datum is each border node's motion *across* the border
+   (the masks do not see the sliding along it), sd the larger of the mask's quantisation ``1 /
+   sqrt(12)`` px and the data's own temporal noise floor across the border
+   (:func:`border_masks_data`, :mod:`sfem_filters.cardiac.border_data`). Which point of a frame's
+   border a node has become, the masks alone cannot say; the phase data can. So by default
+   (``border_correspondence="phase"``) one filter and RTS pass of the phase data alone
    (:func:`sfem_filters.cardiac.dense_model.phase_only_pass`, which also gives their noise level
-   below) places each border point, and the datum is the mask border's offset across itself
-   there (:func:`sfem_filters.cardiac.border_data.guided_border_data`: the guide's error across
-   the border does not enter, its error along the border only at second order). The contours
-   route's landmarks, tracked through the masks by bending-energy matching
-   (``border_correspondence="landmarks"``), must find that correspondence from the contours'
-   shape alone and slide along smooth borders, where their motion projected on the reference
-   normal misreads the border's (the validation page's ablation row). They are stacked below the nodal fit (``H = [I; H_b]``, ``R_t =
-   blockdiag(J_t^-1, R_b,t)``, :func:`build_dense_model`): independent data of the same
-   displacement, so the two likelihoods add and the smoother weighs each by its own noise. The
-   masks are of the current frame and the landmarks are Lagrangian, so no Eulerian inversion is
-   involved. Step 6 is unchanged (the excess error is still measured against the phase tracks'
-   finite differences, so where the masks pull the estimate away from biased tracks the bands
-   widen). At their stated levels the phase data, many pixels a node, outweigh the masks' one
-   datum a border node several times over; the route's own ML noise scale (step 6 a) says the
-   phase data's stated sd is several times too small, and the masks' has no such factor. So
-   ``phase_noise_level="evidence"`` first scales the phase data's covariances (R, process,
-   initial) by their own type-II ML level from one filter pass without the masks
-   (:func:`phase_noise_level`; alone this factor changes no estimate), then stacks the masks.
-   Their stated sd (a binary border's quantisation) says nothing of how well the masks were drawn
-   nor of how much a node's datum, a mean over its support, averages out; so
-   ``mask_noise_level="evidence"`` scales the masks' covariance by the factor of largest evidence
-   of the fused model (:func:`sfem_filters.cardiac.dense_model.mask_noise_level_ml`: variance
+   below) places each border point, and the datum is the mask border's offset across itself there
+   (:func:`sfem_filters.cardiac.border_data.guided_border_data`: the guide's error across the border
+   does not enter, its error along the border only at second order). The contours route's landmarks,
+   tracked through the masks by bending-energy matching (``border_correspondence="landmarks"``),
+   must find that correspondence from the contours' shape alone and slide along smooth borders,
+   where their motion projected on the reference normal misreads the border's (the validation page's
+   ablation row). They are stacked below the nodal fit (``H = [I; H_b]``, ``R_t = blockdiag(J_t^-1,
+   R_b,t)``, :func:`build_dense_model`): independent data of the same displacement, so the two
+   likelihoods add and the smoother weighs each by its own noise. The masks are of the current frame
+   and each datum belongs to a material border point, so no Eulerian inversion is involved. Step 6 is unchanged (the
+   excess error is still measured against the phase tracks' finite differences, so where the masks
+   pull the estimate away from biased tracks the bands widen). At their stated levels the phase
+   data, many pixels a node, outweigh the masks' one datum a border node several times over; the
+   route's own ML noise scale (step 6 a) says the phase data's stated sd is several times too small,
+   and the masks' has no such factor. So ``phase_noise_level="evidence"`` first scales the phase
+   data's covariances (R, process, initial) by their own type-II ML level from one filter pass
+   without the masks (:func:`phase_noise_level`; alone this factor changes no estimate), then stacks
+   the masks. Their stated sd (a binary border's quantisation) says nothing of how well the masks
+   were drawn nor of how much a node's datum, a mean over its support, averages out; so
+   ``mask_noise_level="evidence"`` scales the masks' covariance by the factor of largest evidence of
+   the fused model (:func:`sfem_filters.cardiac.dense_model.mask_noise_level_ml`: variance
    components by type-II ML, one filter pass per candidate of
    :data:`~sfem_filters.cardiac.dense_model.MASK_LEVELS`, the common level profiled out): each
    source weighed by the noise it shows. The evidence sees how the two sources disagree from frame
@@ -221,7 +220,7 @@ from ..resources import limits_blas_threads
 from .border_data import BorderData, contour_landmark_tracks, guided_border_data, mask_border_data, mean_border_data
 from .dense_model import INFORMATION_FLOOR, MESHES, PROCESS_FRACTIONS, PROCESS_PROFILES, RELAXATION_CYCLES, \
     NodalFitModel, build_dense_model, compliant_modulus, concentrated_log_evidence, nodal_fit, observation_points, \
-    MASK_LEVELS, ObservationScaling, mask_noise_level_ml, observation_operator, phase_noise_level, phase_only_pass, \
+    ObservationScaling, mask_noise_level_ml, observation_operator, phase_noise_level, phase_only_pass, \
     process_fraction_ml, process_profile_from_data, reference_mesh, temporal_noise_floor
 from .measured import NOMINAL
 from .strain_bands import STRAINS, _component_rows, _covariance_from_blocks, curve_noise_variance, \
@@ -608,7 +607,8 @@ def dense_strain(tracks: LagrangianDisplacement, reference_mask, pixel_size_m: f
         c_phase = phase_noise_level(mesh, tracks, s, cfg, background)
     mask_table, f_mask = None, 1.0
     if cfg.mask_noise_level == "evidence":
-        say(f"the masks' noise level beside the phase data's by their evidence ({len(MASK_LEVELS)} filter passes)")
+        say("the masks' noise level beside the phase data's by their evidence (a filter pass per candidate, three "
+            "or more)")
         f_mask, mask_table = mask_noise_level_ml(mesh, tracks, s, cfg, border, c_phase, background, progress=say)
         border = replace(border, R=border.R * f_mask)
     say(f"mesh: {mesh.n_nodes} nodes, {mesh.n_elements} triangles; building the model")

@@ -103,8 +103,8 @@ def add_parser(sub) -> None:
     s.add_argument("--mask-noise-level", choices=PHASE_NOISE_LEVELS, default=None,
                    help="with the masks fused: the level of the masks' data beside the phase data's. evidence "
                         "(default): their stated sd (a binary border's quantisation) times the factor of largest "
-                        "evidence of the fused model (6 filter passes), so that masks drawn well or badly are "
-                        "weighed by the noise they show; stated: their stated sd")
+                        "evidence of the fused model (three or four filter passes), so that masks drawn well or "
+                        "badly are weighed by the noise they show; stated: their stated sd")
     s.add_argument("--process-profile", choices=PROCESS_PROFILES, default=None,
                    help="dense route: the process noise over the cycle. data (default): each frame interval's level "
                         "from the data's own acceleration (the tracks projected on smooth fields, less the noise's "
