@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 __all__ = ["signed_area", "polygon_centroid", "triangle_double_areas", "triangle_angles_deg",
-           "radius_by_angle", "nearest_on_closed_polyline"]
+           "radius_by_angle"]
 
 
 def signed_area(xy) -> float:
@@ -69,31 +69,3 @@ def radius_by_angle(contour_xy, centre, angles) -> np.ndarray:
     order = np.argsort(a)
     return np.interp(np.asarray(angles, float), a[order], np.linalg.norm(d, axis=1)[order], period=2 * np.pi)
 
-
-def nearest_on_closed_polyline(curve_xy, points) -> np.ndarray:
-    """The point of a closed polyline nearest to each of ``points`` (exact: every segment is searched).
-
-    Parameters
-    ----------
-    curve_xy : (n, 2) array
-        The polyline's vertices, in order; the last joins the first (not repeated), n >= 2.
-    points : (m, 2) array
-        Query points, in the curve's unit.
-
-    Returns
-    -------
-    (m, 2) array
-        For each point, the nearest point on the polyline (on a vertex or inside a segment).
-    """
-    c = np.asarray(curve_xy, float)
-    p = np.asarray(points, float)
-    if c.ndim != 2 or c.shape[1] != 2 or len(c) < 2 or not np.all(np.isfinite(c)):
-        raise ValueError(f"curve_xy: expected (n >= 2, 2) finite vertices, got shape {c.shape}")
-    if p.ndim != 2 or p.shape[1] != 2 or not np.all(np.isfinite(p)):
-        raise ValueError(f"points: expected (m, 2) finite points, got shape {p.shape}")
-    a, e = c, np.roll(c, -1, axis=0) - c                                   # segment starts and edges
-    L2 = np.maximum(np.sum(e * e, axis=1), np.finfo(float).tiny)
-    t = np.clip(np.einsum("mnk,nk->mn", p[:, None, :] - a[None], e) / L2, 0.0, 1.0)
-    q = a[None] + t[..., None] * e[None]                                   # (m, n, 2) nearest per segment
-    k = np.argmin(np.sum((q - p[:, None, :]) ** 2, axis=2), axis=1)
-    return q[np.arange(len(p)), k]

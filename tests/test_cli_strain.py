@@ -123,6 +123,8 @@ def test_default_for_images_fuses_the_masks_through_the_point_spread_and_each_pa
         lm = got[name]["settings"]
         assert lm["border_correspondence"] == "landmarks" and lm["border_landmarks"] > lm["border_nodes"]
     assert got["starts"]["settings"]["border_starts"] == 2
+    assert np.max(np.abs(np.array(got["starts"]["global"]["Err"], float)
+                         - np.array(got["landmarks"]["global"]["Err"], float))) > 1e-6    # the starts count
     assert got["mask_stated"]["settings"]["mask_noise_scale"] == 1.0
     base = np.array(d["global"]["Err"], float)
     for name, rep in got.items():                    # each part changes the estimate: none is ignored

@@ -77,9 +77,10 @@ METRICS = ("pixel_rmse_Ecc", "pixel_rmse_Err", "global_peak_error_Ecc", "global_
 #: The route's default, and its ablations (run at the first seed only).
 OURS = "ours (DENSE route)"
 #: Each ablation leaves one ingredient of the route's default for images (:func:`image_settings`: the acquisition's
-#: point spread, the masks fused at the phase data's evidence level, the process noise profile from the data) out,
-#: or changes it; the last two rows are the route's earlier default (the phase alone at the pixel centres, one
-#: process level) and that with its process noise chosen by the evidence.
+#: point spread; the masks fused, their border placed by the phase data, the phase data and the masks each at their
+#: evidence level; the process noise profile from the data) out, or changes it; the last two rows are the route's
+#: earlier default (the phase alone at the pixel centres, one process level) and that with its process noise chosen
+#: by the evidence.
 ABLATIONS = {"ours, point observation (no PSF)": {"resolution_px": 1.0},
              "ours, without the masks (phase alone)": {"border_masks": False},
              "ours, masks at their stated level": {"mask_noise_level": "stated"},
@@ -318,13 +319,15 @@ def markdown(results: dict) -> str:
              "each datum observed through the acquisition's point spread (a Gaussian of FWHM the acquired pixel, "
              "from the case's config) over the tissue with the complex signal the images show around the "
              "myocardium mixed in at the borders; the case's myocardium masks of every frame fused in (each border "
-             "node's motion across the border, the contours route's data and sd) with the phase data at their own "
-             "maximum-likelihood level; the process noise per frame interval following the data's own acceleration "
+             "node's motion across the mask's border, read where the phase data's own estimate puts the node, with "
+             "the contours route's sd rule), the phase data and the masks each at their own maximum-likelihood "
+             "level; the process noise per frame interval following the data's own acceleration "
              "(never below 0.1 of the noise floor). The ablations, at the first seed only, each leave one of these "
-             "out (the point observation at the pixel centre; the phase alone; the phase data at their stated sd "
-             "beside the masks; one process level for every interval), then the route's earlier default (all three "
-             "left out) and that with its process noise chosen by its evidence (type-II maximum likelihood), and "
-             "each frame's nodal least-squares fit alone. "
+             "out or change it (the point observation at the pixel centre; the phase alone; the masks at their "
+             "stated sd; both sources at their stated sd; the masks' border data from landmarks tracked by "
+             "bending-energy matching; one process level for every interval), then the route's earlier default "
+             "(the phase alone at the pixel centres, one process level) and that with its process noise chosen by "
+             "its evidence (type-II maximum likelihood), and each frame's nodal least-squares fit alone. "
              "Seconds: wall time of one run, phase conversion included, on the machine of the header (mean over "
              "the seeds). Peak memory: the claim process's peak resident memory at the end of the run (the most "
              "over the seeds; every run shares one process, so this bounds each run's own from above).",

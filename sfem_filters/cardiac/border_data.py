@@ -16,6 +16,12 @@ data in one model, Shi & Liu's fusion of shape tracking with phase-contrast data
    landmarks' motion across the border (:func:`border_node_data`); :func:`mask_border_data` does
    1-3 on a given mesh.
 
+Where another source knows the motion along the border (the DENSE route's phase data, its default),
+:func:`guided_border_data` replaces the landmarks' search: each border point is placed where that
+source's estimate puts it, and the datum is the mask border's offset across itself there (the same
+hat-weighted mean over a node's two edges, the same sd rule). Landmarks matched by the contours'
+shape alone slide along a smooth border; a guide does not need the shape.
+
 No number here is fitted to a case: the spacing is the mask's resolution, the sd the mask's
 quantisation or the data's own noise. Units: pixels at the interface, metres in ``H``, ``y``, ``R``.
 """
@@ -29,8 +35,7 @@ import scipy.sparse as sp
 from .._validate import positive
 from ..fem.mesh import TriMesh
 from ..fem.observation import point_observation_matrix
-from ..geometry import nearest_on_closed_polyline
-from ..imaging.contours import mask_borders
+from ..imaging.contours import closest_on_polyline, mask_borders
 from ..imaging.tracking import BoundaryTracks, TrackingOptions, track_masks
 from .dense_model import observation_points, temporal_noise_floor
 from .myocardium import lv_geometry
@@ -294,7 +299,13 @@ def mean_border_data(data) -> BorderData:
                       floor_px=float(np.mean([d.floor_px for d in data])), moved_m=d0.moved_m)
 
 
-def guided_border_data(mesh: TriMesh, frame_masks, guide_px, pixel_size_m: float,
+def _closest(curve, points, chunk: int = 512) -> np.ndarray:
+    """:func:`~sfem_filters.imaging.contours.closest_on_polyline` in chunks of points (its work is points x
+    vertices)."""
+    return np.concatenate([closest_on_polyline(curve, points[i:i + chunk])[0] for i in range(0, len(points), chunk)])
+
+
+def guided_border_data(mesh: TriMesh, masks, guide_px, pixel_size_m: float,
                        normal_sd_px: float = QUANTISATION_SD_PX) -> BorderData:
     """The masks' data on the border nodes, each node's place along the border named by a guide.
 
@@ -303,11 +314,15 @@ def guided_border_data(mesh: TriMesh, frame_masks, guide_px, pixel_size_m: float
     they slide, and a slid landmark's motion projected on the reference normal misreads the border's
     motion across itself (the error grows as the slide squared over the border's radius). A guide
     that knows the motion along the border (the phase data's own estimate, which sees it well)
-    removes the search: at frame ``t`` the guide puts a border point of reference position ``X`` at
-    ``p = X + g_t(X)``; the frame's mask border (the endocardial contour for a point of the
-    endocardium, the epicardial for one of the epicardium) is searched for its point ``q`` nearest
-    to ``p`` (:func:`sfem_filters.geometry.nearest_on_closed_polyline`), and ``q - X`` is the
-    border's motion at the material point the guide names. Border node ``a`` (outward normal
+    removes the search. A point ``X`` of the mesh's border (a node, or a point of a boundary edge)
+    is first put on the reference mask's border, at its nearest point ``q_0`` (the mesh's polygon
+    cuts the border's curve by a fraction of a pixel, the node-per-pixel mesh's border lies half a
+    pixel inside it: reading each frame against ``q_0``, not ``X``, keeps that gap out of every
+    datum); at frame ``t`` the guide puts it at ``p = q_0 + g_t(X)``, the frame's mask border (the
+    endocardial contour for a point of the endocardium, the epicardial for one of the epicardium) is
+    searched for its point ``q`` nearest to ``p``
+    (:func:`sfem_filters.imaging.contours.closest_on_polyline`), and ``q - q_0`` is the border's
+    motion at the material point the guide names (zero where the masks do not move). Border node ``a`` (outward normal
     ``n_a``) observes ``n_a . (q - X)`` averaged with hat weights over
     :data:`GUIDED_SAMPLES_PER_EDGE` points on each of its two boundary edges (the guide interpolated
     linearly along the edge), as :func:`border_node_data` averages the landmarks on them: a local
@@ -326,8 +341,8 @@ def guided_border_data(mesh: TriMesh, frame_masks, guide_px, pixel_size_m: float
     ----------
     mesh : TriMesh
         Mesh of the reference myocardium (m): an annulus (:func:`sfem_filters.cardiac.myocardium.lv_geometry`).
-    frame_masks : (F, H, W) bool array
-        Each frame's myocardium mask (the frames after the reference).
+    masks : (F + 1, H, W) bool array
+        The reference mask (the one ``mesh`` was made from) then each frame's myocardium mask.
     guide_px : (F, n_nodes, 2) array
         The guide's displacement of every mesh node at each frame (pixels, x = column, y = row).
     pixel_size_m : float
@@ -342,10 +357,10 @@ def guided_border_data(mesh: TriMesh, frame_masks, guide_px, pixel_size_m: float
     """
     s = positive("pixel_size_m", pixel_size_m, "m")
     sd0 = positive("normal_sd_px", normal_sd_px, "pixels")
-    m = np.asarray(frame_masks, bool)
-    if m.ndim != 3:
-        raise ValueError(f"frame_masks: expected (F, H, W) masks, got shape {m.shape}")
-    F = m.shape[0]
+    m = np.asarray(masks, bool)
+    if m.ndim != 3 or m.shape[0] < 2:
+        raise ValueError(f"masks: expected the reference and each frame's mask, (F + 1, H, W), got shape {m.shape}")
+    F = m.shape[0] - 1
     g = np.asarray(guide_px, float)
     if g.shape != (F, mesh.n_nodes, 2):
         raise ValueError(f"guide_px: expected the displacement of the mesh's {mesh.n_nodes} nodes at the masks' {F} "
@@ -371,12 +386,14 @@ def guided_border_data(mesh: TriMesh, frame_masks, guide_px, pixel_size_m: float
     for e in samples:                                   # the hat weights of each sample on its edge's two nodes
         for end, w in ((0, 1.0 - t), (1, t)):
             np.add.at(weight, np.repeat(where[e[:, end]], len(t)), np.tile(w, len(e)))
+    ref = mask_borders(m[0], curves[0], curves[1], name="masks[0]")
+    on_ref = [_closest(curve, (X[e[:, 0], None] * (1.0 - t)[:, None] + X[e[:, 1], None] * t[:, None]).reshape(-1, 2))
+              for e, curve in zip(samples, (ref.endo, ref.epi))]                # q_0 of every sample
     for f in range(F):
-        b = mask_borders(m[f], curves[0], curves[1], name=f"masks[{f + 1}]")
-        for e, curve in zip(samples, (b.endo, b.epi)):
-            Xs = (X[e[:, 0], None] * (1.0 - t)[:, None] + X[e[:, 1], None] * t[:, None]).reshape(-1, 2)
+        b = mask_borders(m[f + 1], curves[0], curves[1], name=f"masks[{f + 1}]")
+        for e, curve, q0 in zip(samples, (b.endo, b.epi), on_ref):
             gs = (g[f, e[:, 0], None] * (1.0 - t)[:, None] + g[f, e[:, 1], None] * t[:, None]).reshape(-1, 2)
-            off = nearest_on_closed_polyline(curve, Xs + gs) - Xs        # the border's motion at each sample
+            off = _closest(curve, q0 + gs) - q0                               # the border's motion at each sample
             for end, w in ((0, 1.0 - t), (1, t)):
                 k = np.repeat(where[e[:, end]], len(t))
                 np.add.at(d[f], k, np.tile(w, len(e)) * np.sum(n[k] * off, axis=1))

@@ -713,8 +713,8 @@ def mask_noise_level_ml(mesh: TriMesh, tracks: LagrangianDisplacement, pixel_siz
     between the two sources. The best candidate is refined by the parabola in ``log`` factor through
     it and its neighbours. The evidence is taken to be unimodal in the factor, so the search starts
     at :data:`MASK_LEVEL_START` and its two neighbours and walks outwards while the best is at an
-    end of what was evaluated (three or four passes where the masks are about as good as stated or a
-    few times better, every candidate only at an end of the grid). The masks' stated sd (a binary
+    end of what was evaluated (three to five passes: three where the best is the start, five where the
+    masks are worse than stated). The masks' stated sd (a binary
     border's quantisation, or the border data's own temporal noise floor) says nothing of how well
     the masks were drawn, nor of how much the averaging over a border node's support removes; the
     evidence of both sources together does (a mask whose border disagrees with the phase data's

@@ -300,9 +300,9 @@ class StrainRouteSettings:
         (:attr:`sfem_filters.imaging.DenseCase.resolution_px`), never from a fit to a case.
     border_masks : bool
         Also observe the myocardium masks of every frame (:func:`dense_strain` ``masks``): each
-        border node's motion across the border, from landmarks tracked through the masks by
-        bending-energy matching, with the contours route's sd, stacked with the phase data in one
-        model (module docstring, step 2, *fused with the masks*). Default False: the phase alone.
+        border node's motion across the border (where ``border_correspondence`` places it), with the
+        contours route's sd rule, stacked with the phase data in one model (module docstring, step 2,
+        *fused with the masks*). Default False: the phase alone.
     mask_noise_level : {"stated", "evidence"}
         With ``border_masks``: the level of the masks' data beside the phase data's. ``"stated"``
         (default): their sd by the contours route's rule (a binary border's quantisation or the data's
@@ -495,6 +495,22 @@ def border_masks_data(masks, reference_mask, n_frames: int, mesh: TriMesh, pixel
         The route's mesh of ``reference_mask`` (m).
     pixel_size_m : float
     """
+    m = _fusion_masks(masks, reference_mask, n_frames)
+    k = integer("starts", starts, 1)
+    if guide_px is not None:
+        if k > 1:
+            raise ValueError(f"starts: guided border data have no contour start; expected 1, got {k}")
+        return guided_border_data(mesh, m, guide_px, pixel_size_m)
+    data = [mask_border_data(mesh, contour_landmark_tracks(m), pixel_size_m)]   # warns of a mended mask
+    if k > 1:
+        mended = np.stack([repair_myocardium_mask(f, f"masks[{t}]")[0] for t, f in enumerate(m)])
+        data += [mask_border_data(mesh, contour_landmark_tracks(mended, start_deg=360.0 * j / k), pixel_size_m)
+                 for j in range(1, k)]                                          # the same masks, already mended
+    return data[0] if k == 1 else mean_border_data(data)
+
+
+def _fusion_masks(masks, reference_mask, n_frames: int) -> np.ndarray:
+    """The masks to fuse as (F + 1, H, W), the reference first, checked (each error names ``masks``)."""
     ref = as_mask("reference_mask", reference_mask, 2, nonempty=True)
     F = int(n_frames)
     m = as_mask("masks", masks, 3)
@@ -510,17 +526,7 @@ def border_masks_data(masks, reference_mask, n_frames: int, mesh: TriMesh, pixel
     empty = np.flatnonzero(~m.any(axis=(1, 2)))
     if empty.size:
         raise ValueError(f"masks: expected myocardium in every frame's mask, got none in mask(s) {empty.tolist()}")
-    k = integer("starts", starts, 1)
-    if guide_px is not None:
-        if k > 1:
-            raise ValueError(f"starts: guided border data have no contour start; expected 1, got {k}")
-        return guided_border_data(mesh, m[1:], guide_px, pixel_size_m)
-    data = [mask_border_data(mesh, contour_landmark_tracks(m), pixel_size_m)]   # warns of a mended mask
-    if k > 1:
-        mended = np.stack([repair_myocardium_mask(f, f"masks[{t}]")[0] for t, f in enumerate(m)])
-        data += [mask_border_data(mesh, contour_landmark_tracks(mended, start_deg=360.0 * j / k), pixel_size_m)
-                 for j in range(1, k)]                                          # the same masks, already mended
-    return data[0] if k == 1 else mean_border_data(data)
+    return m
 
 
 @limits_blas_threads
@@ -580,9 +586,11 @@ def dense_strain(tracks: LagrangianDisplacement, reference_mask, pixel_size_m: f
     say(f"meshing the reference myocardium ({cfg.mesh}, {cfg.element_px:g} px)")
     mesh = reference_mesh(mask, s, cfg.mesh, cfg.element_px)
     border, guide, c_phase = None, None, None
+    if cfg.border_masks:
+        masks = _fusion_masks(masks, mask, tracks.displacement.shape[0])     # checked before any costly pass
     if cfg.border_masks and cfg.border_correspondence == "phase":
-        say("the phase data alone (one filter and smoother pass): their own noise level, and where each border "
-            "node is along the masks' border")
+        say("the phase data alone (one filter and smoother pass): where each border node is along the masks' "
+            "border")
         # with the process level still to be chosen (by evidence, with the masks' rows), the guide takes the default
         q_guide = StrainRouteSettings.process_fraction if cfg.process_fraction is None else cfg.process_fraction
         c_phase, guide = phase_only_pass(mesh, tracks, s, replace(cfg, process_fraction=q_guide), background,

@@ -86,10 +86,10 @@ def add_parser(sub) -> None:
     fusion = s.add_mutually_exclusive_group()
     fusion.add_argument("--with-masks", dest="masks_fusion", action="store_const", const=True, default=None,
                         help="dense route: observe the myocardium masks of every frame beside the phase (Shi & Liu's "
-                             "fusion of shape tracking with phase data in one model): the endo- and epicardial "
-                             "borders tracked through the masks by bending-energy matching, each border node's "
-                             "motion across the border with the contours route's sd (the mask's quantisation or the "
-                             "borders' own temporal noise floor). The default whenever PATH carries a mask of every "
+                             "fusion of shape tracking with phase data in one model): each border node's motion "
+                             "across the endo- or epicardial border, where --border-correspondence places it, with "
+                             "the contours route's sd (the mask's quantisation or the data's own temporal noise "
+                             "floor). The default whenever PATH carries a mask of every "
                              "frame that moves (DENSE-Sim folders; a DICOM folder's --masks (F, H, W) or "
                              "(F + 1, H, W); a sequence file's reference_mask and frame_masks); this option makes "
                              "it an error when it does not")
@@ -97,13 +97,13 @@ def add_parser(sub) -> None:
                         help="dense route: the phase alone, even when PATH carries every frame's mask")
     s.add_argument("--phase-noise-level", choices=PHASE_NOISE_LEVELS, default=None,
                    help="with the masks fused: the level at which the phase data join them. evidence (default): the "
-                        "phase data's sd times their own maximum-likelihood noise level from one filter pass without "
-                        "the masks (each source weighed by the noise it shows; one pass more); stated: the phase "
+                        "phase data's sd times their own maximum-likelihood noise level from a filter pass without "
+                        "the masks (the pass that places the border, or one pass more); stated: the phase "
                         "data's sd as the route states it (their sd scaled to their temporal noise floor)")
     s.add_argument("--mask-noise-level", choices=PHASE_NOISE_LEVELS, default=None,
                    help="with the masks fused: the level of the masks' data beside the phase data's. evidence "
                         "(default): their stated sd (a binary border's quantisation) times the factor of largest "
-                        "evidence of the fused model (three or four filter passes), so that masks drawn well or "
+                        "evidence of the fused model (three to five filter passes), so that masks drawn well or "
                         "badly are weighed by the noise they show; stated: their stated sd")
     s.add_argument("--process-profile", choices=PROCESS_PROFILES, default=None,
                    help="dense route: the process noise over the cycle. data (default): each frame interval's level "
