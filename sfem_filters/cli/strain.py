@@ -121,7 +121,9 @@ def add_parser(sub) -> None:
                    help="dense route with the masks' landmarks (implies --border-correspondence landmarks): average "
                         "their border data over N contour start angles spread evenly about the cavity, so that "
                         "they do not depend on where the contours start, i.e. on how the heart lies on the image "
-                        "grid (default 1; 8 makes them nearly independent of it; N - 1 more border trackings)")
+                        "grid (default 1; 8 makes them nearly independent of it; N - 1 more border trackings). For "
+                        "comparison: the default's border data have no contour start, and the landmarks' slides "
+                        "weigh more at the masks' evidence level (the docs' strain variants page)")
     s.add_argument("--csv", metavar="PATH",
                    help="also write the report as one tidy CSV table (one row per method, region = pixel, global "
                         "or segment, frame and component; PATH ending .gz is compressed); see the how-to page "
