@@ -313,6 +313,21 @@ class NodalFitModel(SFEMModel):
         out._R_full = self._R_full * positive("scale", scale)
         return out
 
+    def with_block_noise(self, first: int, scale: float) -> "NodalFitModel":
+        """This model with the covariance of the observed rows ``first:`` times ``scale`` (> 0), the rows before
+        unchanged: a second source's block (the masks' rows below the nodal fit), which must be independent of
+        the rows before it. Shares all else with this model, as :meth:`with_measurement_noise` does."""
+        first = int(first)
+        if not 0 <= first < self.dim_obs:
+            raise ValueError(f"first: expected a row in [0, {self.dim_obs}), got {first}")
+        if np.any(self._R_full[:, :first, first:]):
+            raise ValueError(f"first: expected rows {first}: independent of the rows before them, got a covariance "
+                             f"between the two")
+        out = self.with_measurement_noise(1.0)
+        out._R_full[:, first:, first:] *= positive("scale", scale)
+        out.R = out._R_full.mean(axis=0)
+        return out
+
     def process_profile(self):
         """(F - 1,) factors on ``Q`` per frame interval, or None (``Q`` every interval)."""
         return None if self._profile is None else self._profile.copy()
@@ -743,13 +758,14 @@ def mask_noise_level_ml(mesh: TriMesh, tracks: LagrangianDisplacement, pixel_siz
     if not hasattr(border, "R"):
         raise TypeError(f"border: expected a BorderData, got {type(border).__name__}")
     table = {}
+    model, y, _, _ = build_dense_model(mesh, tracks, pixel_size_m, settings, background, border,
+                                       phase_scale=phase_scale)
+    first = y.shape[1] - np.asarray(border.y).shape[1]                    # the masks' rows, below the nodal fit
 
     def evidence(i):
         f = fs[i]
         if f not in table:
-            model, y, _, _ = build_dense_model(mesh, tracks, pixel_size_m, settings, background,
-                                               replace(border, R=border.R * f), phase_scale=phase_scale)
-            table[f] = list(_concentrated_evidence_of(model, y))
+            table[f] = list(_concentrated_evidence_of(model.with_block_noise(first, f), y))
             say(f"masks' variance x {f:g}: log-evidence {table[f][0]:.1f}")
         return table[f][0]
 

@@ -363,6 +363,15 @@ def test_the_masks_level_by_evidence_gives_masks_drawn_worse_less_weight():
     assert min(MASK_LEVELS) <= clean <= max(MASK_LEVELS) and worse > 4 * clean
     # the search walks until the best evaluated candidate has both neighbours evaluated (or is at the grid's end):
     # the same choice as evaluating every candidate, for an evidence with one maximum
+    # the search scales the masks' block of one model: the same covariances as a model built with the scaled masks
+    model, y, _, _ = build_dense_model(mesh, tracks, PX, cfg, border=border, phase_scale=c)
+    rebuilt, y2, _, _ = build_dense_model(mesh, tracks, PX, cfg, border=replace(border, R=4.0 * border.R),
+                                          phase_scale=c)
+    scaled = model.with_block_noise(mesh.n_dofs, 4.0)
+    assert np.allclose(y, y2) and all(np.allclose(scaled.R_at(t), rebuilt.R_at(t)) for t in (0, 3, len(AREAS) - 1))
+    assert np.allclose(model.R_at(3), build_dense_model(mesh, tracks, PX, cfg, border=border, phase_scale=c)[0].R_at(3))
+    with pytest.raises(ValueError, match="first: expected rows .* independent"):
+        model.with_block_noise(mesh.n_dofs - 1, 2.0)
     each = {f: mask_noise_level_ml(mesh, tracks, PX, cfg, border, c, candidates=[f])[1][f][0] for f in MASK_LEVELS}
     best = max(each, key=each.get)
     assert best in table and table[best][0] == pytest.approx(each[best])
