@@ -24,6 +24,8 @@ from .starting import announce
 # or two on a small machine); ``starting`` imports nothing of ours and is silent outside the script.
 announce(sys.argv)
 
+from tqdm import tqdm  # noqa: E402
+
 from ..filtering.smoother import MEMORY_ADVICE, InsufficientMemory  # noqa: E402
 from ..resources import blas_threads  # noqa: E402
 from . import compare, dense, observe, strain  # noqa: E402
@@ -80,6 +82,12 @@ def _warnings_as_lines():
         warnings.formatwarning = saved
 
 
+def _close_progress_bars() -> None:
+    """Close every progress bar still open (tqdm keeps them in ``tqdm._instances``), clearing its line."""
+    for bar in list(getattr(tqdm, "_instances", ())):
+        bar.close()
+
+
 def main(argv=None) -> int:
     """Run ``sfem-filters`` with ``argv`` (default the process's arguments); the exit code: 0, 1 when a
     job of a batch failed (or none gave a result), 2 on an error (one line on stderr), 130 when interrupted."""
@@ -90,7 +98,9 @@ def main(argv=None) -> int:
             return {"compare": cmd_compare, "dense": cmd_dense, "observe": cmd_observe,
                     "strain": cmd_strain}[args.command](args)
     except KeyboardInterrupt as exc:
-        # Ctrl-C: the rounds have stopped their workers; one line says what finished and where it is kept
+        # Ctrl-C: the rounds have stopped their workers; one line says what finished and where it is kept,
+        # on a line of its own: a progress bar the interrupt left open (its generator suspended) is closed first
+        _close_progress_bars()
         _message(args.command, "interrupted", _interrupted(args, exc).removeprefix("interrupted").lstrip(" ;,"))
         return 130
     except MemoryError as exc:
