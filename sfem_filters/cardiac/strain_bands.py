@@ -11,7 +11,8 @@ every name stays importable from there. Strain is a fraction; gradients are dime
 * :func:`noise_scale`: the maximum-likelihood common scale of the model's covariances.
 * :func:`linearised_disagreement`, :func:`curve_noise_variance`, :func:`discrepancy_variance`: the
   empirical-Bayes excess error of a curve against the unsmoothed finite-difference strain of the
-  same tracks.
+  same tracks; :func:`moment_mean_variance` and :func:`pooling_weights`: each segment's own excess
+  partially pooled with the six segments' common one (random effects, moments).
 
 **Why linearised.** The Green-Lagrange strain of a noisy gradient is biased upwards by its
 noise, ``E[e . E(G + n) e] = e . E(G) e + E|n e|^2 / 2``: a shared, slowly varying offset of every
@@ -37,7 +38,8 @@ from ..fem.observation import point_observation_matrix
 from ..imaging.strain import green_strain, project_strain, radial_circumferential
 
 __all__ = ["STRAINS", "element_gradient_operator", "gradient_operators", "linearised_rows", "strain_and_sd",
-           "point_variance", "noise_scale", "linearised_disagreement", "curve_noise_variance", "discrepancy_variance"]
+           "point_variance", "noise_scale", "linearised_disagreement", "curve_noise_variance", "discrepancy_variance",
+           "moment_mean_variance", "pooling_weights"]
 
 #: Which displacement gradient the strain is computed from (``strain=``).
 STRAINS = ("recovered", "element")
@@ -213,6 +215,65 @@ def discrepancy_variance(diff, estimate, noise_var) -> tuple:
     sol, _ = nnls(A / scale, d[ok] ** 2 - v[ok])
     tau0_2, k2 = sol / scale
     return float(tau0_2), float(k2)
+
+
+def moment_mean_variance(moments) -> float:
+    """Sampling variance of the mean of a series of per-frame moments, allowing for their serial correlation.
+
+    ``var(x) / n_eff`` with ``n_eff = n (1 - rho) / (1 + rho)``, ``rho`` the lag-1 autocorrelation
+    clipped to [0, 0.99] (an AR(1) series' effective sample size): a curve's disagreement is a bias
+    that varies slowly over the frames, so its moments are far from independent, and ``var / n``
+    would credit one segment's mean with more certainty than its frames hold.
+
+    Parameters
+    ----------
+    moments : (F,) array
+        Per-frame moments (e.g. ``d_t^2 - noise_var``; units of the values squared), NaN where
+        missing; 2 finite frames or more.
+    """
+    x = as_float_array("moments", moments, shape=(None,), allow_nan=True)
+    x = x[np.isfinite(x)]
+    if x.size < 2:
+        raise ValueError(f"moments: expected at least 2 finite frames, got {x.size}")
+    xc = x - x.mean()
+    ss = float(np.sum(xc ** 2))
+    rho = float(np.clip(np.sum(xc[1:] * xc[:-1]) / ss, 0.0, 0.99)) if ss > 0 else 0.0
+    return float(np.var(x) * (1 + rho) / (x.size * (1 - rho)))
+
+
+def pooling_weights(own, pooled, sampling_var) -> np.ndarray:
+    """Weights ``w_g`` of each group's own estimate against the pooled one (random effects, moments).
+
+    Each group's own estimate ``own_g`` (e.g. a segment's mean excess variance) is the pooled value
+    plus a true between-group deviation (variance ``b``) plus its sampling error (variance
+    ``sampling_var_g``, :func:`moment_mean_variance`). The method of moments (DerSimonian and Laird,
+    1986) gives ``b = max(var_g(own - pooled) - mean_g(sampling_var), 0)``, and the best linear
+    combination takes ``w_g = b / (b + sampling_var_g)`` of the group's own and the rest from the
+    pooled: 0 when the groups differ no more than their sampling errors explain (all pooled), near 1
+    for a group that differs by far more than its own uncertainty.
+
+    Parameters
+    ----------
+    own, pooled : (S,) arrays
+        Each group's own estimate and the pooled model's value for that group (any one unit).
+    sampling_var : (S,) array
+        The sampling variance of each own estimate (that unit squared), >= 0.
+
+    Returns
+    -------
+    (S,) array in [0, 1].
+    """
+    a = as_float_array("own", own, shape=(None,))
+    p = as_float_array("pooled", pooled, shape=a.shape)
+    v = as_float_array("sampling_var", sampling_var, shape=a.shape)
+    if np.any(v < 0):
+        raise ValueError("sampling_var: expected non-negative variances, got a negative one")
+    if a.size < 2:
+        return np.zeros(a.size)
+    b = max(float(np.var(a - p)) - float(np.mean(v)), 0.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        w = np.where(b + v > 0, b / (b + v), 0.0)
+    return np.clip(w, 0.0, 1.0)
 
 
 def element_gradient_operator(mesh: TriMesh) -> np.ndarray:

@@ -168,10 +168,12 @@ The DENSE route of issue 42 (items 3 and 4), as a library function, :func:`dense
    pixels is in it), estimates the estimate's excess mean square error. Its variance is
    ``tau0^2 + k^2 m_t^2`` (a constant part and one proportional to the curve's square, the bias of
    a smoothing scaling with what it flattens; the data fit both, so they choose the profile over
-   the frames, :func:`discrepancy_variance`), one model for the global curve and one shared by the
-   six segments (:func:`curve_discrepancy`); each pixel takes the segments' ``tau0`` and ``k`` (a
-   pixel's own finite differences are far too noisy to tell). Reported as
-   ``settings["discrepancy_sd"]``. With the resolution-aware operator (step 2) the tracks see the
+   the frames, :func:`discrepancy_variance`), one model for the global curve and one for each
+   segment, partially pooled with the six segments' common model (:func:`curve_discrepancy`: a
+   segment keeps its own model only as far as it differs from the others by more than its moments'
+   noise explains, so one segment whose tracks carry a bias of their own does not widen the other
+   five's bands); each pixel takes its segment's ``tau0`` and ``k`` (a pixel's own finite
+   differences are far too noisy to tell). Reported as ``settings["discrepancy_sd"]``. With the resolution-aware operator (step 2) the tracks see the
    blurred field and the estimate does not, so the finite differences of the data are compared with
    those of the model's prediction of the data (``D U`` through :class:`ObservationScaling`): the
    disagreement is then the blurred error of the estimate, not the blur itself.
@@ -225,7 +227,7 @@ from .dense_model import INFORMATION_FLOOR, MESHES, PROCESS_FRACTIONS, PROCESS_P
 from .measured import NOMINAL
 from .strain_bands import STRAINS, _component_rows, _covariance_from_blocks, curve_noise_variance, \
     discrepancy_variance, element_gradient_operator, gradient_operators, linearised_disagreement, linearised_rows, \
-    noise_scale, point_variance, strain_and_sd
+    moment_mean_variance, noise_scale, point_variance, pooling_weights, strain_and_sd
 # the contours route takes these rows from here (the same maths): re-exported
 from .strain_bands import _covariance_from_rows, _curve_rows, _element_of, _gradient_rows  # noqa: F401
 
@@ -439,19 +441,27 @@ class DenseRouteStrain(DenseStrain):
         return out
 
 
-def curve_discrepancy(diffs, estimates) -> np.ndarray:
-    """(tau0^2, k^2) of the global curve (row 0) and of the segments (the other rows, one shared model).
+def curve_discrepancy(diffs, estimates, details: bool = False):
+    """(tau0^2, k^2) of the global curve (row 0) and of each segment (the other rows), the segments partially pooled.
 
-    Each curve's noise variance is its own (:func:`curve_noise_variance` of its disagreement);
-    the six segments share one model, fitted to the moments of all their frames
-    (:func:`discrepancy_variance`): one segment's frames alone give a noisy moment, which the
-    non-negativity clips upwards.
+    Each curve's noise variance is its own (:func:`curve_noise_variance` of its disagreement).
+    The segments' excess is fitted twice by :func:`discrepancy_variance`: once to the moments of all
+    their frames (the pooled model; one segment's frames alone give a noisy moment, which the
+    non-negativity clips upwards) and once to each segment's own. Each segment then takes
+    ``w_g`` of its own parameters and ``1 - w_g`` of the pooled (:func:`pooling_weights`, random
+    effects by moments, with each segment's mean excess's sampling variance from its frames' moments
+    allowing for their serial correlation, :func:`moment_mean_variance`): segments that differ no
+    more than their moments' noise explains share the pooled model; one whose tracks carry a bias of
+    their own (a wider disagreement than the others by far more than its noise) keeps it, instead of
+    widening the other five segments' bands by it.
 
     Parameters
     ----------
     diffs, estimates : (F, 1 + S) arrays
         Per curve (global, then the S segments): the mean linearised disagreement
         (:func:`linearised_disagreement`) and the estimated curve, per frame.
+    details : bool
+        Also return a dict with the pooled segments' ``(tau0^2, k^2)`` and the weights ``w_g``.
     """
     d = as_float_array("diffs", diffs, shape=(None, None), allow_nan=True)
     m = as_float_array("estimates", estimates, shape=d.shape, allow_nan=True)
@@ -461,9 +471,22 @@ def curve_discrepancy(diffs, estimates) -> np.ndarray:
     if 0 in v:
         tau[0] = discrepancy_variance(d[:, 0], m[:, 0], v[0])
     segs = [g for g in usable if g > 0]
+    pooled, weights = np.zeros(2), np.zeros(d.shape[1] - 1)
     if segs:
-        tau[1:] = discrepancy_variance(np.concatenate([d[:, g] for g in segs]), np.concatenate([m[:, g] for g in segs]),
-                                       np.concatenate([np.full(d.shape[0], v[g]) for g in segs]))
+        pooled = np.array(discrepancy_variance(np.concatenate([d[:, g] for g in segs]),
+                                               np.concatenate([m[:, g] for g in segs]),
+                                               np.concatenate([np.full(d.shape[0], v[g]) for g in segs])))
+        tau[1:] = pooled
+        own = np.array([discrepancy_variance(d[:, g], m[:, g], v[g]) for g in segs])
+        def mean_excess(p, g):
+            return float(np.nanmean(p[0] + p[1] * m[:, g] ** 2))
+        w = pooling_weights([mean_excess(o, g) for o, g in zip(own, segs)], [mean_excess(pooled, g) for g in segs],
+                            [moment_mean_variance(d[:, g] ** 2 - v[g]) for g in segs])
+        for o, g, wg in zip(own, segs, w):
+            tau[g] = wg * o + (1 - wg) * pooled
+            weights[g - 1] = wg
+    if details:
+        return tau, {"pooled": pooled, "weights": weights}
     return tau
 
 
@@ -696,11 +719,14 @@ def dense_strain(tracks: LagrangianDisplacement, reference_mask, pixel_size_m: f
         m_all = np.stack([means[q][:, g].mean(axis=1) if g.size else np.full(F, np.nan) for g in groups], axis=1)
         sd_all = sd_curves[:, q_i * (1 + N_SEGMENTS):(q_i + 1) * (1 + N_SEGMENTS)]
         d_all = np.stack([global_curve(diffs[q][:, g]) if g.size else np.full(F, np.nan) for g in groups], axis=1)
-        tau = curve_discrepancy(d_all, m_all) if cfg.discrepancy else np.zeros((len(groups), 2))
+        tau, pool = (curve_discrepancy(d_all, m_all, details=True) if cfg.discrepancy
+                     else (np.zeros((len(groups), 2)), {"pooled": np.zeros(2), "weights": np.zeros(N_SEGMENTS)}))
         # a pixel takes its segment's excess (its own finite differences are far too noisy to tell)
         tp = tau[1:][labels]
         total_sd[q] = np.sqrt(pixel_sd[q] ** 2 + tp[None, :, 0] + tp[None, :, 1] * means[q] ** 2)
-        tau_report[q] = {"global": np.sqrt(tau[0]).tolist(), "segments": np.sqrt(tau[1]).tolist()}
+        tau_report[q] = {"global": np.sqrt(tau[0]).tolist(), "segments": np.sqrt(tau[1:]).tolist(),
+                         "segments_pooled": np.sqrt(pool["pooled"]).tolist(),
+                         "segment_weights": np.asarray(pool["weights"], float).tolist()}
         for d, sl in ((glob, 0), (segs, slice(1, None))):
             mu, sd_m = m_all[:, sl].T, sd_all[:, sl].T
             c0, k2 = (tau[1:, :1], tau[1:, 1:]) if d is segs else (tau[0, 0], tau[0, 1])
@@ -735,7 +761,9 @@ def dense_strain(tracks: LagrangianDisplacement, reference_mask, pixel_size_m: f
                                             else "the masks at their stated level" if cfg.border_masks
                                             else "no masks"),
                     "discrepancy_sd": {"what": "[tau0 (fraction), k (relative)], tau_t^2 = tau0^2 + k^2 m_t^2; "
-                                               "one model for the global curve, one for the six segments",
+                                               "one model for the global curve; segments: one per segment (6 rows), "
+                                               "segment_weights of its own fit and the rest from the six segments' "
+                                               "pooled fit (segments_pooled)",
                                        **tau_report}}
     say(f"the route's estimate and bands in {seconds:.1f} s")
     return DenseRouteStrain(points=X.copy(), frame_times_s=np.asarray(tracks.frame_times_s, float).copy(),
