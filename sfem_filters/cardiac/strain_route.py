@@ -180,7 +180,9 @@ The DENSE route of issue 42 (items 3 and 4), as a library function, :func:`dense
 
    ``Ecc_sd`` and ``Err_sd`` (and the curves' ``*_sd`` and bands) are the total; the smoother's
    own (with ``c``) stay beside as ``Ecc_sd_model``, ``Err_sd_model`` and the curves'
-   ``*_sd_model``. What neither term can see: a bias that the tracks themselves carry (the
+   ``*_sd_model``; the curves' ``*_reference`` are the reference the excess was measured against
+   (the estimate plus the mean linearised disagreement: the tracks' finite-difference strain, with
+   the blur compensated as above), so a user sees what the bands compared. What neither term can see: a bias that the tracks themselves carry (the
    reference shares it), such as the radial strain of the first pixel layers at the
    endocardium, which the tracks of the noise-free images already miss.
 
@@ -427,7 +429,8 @@ class DenseRouteStrain(DenseStrain):
     ``Ecc_sd`` and ``Err_sd`` (and the curves' ``*_sd``, ``*_lo``, ``*_hi``) hold the total
     uncertainty, the smoother's variance plus the excess-error variance (module docstring,
     step 6); ``Ecc_sd_model`` and ``Err_sd_model`` (F, P) hold the smoother's alone, as do the
-    curves' ``*_sd_model`` entries.
+    curves' ``*_sd_model`` entries; the curves' ``*_reference`` the finite-difference reference their
+    excess error was measured against (module docstring, step 6).
     """
 
     Ecc_sd_model: np.ndarray = field(repr=False)
@@ -733,6 +736,7 @@ def dense_strain(tracks: LagrangianDisplacement, reference_mask, pixel_size_m: f
             sd = np.sqrt(sd_m ** 2 + c0 + k2 * mu ** 2)
             d[q], d[f"{q}_sd"], d[f"{q}_lo"], d[f"{q}_hi"] = mu, sd, mu - Z95 * sd, mu + Z95 * sd
             d[f"{q}_sd_model"] = sd_m
+            d[f"{q}_reference"] = (m_all + d_all)[:, sl].T      # what the excess error was measured against
     Dp = point_observation_matrix(mesh, Xin)
     disp_px = (Dp @ U.T).T.reshape(F, P, 2) / s
     seconds = time.perf_counter() - t0

@@ -28,7 +28,8 @@ from sfem_filters.cardiac.strain_route import (  # noqa: E402
     process_fraction_ml,
     reference_mesh,
 )
-from sfem_filters.imaging.strain import green_strain, project_strain, radial_circumferential  # noqa: E402
+from sfem_filters.imaging.strain import (displacement_gradient, green_strain, project_strain,  # noqa: E402
+                                         radial_circumferential, segment_curves)
 from sfem_filters.imaging.dense import LagrangianDisplacement, reference_points  # noqa: E402
 
 PX = 1.75e-3
@@ -275,6 +276,18 @@ def test_dense_strain_keeps_the_smoothers_sd_beside_the_total_and_the_switches_w
         lo, hi = full.band(q, "pixels")
         assert np.allclose(hi - lo, 2 * 1.959963984540054 * getattr(full, f"{q}_sd"))
     assert bare.settings["noise_scale_ml"] == 1.0
+    # the reference the excess was measured against: the tracks' finite-difference strain, linearised at the
+    # estimate, i.e. the Green strain of the finite differences less the mean of |(G_fd - G) e|^2 / 2 >= 0
+    E_fd = dict(zip(("Ecc", "Err", "Ecr"), project_strain(green_strain(displacement_gradient(full.points,
+                                                                                           tracks.displacement)),
+                                                          full.points, full.centre)))
+    for q in ("Ecc", "Err"):
+        assert np.array_equal(full.segment_curves[f"{q}_reference"], bare.segment_curves[f"{q}_reference"])
+        assert full.segment_curves[f"{q}_reference"].shape == full.segment_curves[q].shape
+        fd = segment_curves(E_fd[q], full.labels)
+        below = fd - full.segment_curves[f"{q}_reference"]
+        assert np.all(below >= -1e-12)
+        assert np.mean(below) < np.mean(np.abs(full.segment_curves[q] - fd))
     d = full.to_dict()
     assert {"Ecc_sd_model", "Err_sd_model"} <= set(d["strain"])
     with pytest.raises(ValueError, match="strain: expected one of"):
