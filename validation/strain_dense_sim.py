@@ -60,7 +60,9 @@ NAME = "strain_dense_sim"
 NEEDS_DATA = True
 TITLE = "Strain against DENSE-Sim's ground truth"
 FULL_COST = "about 18-25 minutes on 2 cores (12 runs of our route, 28 of its ablations)"
-TIERS = {"quick": {"cases": ["phantom_subject_1"], "snr": [30.0], "seeds": [0], "frames": 8, "route": True},
+#: The quick tier runs one ablation (the full tier, without an ``ablations`` key, runs them all).
+TIERS = {"quick": {"cases": ["phantom_subject_1"], "snr": [30.0], "seeds": [0], "frames": 8, "route": True,
+                   "ablations": ["ours, without the masks (phase alone)"]},
          "full": {"cases": None, "snr": [30.0, 8.0], "seeds": [0, 1, 2], "frames": None, "route": True}}
 #: Noise draws are seeded, our route is deterministic; timings are not compared.
 TOLERANCES = {"*": (1e-6, 1e-9), "seconds": None, "cpu_seconds": None, "peak_rss_mb": None, "load": None}
@@ -145,8 +147,14 @@ def _row(base, method, score, seconds, cpu, extra=None) -> dict:
 
 
 def run_case(folder: Path, snr: float, seed: int, frames=None, route: bool = True,
-             ablations: bool = False) -> list:
-    """Every method on one case, SNR and seed: a list of rows (metrics in percentage points)."""
+             ablations=False) -> list:
+    """Every method on one case, SNR and seed: a list of rows (metrics in percentage points).
+
+    ``ablations``: False for none, True for all of :data:`ABLATIONS`, or a list of their names."""
+    if ablations is not False and ablations is not True:
+        unknown = [a for a in ablations if a not in ABLATIONS]
+        if unknown:
+            raise ValueError(f"ablations: expected names from {list(ABLATIONS)}, got {unknown}")
     case = _truncated(read_dense_sim(folder), frames)
     t_ecc, t_err = truth_at_points(case)
     t0, c0 = time.perf_counter(), time.process_time()
@@ -164,7 +172,8 @@ def run_case(folder: Path, snr: float, seed: int, frames=None, route: bool = Tru
                          c_tracks + time.process_time() - c1))
     if not route:
         return rows
-    variants = {OURS: {}, **(ABLATIONS if ablations else {})}
+    chosen = ABLATIONS if ablations is True else {a: ABLATIONS[a] for a in ablations} if ablations else {}
+    variants = {OURS: {}, **chosen}
     for method, kw in variants.items():
         t1, c1 = time.perf_counter(), time.process_time()
         r = dense_case_strain(noisy, image_settings(noisy, **kw), tracks=tracks)
@@ -217,7 +226,8 @@ def compute(settings: dict, out_dir) -> dict:
             for seed in settings["seeds"]:
                 print(f"{folder.name} SNR {snr:g} seed {seed}", flush=True)
                 rows.extend(run_case(folder, snr, seed, settings.get("frames"), settings.get("route", True),
-                                     ablations=seed == settings["seeds"][0]))
+                                     ablations=(settings.get("ablations", True)
+                                                if seed == settings["seeds"][0] else False)))
     return {"rows": rows, "goals": {k: list(v) if isinstance(v, tuple) else v for k, v in GOALS.items()},
             "units": "strain metrics in percentage points; coverage in percent of segment-frames"}
 
