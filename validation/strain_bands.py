@@ -33,6 +33,7 @@ phantom's first 8 frames, SNR 30, seed 0.
 from __future__ import annotations
 
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -48,8 +49,11 @@ NAME = "strain_bands"
 NEEDS_DATA = True
 TITLE = "What the DENSE route's bands can see: their error model against the truth"
 FULL_COST = "about 15 minutes on 2 cores (12 runs of the route)"
-TIERS = {"quick": {"cases": ["phantom_subject_1"], "snr": [30.0], "seeds": [0], "frames": 8},
-         "full": {"cases": None, "snr": [30.0, 8.0], "seeds": [0, 1, 2], "frames": None}}
+TIERS = {"quick": {"cases": ["phantom_subject_1"], "snr": [30.0], "seeds": [0], "frames": 8, "figure": False},
+         "full": {"cases": None, "snr": [30.0, 8.0], "seeds": [0, 1, 2], "frames": None, "figure": True}}
+FIGURE = "strain_bands.png"
+#: The issue's goal for the band coverage of the segment-frames (percent).
+COVERAGE_GOAL = (85.0, 99.0)
 TOLERANCES = {"*": (1e-6, 1e-9), "seconds": None}
 #: Frames each side of a segment's true peak in the near-peak means.
 HALF_WINDOW = 3
@@ -125,8 +129,54 @@ def run_case(folder, snr: float, seed: int, frames=None) -> list:
 def compute(settings: dict, out_dir) -> dict:
     rows = [row for folder in case_folders(settings["cases"]) for snr in settings["snr"]
             for seed in settings["seeds"] for row in run_case(folder, snr, seed, settings.get("frames"))]
-    return {"rows": rows, "half_window_frames": HALF_WINDOW,
-            "units": "strain in percentage points, k dimensionless, coverage in percent of segment-frames"}
+    out = {"rows": rows, "half_window_frames": HALF_WINDOW,
+           "units": "strain in percentage points, k dimensionless, coverage in percent of segment-frames"}
+    if settings.get("figure"):
+        out["figure"] = figure(rows, out_dir / FIGURE)
+    return out
+
+
+def figure(rows, path) -> str:
+    """Per quantity, for each case and SNR: the coverage of the route's bands (seeds' range as a bar), of the
+    pooled rule's and of the truth-fitted form's, against the goal; and the near-peak errors."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    means = mean_rows(rows)
+    groups = list(dict.fromkeys((r["case"], r["snr"]) for r in means))
+    labels = [f"{c.split('_')[0]}\nSNR {snr:g}" for c, snr in groups]
+    x = np.arange(len(groups))
+    fig, axes = plt.subplots(2, 2, figsize=(10.5, 6.6), constrained_layout=True)
+    for col, q in enumerate(QUANTITIES):
+        ax = axes[0, col]
+        ax.axhspan(*COVERAGE_GOAL, color="0.88", label="goal 85-99%")
+        for k, (key, name, colour, dx) in enumerate((("coverage_pct", "route (partially pooled)", "C0", -0.22),
+                                                     ("coverage_pct_pooled", "segments pooled (before)", "C1", 0.0),
+                                                     ("coverage_pct_truth_fit", "form fitted to the truth", "C2", 0.22))):
+            vals = [[r[key] for r in rows if (r["case"], r["snr"]) == g and r["quantity"] == q] for g in groups]
+            mean = np.array([np.mean(v) for v in vals])
+            lo, hi = mean - np.array([min(v) for v in vals]), np.array([max(v) for v in vals]) - mean
+            ax.errorbar(x + dx, mean, yerr=[lo, hi], fmt="o", color=colour, capsize=3, label=name)
+        ax.set_xticks(x, labels)
+        ax.set_ylabel("segment-frames inside the 95% band [%]")
+        ax.set_title(f"{q}: band coverage (mean, seeds' range)")
+        ax.grid(alpha=0.3, axis="y")
+        ax = axes[1, col]
+        for k, (key, name, colour) in enumerate((("near_peak_error_rms", "our error", "C0"),
+                                                 ("near_peak_reference_error_rms", "the reference's error", "C3"),
+                                                 ("near_peak_difference_rms", "their difference", "0.5"))):
+            vals = [next(r[key] for r in means if (r["case"], r["snr"]) == g and r["quantity"] == q) for g in groups]
+            ax.bar(x + (k - 1) * 0.26, vals, width=0.26, color=colour, label=name)
+        ax.set_xticks(x, labels)
+        ax.set_ylabel("RMS over segments [percentage points]")
+        ax.set_title(f"{q}: error near each segment's true peak (+-{HALF_WINDOW} frames)")
+        ax.set_ylim(0, 1.3 * ax.get_ylim()[1])
+        ax.grid(alpha=0.3, axis="y")
+    axes[0, 0].legend(fontsize=8, loc="lower left")
+    axes[1, 0].legend(fontsize=8, loc="upper center", ncol=3)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return Path(path).name
 
 
 def mean_rows(rows) -> list:
