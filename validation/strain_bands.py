@@ -41,6 +41,7 @@ from sfem_filters.cardiac import dense_case_strain, image_settings
 from sfem_filters.cardiac.strain_bands import discrepancy_variance
 from sfem_filters.imaging import (add_complex_noise, phase_to_displacement, read_dense_sim, segment_curves,
                                   truth_at_points)
+from sfem_filters.imaging.strain import Z95
 
 from ._core import fmt, md_table
 from .strain_dense_sim import _truncated, case_folders
@@ -57,7 +58,6 @@ COVERAGE_GOAL = (85.0, 99.0)
 TOLERANCES = {"*": (1e-6, 1e-9), "seconds": None}
 #: Frames each side of a segment's true peak in the near-peak means.
 HALF_WINDOW = 3
-Z95 = 1.959963984540054
 PCT = 100.0
 QUANTITIES = {"Ecc": np.argmin, "Err": np.argmax}
 FIELDS = ("error_rms", "sd_rms", "sd_model_rms", "coverage_pct", "coverage_pct_pooled", "tau0", "k", "own_weight",

@@ -481,9 +481,8 @@ def curve_discrepancy(diffs, estimates, details: bool = False):
                                                np.concatenate([np.full(d.shape[0], v[g]) for g in segs])))
         tau[1:] = pooled
         own = np.array([discrepancy_variance(d[:, g], m[:, g], v[g]) for g in segs])
-        def mean_excess(p, g):
-            return float(np.nanmean(p[0] + p[1] * m[:, g] ** 2))
-        w = pooling_weights([mean_excess(o, g) for o, g in zip(own, segs)], [mean_excess(pooled, g) for g in segs],
+        m2 = np.array([np.nanmean(m[:, g] ** 2) for g in segs])               # each segment's mean of m_t^2
+        w = pooling_weights(own[:, 0] + own[:, 1] * m2, pooled[0] + pooled[1] * m2,
                             [moment_mean_variance(d[:, g] ** 2 - v[g]) for g in segs])
         for o, g, wg in zip(own, segs, w):
             tau[g] = wg * o + (1 - wg) * pooled
