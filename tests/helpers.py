@@ -1,7 +1,10 @@
 """Small systems shared by the tests (SI units)."""
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
+import yaml
 
 from sfem_filters import fem
 from sfem_filters.fem.material import Material, Parameterisation
@@ -176,3 +179,22 @@ def thickening_ring_tracks(mask, frames=6, noise_px=0.05, seed=0, turn=0.02):
                                     frame_times_s=0.0225 + 0.015 * np.arange(frames), n_untracked=0,
                                     noise_sd=np.array([1.0, 1.0]))
     return tracks, disp
+
+
+def write_case_frames(src, dst, frames: int, stride: int = 1):
+    """Write the DENSE-Sim case folder ``src`` into the new folder ``dst`` at frames ``0, stride, ...``
+    (``frames`` of them), every file cut as the case is published: the images and the truth per frame,
+    the masks and ``config.yaml``'s ``tt`` with the reference (index 0) before them. Returns ``dst``."""
+    dst = Path(dst)
+    dst.mkdir(parents=True)
+    keep = np.arange(frames) * stride
+    for name in ("phase_x", "phase_y", "magnitude", "GT_Ecc", "GT_Err"):
+        np.save(dst / f"{name}.npy", np.load(f"{src}/{name}.npy")[keep])
+    np.save(dst / "LV_mask_time_lowres.npy", np.load(f"{src}/LV_mask_time_lowres.npy")[np.r_[0, keep + 1]])
+    with open(f"{src}/config.yaml") as f:
+        config = yaml.safe_load(f)
+    config["sim_params"]["tt"] = [config["sim_params"]["tt"][i] for i in np.r_[0, keep + 1]]
+    config["sim_params"]["Nt"] = frames
+    with open(dst / "config.yaml", "w") as f:
+        yaml.safe_dump(config, f)
+    return dst

@@ -1,12 +1,14 @@
 """``sfem-filters strain``: a DENSE-Sim case folder in, the issue's JSON out (names, shapes, bands)."""
 import json
+from dataclasses import fields
 
 import numpy as np
 import pytest
-import yaml
 
+from helpers import write_case_frames
 from sfem_filters import datasets
-from sfem_filters.cli import main
+from sfem_filters.cli import build_parser, main
+from sfem_filters.cli.strain_input import _dense_settings, _strain_input
 
 CASE = "dense_sim/phantom_subject_1"
 
@@ -14,20 +16,7 @@ CASE = "dense_sim/phantom_subject_1"
 @pytest.fixture(scope="module")
 def short_case(tmp_path_factory):
     """The phantom case cut to its first 6 frames, written as a case folder is published."""
-    src = datasets.dataset_path(CASE)
-    dst = tmp_path_factory.mktemp("case") / "phantom_short"
-    dst.mkdir()
-    frames = 6
-    for name in ("phase_x", "phase_y", "magnitude", "GT_Ecc", "GT_Err"):
-        np.save(dst / f"{name}.npy", np.load(f"{src}/{name}.npy")[:frames])
-    np.save(dst / "LV_mask_time_lowres.npy", np.load(f"{src}/LV_mask_time_lowres.npy")[:frames + 1])
-    with open(f"{src}/config.yaml") as f:
-        config = yaml.safe_load(f)
-    config["sim_params"]["tt"] = config["sim_params"]["tt"][:frames + 1]
-    config["sim_params"]["Nt"] = frames
-    with open(dst / "config.yaml", "w") as f:
-        yaml.safe_dump(config, f)
-    return dst
+    return write_case_frames(datasets.dataset_path(CASE), tmp_path_factory.mktemp("case") / "phantom_short", 6)
 
 
 @pytest.mark.needs_data(CASE)
@@ -89,6 +78,36 @@ def test_strain_argument_errors_say_what_was_expected(capsys):
 
 # the DENSE route's default for images: the acquisition's point spread, each frame's mask fused, the profile
 
+#: Each switch of the DENSE route's default and what it sets.
+SWITCHES = {"stated": (["--phase-noise-level", "stated"], {"phase_noise_level": "stated", "border_masks": True}),
+            "alone": (["--no-masks"], {"border_masks": False, "phase_noise_level": "stated",
+                                       "mask_noise_level": "stated"}),
+            "point": (["--resolution-px", "1"], {"resolution_px": 1.0, "border_masks": True}),
+            "constant": (["--process-profile", "constant"], {"process_profile": "constant"}),
+            "landmarks": (["--border-correspondence", "landmarks"], {"border_correspondence": "landmarks"}),
+            "starts": (["--border-starts", "2"], {"border_correspondence": "landmarks", "border_starts": 2}),
+            "mask_stated": (["--mask-noise-level", "stated"], {"mask_noise_level": "stated"})}
+#: The switches run end to end in the default suite (each takes its own path through the route); all of
+#: them run in the slow test.
+RUN_BY_DEFAULT = ("alone", "landmarks")
+
+
+def _run_switches(short_case, tmp_path, names):
+    got = {}
+    for name in names:
+        path = tmp_path / f"{name}.json"
+        assert main(["strain", str(short_case), "--json", str(path), "--snr", "30", "--quiet",
+                     *SWITCHES[name][0]]) == 0
+        got[name] = json.loads(path.read_text())
+    return got
+
+
+def _assert_each_changes_the_estimate(base, got):
+    base = np.array(base["global"]["Err"], float)
+    for name, rep in got.items():                    # each part changes the estimate: none is ignored
+        assert np.max(np.abs(np.array(rep["global"]["Err"], float) - base)) > 1e-6, name
+
+
 @pytest.mark.needs_data(CASE)
 def test_default_for_images_fuses_the_masks_through_the_point_spread_and_each_part_can_be_turned_off(short_case,
                                                                                                      tmp_path):
@@ -105,14 +124,34 @@ def test_default_for_images_fuses_the_masks_through_the_point_spread_and_each_pa
     assert s["mask_noise_level"] == "evidence" and s["mask_noise_scale"] > 0 and s["mask_noise_scale"] != 1.0
     assert np.array(d["global"]["Err"], float).shape == (6,)
     assert np.all(np.isfinite(np.array(d["strain"]["Err"], float)))
-    runs = {"stated": ["--phase-noise-level", "stated"], "alone": ["--no-masks"], "point": ["--resolution-px", "1"],
-            "constant": ["--process-profile", "constant"], "landmarks": ["--border-correspondence", "landmarks"],
-            "starts": ["--border-starts", "2"], "mask_stated": ["--mask-noise-level", "stated"]}
-    got = {}
-    for name, extra in runs.items():
-        path = tmp_path / f"{name}.json"
-        assert main(["strain", str(short_case), "--json", str(path), "--snr", "30", "--quiet", *extra]) == 0
-        got[name] = json.loads(path.read_text())
+    # every switch reaches the route's settings, the others left at the default's
+    parser = build_parser()
+    base = ["strain", str(short_case), "--json", str(tmp_path / "unused.json"), "--snr", "30"]
+    src = _strain_input(parser.parse_args(base), lambda m: None)
+    default = _dense_settings(parser.parse_args(base), src)
+    assert default.border_masks and default.resolution_px == pytest.approx(128 / 60)
+    for name, (extra, expected) in SWITCHES.items():
+        switched = _dense_settings(parser.parse_args([*base, *extra]), src)
+        changed = {f.name: getattr(switched, f.name) for f in fields(switched)
+                   if getattr(switched, f.name) != getattr(default, f.name)}
+        assert changed == {k: v for k, v in expected.items() if getattr(default, k) != v}, name
+    # end to end, two switches that take their own path through the route
+    got = _run_switches(short_case, tmp_path, RUN_BY_DEFAULT)
+    alone = got["alone"]["settings"]
+    assert alone["border_masks"] is False and alone["phase_noise_level"] == "stated" and "border_rows" not in alone
+    lm = got["landmarks"]["settings"]
+    assert lm["border_correspondence"] == "landmarks" and lm["border_landmarks"] > lm["border_nodes"]
+    _assert_each_changes_the_estimate(d, got)
+
+
+@pytest.mark.needs_data(CASE)
+@pytest.mark.slow
+def test_every_switch_of_the_default_changes_the_estimate(short_case, tmp_path):
+    out = tmp_path / "default.json"
+    assert main(["strain", str(short_case), "--json", str(out), "--snr", "30", "--quiet"]) == 0
+    d = json.loads(out.read_text())
+    s = d["settings"]
+    got = _run_switches(short_case, tmp_path, SWITCHES)
     assert got["stated"]["settings"]["phase_noise_scale"] == 1.0
     assert got["stated"]["settings"]["border_rows"] == s["border_rows"]
     alone = got["alone"]["settings"]
@@ -126,9 +165,7 @@ def test_default_for_images_fuses_the_masks_through_the_point_spread_and_each_pa
     assert np.max(np.abs(np.array(got["starts"]["global"]["Err"], float)
                          - np.array(got["landmarks"]["global"]["Err"], float))) > 1e-6    # the starts count
     assert got["mask_stated"]["settings"]["mask_noise_scale"] == 1.0
-    base = np.array(d["global"]["Err"], float)
-    for name, rep in got.items():                    # each part changes the estimate: none is ignored
-        assert np.max(np.abs(np.array(rep["global"]["Err"], float) - base)) > 1e-6, name
+    _assert_each_changes_the_estimate(d, got)
 
 
 @pytest.mark.needs_data(CASE)

@@ -16,7 +16,7 @@ import pytest
 import yaml
 from scipy.ndimage import binary_erosion
 
-from helpers import write_dicom
+from helpers import write_case_frames, write_dicom
 from sfem_filters import datasets
 from sfem_filters.cardiac import StrainRouteSettings, dense_strain
 from sfem_filters.cli import main
@@ -40,20 +40,8 @@ DU_PX = 0.5 * PHASE_STEP / (2 * np.pi * KE * PX_MM)
 def short_case(tmp_path_factory):
     """The phantom case at every STRIDE-th frame (FRAMES of them, into systole: strain of several percent),
     written as a case folder is published."""
-    src = datasets.dataset_path(CASE)
-    dst = tmp_path_factory.mktemp("case") / "phantom_short"
-    dst.mkdir()
-    keep = np.arange(FRAMES) * STRIDE
-    for name in ("phase_x", "phase_y", "magnitude", "GT_Ecc", "GT_Err"):
-        np.save(dst / f"{name}.npy", np.load(f"{src}/{name}.npy")[keep])
-    np.save(dst / "LV_mask_time_lowres.npy", np.load(f"{src}/LV_mask_time_lowres.npy")[np.r_[0, keep + 1]])
-    with open(f"{src}/config.yaml") as f:
-        config = yaml.safe_load(f)
-    config["sim_params"]["tt"] = [config["sim_params"]["tt"][i] for i in np.r_[0, keep + 1]]
-    config["sim_params"]["Nt"] = FRAMES
-    with open(dst / "config.yaml", "w") as f:
-        yaml.safe_dump(config, f)
-    return dst
+    return write_case_frames(datasets.dataset_path(CASE), tmp_path_factory.mktemp("case") / "phantom_short",
+                             FRAMES, STRIDE)
 
 
 def _stored_phase(phase):

@@ -305,7 +305,7 @@ def test_fits_side_by_side_take_the_same_path_and_give_the_same_figures(selectio
     and every figure of the report the same to the last bit."""
     seq = annulus_sequence(["active_polar", "cavity_pressure"], amplitude=[(0.15, -0.3), (0.5,)], n_frames=5, seed=1)
     kw = dict(candidates=["active_polar", "cavity_pressure", "active_radial"], parameterisation="none", max_rounds=2,
-              max_iterations=3, corrections=False, selection=selection, max_tries=3, folds=9)
+              max_iterations=3, corrections=False, selection=selection, max_tries=3, folds=3)
     one, two = (closing.closing_the_loop(seq, *specs_from(**kw), workers=w) for w in (1, 2))
     assert [r.added for r in two.rounds] == [r.added for r in one.rounds]
     assert len(two.rounds) > 2 or two.rounds[1].backward        # a round and a backward step (or its try)
@@ -319,7 +319,7 @@ def test_variances_made_only_for_the_fits_kept_give_the_same_report(monkeypatch)
     all had them, bit for bit."""
     seq = annulus_sequence(["active_polar", "cavity_pressure"], amplitude=[(0.15, -0.3), (0.5,)], n_frames=5, seed=1)
     kw = dict(candidates=["active_polar", "cavity_pressure", "active_radial"], max_rounds=2, max_iterations=3,
-              corrections=False, folds=9)
+              corrections=False, folds=3)
     lean = closing.closing_the_loop(seq, *specs_from(**kw))
     made = []
 
