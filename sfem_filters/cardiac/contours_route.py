@@ -64,6 +64,21 @@ The contours route of issue 42 (item 2), Shi & Liu (2003) section 2.6 as a strai
    both borders, the elastic field knows where the cavity is (the spline couples the two borders
    across it).
 
+4b. **A second pass, guided by the first.** The landmarks are chained from frame to frame, and a
+   landmark that slid along a curved border misreads the border's motion across itself (the error
+   grows as the slide squared over the border's radius, and the slides accumulate over the cycle).
+   On the in-vivo DENSE-Sim case, at its full frame rate, the first pass's global radial strain stays
+   well above the truth in diastole, after the masks have come back to the reference shape
+   (``tests/cardiac/test_contours_route.py``, slow; the validation page's row without the guided
+   pass). So by default (``guided_passes=1``) the route
+   runs again on the data the DENSE route's masks give with a phase guide
+   (:func:`sfem_filters.cardiac.border_data.guided_border_data`), here guided by the first pass's
+   own estimate: each border node is placed where that estimate puts it, and its datum is the frame's
+   mask border's offset across itself at that point. Where the guide errs across the border, the datum
+   does not change. Where it errs along the border, the datum changes only by that error times the
+   border's turn. The elastic prior and the evidence's process level are rebuilt for the new data; the
+   settings' ``passes`` list each pass's data, noise floor, process level and log-likelihood.
+
 5. **Strain and its sd.** As the DENSE route: Green-Lagrange strain of each linear triangle's
    gradient at every reference pixel, projected about the reference mask's centre of mass; sd
    and curve bands by the delta method at the posterior mean with the smoothed covariance
@@ -100,7 +115,7 @@ from ..imaging.tracking import BoundaryTracks
 from ..resources import limits_blas_threads
 # the masks' data on the border nodes live in border_data (the DENSE route fuses them too): re-exported here
 from .border_data import (LANDMARK_SPACING_PX, MIN_LANDMARKS, QUANTISATION_SD_PX, border_node_data,
-                          contour_landmark_tracks, landmark_sd, mask_border_data)
+                          contour_landmark_tracks, guided_border_data, landmark_sd, mask_border_data)
 from .measured import NOMINAL
 from .strain_route import (Z95, DenseStrain, NodalFitModel, compliant_modulus, element_gradient_operator,
                            linearised_rows, observation_points, reference_mesh, strain_and_sd)
@@ -160,6 +175,10 @@ class ContourRouteSettings:
         4^6). The wall's change of velocity over one frame interval grows as the frame rate falls, so a
         sparser sequence asks for a larger level; the upper end leaves room for that, and the search
         warns if its best factor still sits at an end.
+    guided_passes : int
+        Passes after the first whose border data are guided by the previous pass's estimate
+        (:func:`sfem_filters.cardiac.border_data.guided_border_data`; module docstring, step 4b).
+        1 (default); 0: the landmarks' data alone.
     start_deg : float
         Start of segment 0 (degrees from the image's +x axis towards +y).
     centre : tuple or None
@@ -177,6 +196,7 @@ class ContourRouteSettings:
     along_border: str = "none"
     process_noise: str = "estimate"
     noise_range: tuple = (4.0 ** -8, 4.0 ** 6)
+    guided_passes: int = 1
     start_deg: float = 0.0
     centre: tuple | None = None
 
@@ -199,6 +219,9 @@ class ContourRouteSettings:
         if self.process_noise not in ("fixed", "estimate"):
             raise ValueError(f"process_noise: expected 'fixed' or 'estimate', got {self.process_noise!r}")
         object.__setattr__(self, "noise_range", check_noise_range(self.noise_range))
+        if isinstance(self.guided_passes, bool) or int(self.guided_passes) != self.guided_passes \
+                or self.guided_passes < 0:
+            raise ValueError(f"guided_passes: expected an integer >= 0, got {self.guided_passes!r}")
         if isinstance(self.min_landmarks, bool) or int(self.min_landmarks) != self.min_landmarks \
                 or self.min_landmarks < 8:
             raise ValueError(f"min_landmarks: expected an integer >= 8, got {self.min_landmarks!r}")
@@ -335,10 +358,7 @@ def contour_strain(masks, pixel_size_m: float, frame_times_s, settings: ContourR
     say(f"{L} landmarks ({int(np.sum(tracks.contour == 0))} endo, {int(np.sum(tracks.contour == 1))} epi); "
         f"meshing the reference myocardium (gmsh, {cfg.element_px:g} px)")
     mesh = reference_mesh(mask, s, "gmsh", cfg.element_px)
-    bd = mask_border_data(mesh, tracks, s, cfg.normal_sd_px, tangential=cfg.along_border == "tracked")
-    H, y, R, bnodes = bd.H, bd.y, bd.R, bd.nodes
-    s_n, s_t, floor_n, moved = bd.sd_normal_px, bd.sd_tangent_px, bd.floor_px, bd.moved_m
-    bdofs = np.sort(np.concatenate([2 * bnodes, 2 * bnodes + 1]))
+    bd = landmark_bd = mask_border_data(mesh, tracks, s, cfg.normal_sd_px, tangential=cfg.along_border == "tracked")
     T = float(np.median(np.diff(times)))
     alpha = NOMINAL["alpha"]
     wall = float(mask.sum()) * s * s / np.mean([np.sum(np.linalg.norm(np.diff(np.vstack([c, c[:1]]), axis=0), axis=1))
@@ -347,35 +367,31 @@ def contour_strain(masks, pixel_size_m: float, frame_times_s, settings: ContourR
     material = Material.uniform(mesh.n_elements, E, cfg.nu_plane_strain)
     ground = NOMINAL["foundation"] * float(np.median(stiffness_matrix(mesh, material.E, material.nu).diagonal()))
     penalty = penalty_stiffness(mesh.n_dofs, np.arange(mesh.n_dofs), ground)
-    q = cfg.process_fraction * floor_n * s if floor_n > 0 else cfg.process_fraction * cfg.normal_sd_px * s
+    bdofs = np.sort(np.concatenate([2 * bd.nodes, 2 * bd.nodes + 1]))
+    prior = elastic_prior(mesh, cfg.nu_plane_strain, bdofs)
     # the initial state: at rest in the reference configuration, uncertain by the landmarks' first
     # displacement (the first frame is after the reference); from the data, not from the nodal fit,
     # whose tangential components along a smooth border are barely determined
-    u0_sd = max(float(np.sqrt(np.mean(tracks.displacement[1] ** 2))), q / s) * s
-    fl = INTERIOR_FREEDOM
-    model = NodalFitModel(mesh, material, np.zeros((F, mesh.n_dofs)), H, T, (), density=NOMINAL["density"],
-                          alpha=alpha, beta=NOMINAL["beta"], measurement_std=1.0, process_std=(fl * q, fl * q / T),
-                          initial_std=(fl * u0_sd, fl * u0_sd / T), penalty=penalty, R_frames=R)
-    say(f"mesh: {mesh.n_nodes} nodes, {mesh.n_elements} triangles, {len(bdofs)} border dofs observed; "
-        "elastic prior of the wall")
-    free0 = model.dofmap.free
-    XX = elastic_prior(mesh, cfg.nu_plane_strain, bdofs)[np.ix_(free0, free0)]
+    u0_px = float(np.sqrt(np.mean(tracks.displacement[1] ** 2)))
+    passes = []
+    for k in range(1 + int(cfg.guided_passes)):
+        if k:
+            say(f"pass {k + 1}: the border data at the points the previous pass names (guided)")
+            bd = guided_border_data(mesh, m, U.reshape(F, mesh.n_nodes, 2) / s, s, cfg.normal_sd_px)
+        else:
+            say(f"mesh: {mesh.n_nodes} nodes, {mesh.n_elements} triangles, {len(bdofs)} border dofs observed; "
+                "elastic prior of the wall")
+        model, result, q, u0_sd = _border_fit(mesh, material, penalty, prior, bd, F, T, s, u0_px, cfg, say)
+        U = np.zeros((F, mesh.n_dofs))
+        U[:, model.dofmap.free] = result.states[:, :model.dofmap.n_free]
+        passes.append({"data": "landmarks" if k == 0 else "guided", "normal_noise_floor_px": float(bd.floor_px),
+                       "process_noise_scale": float(result.process_noise_scale),
+                       "log_likelihood": float(result.log_likelihood)})
+    H, y = bd.H, bd.y
+    s_n, s_t, floor_n, moved = landmark_bd.sd_normal_px, landmark_bd.sd_tangent_px, bd.floor_px, landmark_bd.moved_m
     n = model.dofmap.n_free
-    model.Q[:n, :n] += q ** 2 * XX
-    model.Q[n:2 * n, n:2 * n] += (q / T) ** 2 * XX
-    model.P0[:n, :n] += u0_sd ** 2 * XX
-    model.P0[n:2 * n, n:2 * n] += (u0_sd / T) ** 2 * XX
-    say(f"smoothing {F} frames ({model.dim_state} states)" + (
-        "; the process noise level by the evidence (a smoother run per level tried)"
-        if cfg.process_noise == "estimate" else ""))
-    result = IteratedSmoother(covariance=False, process_noise=cfg.process_noise,
-                              noise_range=tuple(cfg.noise_range)).run(model, y)
-    if cfg.process_noise == "estimate":
-        model = model.with_process_noise(result.process_noise_scale)
     nr = model.n_restart
     free = model.dofmap.free
-    U = np.zeros((F, mesh.n_dofs))
-    U[:, free] = result.states[:, :n]
     P = len(X)
     Xm = X * s
     Xin, _ = observation_points(mesh, Xm)
@@ -421,7 +437,7 @@ def contour_strain(masks, pixel_size_m: float, frame_times_s, settings: ContourR
             "alpha_per_s": alpha, "wall_thickness_px": wall / s, "n_nodes": mesh.n_nodes,
             "n_elements": mesh.n_elements, "n_border_dofs": int(len(bdofs)), "dim_state": int(model.dim_state),
             "mean_match_confidence": float(np.mean(tracks.step_confidence[1:])),
-            "process_noise_scale": float(result.process_noise_scale),
+            "process_noise_scale": float(result.process_noise_scale), "passes": passes,
             "nu_plane_strain_elements": cfg.nu_plane_strain,
             "data": "myocardium masks only (no phase): noise-free in phase terms",
             "landmarks": "marching-squares borders of masks[0], one per landmark_spacing_px, tracked by bending "
@@ -438,6 +454,35 @@ def contour_strain(masks, pixel_size_m: float, frame_times_s, settings: ContourR
                          Err_sd=sd_rr, global_curves=glob, segment_curves=segs, displacement=disp_px,
                          seconds=seconds, settings={**asdict(cfg), **info}, mesh=mesh, tracks=tracks,
                          landmark_sd=np.stack([s_n, s_t], axis=-1), nodal_displacement=U / s)
+
+def _border_fit(mesh, material, penalty, prior, bd, F: int, T: float, s: float, u0_px: float, cfg, say) -> tuple:
+    """One smoother run of the contours route on the border data ``bd`` (module docstring, step 4).
+
+    Returns the model (its process noise at the level the evidence chose), the smoother's result,
+    and the process and initial sd (m) before that level."""
+    q = cfg.process_fraction * (bd.floor_px if bd.floor_px > 0 else cfg.normal_sd_px) * s
+    u0_sd = max(u0_px, q / s) * s
+    fl = INTERIOR_FREEDOM
+    model = NodalFitModel(mesh, material, np.zeros((F, mesh.n_dofs)), bd.H, T, (), density=NOMINAL["density"],
+                          alpha=NOMINAL["alpha"], beta=NOMINAL["beta"], measurement_std=1.0,
+                          process_std=(fl * q, fl * q / T), initial_std=(fl * u0_sd, fl * u0_sd / T),
+                          penalty=penalty, R_frames=bd.R)
+    free = model.dofmap.free
+    XX = prior[np.ix_(free, free)]
+    n = model.dofmap.n_free
+    model.Q[:n, :n] += q ** 2 * XX
+    model.Q[n:2 * n, n:2 * n] += (q / T) ** 2 * XX
+    model.P0[:n, :n] += u0_sd ** 2 * XX
+    model.P0[n:2 * n, n:2 * n] += (u0_sd / T) ** 2 * XX
+    say(f"smoothing {F} frames ({model.dim_state} states)" + (
+        "; the process noise level by the evidence (a smoother run per level tried)"
+        if cfg.process_noise == "estimate" else ""))
+    result = IteratedSmoother(covariance=False, process_noise=cfg.process_noise,
+                              noise_range=tuple(cfg.noise_range)).run(model, bd.y)
+    if cfg.process_noise == "estimate":
+        model = model.with_process_noise(result.process_noise_scale)
+    return model, result, q, u0_sd
+
 
 
 def contour_spline_strain(result: ContourStrain) -> SplineStrain:
