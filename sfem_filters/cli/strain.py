@@ -158,6 +158,9 @@ def cmd_strain(args) -> int:
                              "sequence file has no reference_mask and frame_masks (use --route dense)")
         ours = contour_strain(src["masks"], src["pixel_size_m"], src["frame_times_s"],
                               ContourRouteSettings(start_deg=args.segment_start), progress=say)
+        _message("strain", "note", "the contours route's 95% bands hold how well the masks' borders are known "
+                 "given an elastic interior, not the interior model's own error; on DENSE-Sim's ground truth its "
+                 "radial bands are too narrow and its radial peaks low (docs: validation/strain_contours)")
     else:
         settings = _dense_settings(args, src)
         say("dense route: "

@@ -226,3 +226,5 @@ def test_the_cli_runs_the_contours_route_on_a_shipped_case(tmp_path, capsys):
     g = np.array(d["global"]["Ecc"], float)
     assert np.all(np.isfinite(g)) and np.nanmin(g) < -0.03              # the ring shortens
     assert np.nanmax(np.array(d["global"]["Err"], float)) > 0.03         # and thickens
+    # even with --quiet, the one caveat on the bands it printed
+    assert "sfem-filters strain: note: the contours route's 95% bands hold how well" in capsys.readouterr().err
