@@ -134,7 +134,8 @@ def test_default_for_images_fuses_the_masks_through_the_point_spread_and_each_pa
         switched = _dense_settings(parser.parse_args([*base, *extra]), src)
         changed = {f.name: getattr(switched, f.name) for f in fields(switched)
                    if getattr(switched, f.name) != getattr(default, f.name)}
-        assert changed == {k: v for k, v in expected.items() if getattr(default, k) != v}, name
+        wanted = {k: v for k, v in expected.items() if getattr(default, k) != v}
+        assert wanted and changed == wanted, name                 # each switch changes something, and only that
     # end to end, two switches that take their own path through the route
     got = _run_switches(short_case, tmp_path, RUN_BY_DEFAULT)
     alone = got["alone"]["settings"]

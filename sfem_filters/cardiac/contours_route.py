@@ -69,15 +69,16 @@ The contours route of issue 42 (item 2), Shi & Liu (2003) section 2.6 as a strai
    grows as the slide squared over the border's radius, and the slides accumulate over the cycle).
    On the in-vivo DENSE-Sim case, at its full frame rate, the first pass's global radial strain stays
    well above the truth in diastole, after the masks have come back to the reference shape
-   (``tests/cardiac/test_contours_route.py``, slow; the validation page's row without the guided
-   pass). So by default (``guided_passes=1``) the route
+   (``tests/cardiac/test_contours_route.py``, slow). So by default (``guided_passes=1``) the route
    runs again on the data the DENSE route's masks give with a phase guide
    (:func:`sfem_filters.cardiac.border_data.guided_border_data`), here guided by the first pass's
    own estimate: each border node is placed where that estimate puts it, and its datum is the frame's
    mask border's offset across itself at that point. Where the guide errs across the border, the datum
    does not change. Where it errs along the border, the datum changes only by that error times the
-   border's turn. The elastic prior and the evidence's process level are rebuilt for the new data; the
-   settings' ``passes`` list each pass's data, noise floor, process level and log-likelihood.
+   border's turn. The elastic prior is shared; the process and initial sd are rebuilt from the new
+   data's noise floor and the evidence chooses their level again. The settings' ``passes`` list each
+   pass's data, noise floor, process and initial sd, process level and log-likelihood; the other
+   keys describe the final pass's data (and the landmarks, where they say so).
 
 5. **Strain and its sd.** As the DENSE route: Green-Lagrange strain of each linear triangle's
    gradient at every reference pixel, projected about the reference mask's centre of mass; sd
@@ -99,7 +100,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from .._validate import as_float_array, positive
+from .._validate import as_float_array, integer, positive
 from ..fem.elasticity import stiffness_matrix
 from ..fem.loads import penalty_stiffness
 from ..fem.material import Material
@@ -178,7 +179,8 @@ class ContourRouteSettings:
     guided_passes : int
         Passes after the first whose border data are guided by the previous pass's estimate
         (:func:`sfem_filters.cardiac.border_data.guided_border_data`; module docstring, step 4b).
-        1 (default); 0: the landmarks' data alone.
+        1 (default); 0: the landmarks' data alone (the only choice with ``along_border="tracked"``:
+        the guided data are across the border only).
     start_deg : float
         Start of segment 0 (degrees from the image's +x axis towards +y).
     centre : tuple or None
@@ -219,9 +221,11 @@ class ContourRouteSettings:
         if self.process_noise not in ("fixed", "estimate"):
             raise ValueError(f"process_noise: expected 'fixed' or 'estimate', got {self.process_noise!r}")
         object.__setattr__(self, "noise_range", check_noise_range(self.noise_range))
-        if isinstance(self.guided_passes, bool) or int(self.guided_passes) != self.guided_passes \
-                or self.guided_passes < 0:
-            raise ValueError(f"guided_passes: expected an integer >= 0, got {self.guided_passes!r}")
+        object.__setattr__(self, "guided_passes", integer("guided_passes", self.guided_passes, 0))
+        if self.along_border == "tracked" and self.guided_passes:
+            raise ValueError("along_border: 'tracked' adds the landmarks' motion along the border, which the guided "
+                             "passes' data do not carry (a mask says where its border is, not where a point went "
+                             f"along it); give guided_passes=0 with it, got guided_passes={self.guided_passes}")
         if isinstance(self.min_landmarks, bool) or int(self.min_landmarks) != self.min_landmarks \
                 or self.min_landmarks < 8:
             raise ValueError(f"min_landmarks: expected an integer >= 8, got {self.min_landmarks!r}")
@@ -368,6 +372,8 @@ def contour_strain(masks, pixel_size_m: float, frame_times_s, settings: ContourR
     ground = NOMINAL["foundation"] * float(np.median(stiffness_matrix(mesh, material.E, material.nu).diagonal()))
     penalty = penalty_stiffness(mesh.n_dofs, np.arange(mesh.n_dofs), ground)
     bdofs = np.sort(np.concatenate([2 * bd.nodes, 2 * bd.nodes + 1]))
+    say(f"mesh: {mesh.n_nodes} nodes, {mesh.n_elements} triangles, {len(bdofs)} border dofs observed; "
+        "elastic prior of the wall")
     prior = elastic_prior(mesh, cfg.nu_plane_strain, bdofs)
     # the initial state: at rest in the reference configuration, uncertain by the landmarks' first
     # displacement (the first frame is after the reference); from the data, not from the nodal fit,
@@ -378,16 +384,14 @@ def contour_strain(masks, pixel_size_m: float, frame_times_s, settings: ContourR
         if k:
             say(f"pass {k + 1}: the border data at the points the previous pass names (guided)")
             bd = guided_border_data(mesh, m, U.reshape(F, mesh.n_nodes, 2) / s, s, cfg.normal_sd_px)
-        else:
-            say(f"mesh: {mesh.n_nodes} nodes, {mesh.n_elements} triangles, {len(bdofs)} border dofs observed; "
-                "elastic prior of the wall")
         model, result, q, u0_sd = _border_fit(mesh, material, penalty, prior, bd, F, T, s, u0_px, cfg, say)
         U = np.zeros((F, mesh.n_dofs))
         U[:, model.dofmap.free] = result.states[:, :model.dofmap.n_free]
         passes.append({"data": "landmarks" if k == 0 else "guided", "normal_noise_floor_px": float(bd.floor_px),
+                       "process_std_px": q / s, "initial_std_px": u0_sd / s,
                        "process_noise_scale": float(result.process_noise_scale),
                        "log_likelihood": float(result.log_likelihood)})
-    H, y = bd.H, bd.y
+    y = bd.y
     s_n, s_t, floor_n, moved = landmark_bd.sd_normal_px, landmark_bd.sd_tangent_px, bd.floor_px, landmark_bd.moved_m
     n = model.dofmap.n_free
     nr = model.n_restart
@@ -432,7 +436,8 @@ def contour_strain(masks, pixel_size_m: float, frame_times_s, settings: ContourR
     seconds = time.perf_counter() - t0
     info = {"n_landmarks": L, "n_endo": int(np.sum(tracks.contour == 0)), "n_epi": int(np.sum(tracks.contour == 1)),
             "landmarks_moved_into_mesh": int(np.count_nonzero(moved)), "normal_noise_floor_px": floor_n,
-            "normal_sd_px_used": float(s_n.max()), "tangential_sd_px_rms": float(np.sqrt(np.mean(s_t ** 2))),
+            "normal_sd_px_used": float(np.max(bd.sd_normal_px)),
+            "landmarks_tangential_sd_px_rms": float(np.sqrt(np.mean(s_t ** 2))),
             "process_std_px": q / s, "initial_std_px": u0_sd / s, "frame_interval_s": T, "fixed_E_Pa": E,
             "alpha_per_s": alpha, "wall_thickness_px": wall / s, "n_nodes": mesh.n_nodes,
             "n_elements": mesh.n_elements, "n_border_dofs": int(len(bdofs)), "dim_state": int(model.dim_state),
@@ -445,7 +450,8 @@ def contour_strain(masks, pixel_size_m: float, frame_times_s, settings: ContourR
             "interior": "process and initial noise of precision the plane-strain stiffness (nu as set): the "
                         "interior's mean is the elastic extension of the border",
             "material": "fixed, not estimated: fixed_E_Pa shapes the interior's prior (no stiffness estimate)",
-            "estimator": "IteratedSmoother (material fixed: one Kalman-RTS pass), then a covariance pass",
+            "estimator": f"IteratedSmoother (material fixed: a Kalman-RTS pass) on the landmarks' data, then on "
+                         f"the guided data {cfg.guided_passes} time(s); a covariance pass of the last",
             "strain": "Green-Lagrange of the linear triangles' element gradient",
             "sd": "delta method at the posterior mean, full smoothed covariance of U"}
     say(f"the route's estimate and bands in {seconds:.1f} s")
@@ -455,11 +461,38 @@ def contour_strain(masks, pixel_size_m: float, frame_times_s, settings: ContourR
                          seconds=seconds, settings={**asdict(cfg), **info}, mesh=mesh, tracks=tracks,
                          landmark_sd=np.stack([s_n, s_t], axis=-1), nodal_displacement=U / s)
 
+
 def _border_fit(mesh, material, penalty, prior, bd, F: int, T: float, s: float, u0_px: float, cfg, say) -> tuple:
     """One smoother run of the contours route on the border data ``bd`` (module docstring, step 4).
 
-    Returns the model (its process noise at the level the evidence chose), the smoother's result,
-    and the process and initial sd (m) before that level."""
+    Parameters
+    ----------
+    mesh, material, penalty
+        The route's mesh (m), its fixed compliant material and the ground springs' stiffness.
+    prior : (n_dofs, n_dofs) array
+        :func:`elastic_prior` of the mesh (unit mean variance on the border).
+    bd : BorderData
+        The border data: the landmarks' (:func:`mask_border_data`) or guided ones.
+    F : int
+        Number of frames.
+    T : float
+        Frame interval (s).
+    s : float
+        Pixel size (m).
+    u0_px : float
+        The landmarks' RMS displacement in the first frame (pixels): the initial state's sd.
+    cfg : ContourRouteSettings
+    say : callable
+        Progress messages.
+
+    Returns
+    -------
+    model : NodalFitModel
+        With its process noise at the level the evidence chose (``cfg.process_noise="estimate"``).
+    result : IteratedSmoother result
+    q, u0_sd : float
+        The process and initial sd (m) before that level.
+    """
     q = cfg.process_fraction * (bd.floor_px if bd.floor_px > 0 else cfg.normal_sd_px) * s
     u0_sd = max(u0_px, q / s) * s
     fl = INTERIOR_FREEDOM
@@ -482,7 +515,6 @@ def _border_fit(mesh, material, penalty, prior, bd, F: int, T: float, s: float, 
     if cfg.process_noise == "estimate":
         model = model.with_process_noise(result.process_noise_scale)
     return model, result, q, u0_sd
-
 
 
 def contour_spline_strain(result: ContourStrain) -> SplineStrain:

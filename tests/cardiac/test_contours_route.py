@@ -187,10 +187,17 @@ def test_the_guided_pass_is_recorded_and_can_be_turned_off(ring):
     assert all(np.isfinite(p["log_likelihood"]) and p["process_noise_scale"] > 0 for p in passes)
     alone = contour_strain(masks, 1e-3, times, ContourRouteSettings(guided_passes=0))
     assert [p["data"] for p in alone.settings["passes"]] == ["landmarks"]
-    assert np.max(np.abs(alone.Err - r.Err)) > 1e-6                     # the second pass changes the estimate
-    for bad in (-1, 1.5, True):
+    # on the known map the second pass brings both strains closer to it
+    for est, truth in (("Ecc", ecc), ("Err", err)):
+        rmse = {name: np.sqrt(np.mean((getattr(x, est) - truth) ** 2)) for name, x in (("guided", r), ("alone", alone))}
+        assert rmse["guided"] < rmse["alone"], (est, rmse)
+    for bad in (-1, 1.5, True, None, "x"):
         with pytest.raises(ValueError, match="guided_passes: expected an integer >= 0"):
             ContourRouteSettings(guided_passes=bad)
+    assert ContourRouteSettings(guided_passes=2.0).guided_passes == 2
+    with pytest.raises(ValueError, match="along_border: 'tracked' .* give guided_passes=0"):
+        ContourRouteSettings(along_border="tracked")
+    assert ContourRouteSettings(along_border="tracked", guided_passes=0).along_border == "tracked"
 
 
 @pytest.mark.needs_data("dense_sim/invivo_subject_1")
@@ -198,7 +205,7 @@ def test_the_guided_pass_is_recorded_and_can_be_turned_off(ring):
 def test_on_the_in_vivo_case_the_guided_pass_removes_the_landmarks_diastolic_drift():
     """DENSE-Sim's in-vivo case (a truth we did not make), all frames: in the frames of the cycle's second half
     where the true global radial strain is below 0.5%, the landmarks alone drift: their estimate stays above
-    the truth by more than 2 points. The guided pass stays within 1.5 points of it, and its pixel RMSE of Err
+    the truth by more than 3 points. The guided pass stays within 2 points of it, and its pixel RMSE of Err
     is the lower."""
     case = read_dense_sim(datasets.dataset_path("dense_sim/invivo_subject_1"))
     _, t_err = truth_at_points(case)
@@ -209,7 +216,7 @@ def test_on_the_in_vivo_case_the_guided_pass_removes_the_landmarks_diastolic_dri
             for g in (0, 1)}
     drift = {g: np.max(np.abs(r.global_curves["Err"][late] - tg[late])) for g, r in runs.items()}
     rmse = {g: np.sqrt(np.nanmean((r.Err - t_err) ** 2)) for g, r in runs.items()}
-    assert drift[0] > 0.02 and drift[1] < 0.015, drift
+    assert drift[0] > 0.03 and drift[1] < 0.02, drift
     assert rmse[1] < rmse[0], rmse
 
 
