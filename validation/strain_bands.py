@@ -106,7 +106,8 @@ def quantity_row(q, route, truth_curves) -> dict:
             "own_weight": float(np.mean(disc["segment_weights"])), "coverage_pct_pooled": _coverage(m, pooled_sd, t),
             "tau0_truth": PCT * float(np.sqrt(tau0_2)), "k_truth": float(np.sqrt(k2)),
             "coverage_pct_truth_fit": _coverage(m, fitted, t), "near_peak_error_rms": PCT * rms(e_near),
-            "near_peak_reference_error_rms": PCT * rms(tr_near), "near_peak_difference_rms": PCT * rms(e_near - tr_near)}
+            "near_peak_reference_error_rms": PCT * rms(tr_near),
+            "near_peak_difference_rms": PCT * rms(e_near - tr_near)}
 
 
 def run_case(folder, snr: float, seed: int, frames=None) -> list:
@@ -150,9 +151,10 @@ def figure(rows, path) -> str:
     for col, q in enumerate(QUANTITIES):
         ax = axes[0, col]
         ax.axhspan(*COVERAGE_GOAL, color="0.88", label="goal 85-99%")
-        for k, (key, name, colour, dx) in enumerate((("coverage_pct", "route (partially pooled)", "C0", -0.22),
-                                                     ("coverage_pct_pooled", "segments pooled (before)", "C1", 0.0),
-                                                     ("coverage_pct_truth_fit", "form fitted to the truth", "C2", 0.22))):
+        rules = (("coverage_pct", "route (partially pooled)", "C0", -0.22),
+                 ("coverage_pct_pooled", "segments pooled (before)", "C1", 0.0),
+                 ("coverage_pct_truth_fit", "form fitted to the truth", "C2", 0.22))
+        for k, (key, name, colour, dx) in enumerate(rules):
             vals = [[r[key] for r in rows if (r["case"], r["snr"]) == g and r["quantity"] == q] for g in groups]
             mean = np.array([np.mean(v) for v in vals])
             lo, hi = mean - np.array([min(v) for v in vals]), np.array([max(v) for v in vals]) - mean

@@ -182,9 +182,10 @@ The DENSE route of issue 42 (items 3 and 4), as a library function, :func:`dense
    own (with ``c``) stay beside as ``Ecc_sd_model``, ``Err_sd_model`` and the curves'
    ``*_sd_model``; the curves' ``*_reference`` are the reference the excess was measured against
    (the estimate plus the mean linearised disagreement: the tracks' finite-difference strain, with
-   the blur compensated as above), so a user sees what the bands compared. What neither term can see: a bias that the tracks themselves carry (the
-   reference shares it), such as the radial strain of the first pixel layers at the
-   endocardium, which the tracks of the noise-free images already miss.
+   the blur compensated as above), so a user sees what the bands compared. What neither term can
+   see: a bias that the tracks themselves carry (the reference shares it), such as the radial
+   strain of the first pixel layers at the endocardium, which the tracks of the noise-free images
+   already miss.
 
    (c) *where the data outrun the model*: after (a), frames whose normalised innovations stay
    above their 99.9% chi-square bound for 4 frames or more in a row, even at the fitted level
