@@ -28,8 +28,10 @@ masks and the magnitude stay as given), so what differs here is each source's ow
 **Where the truth sits.** The data's README says the truth was computed on a finer grid and
 resampled to the image's, with about a quarter pixel of offset. If so, the noise-free tracks'
 strain ``e`` at a reference pixel ``X`` matches the truth ``T`` at ``X + delta`` rather than at ``X``:
-``e - T ~ grad T . delta``. :func:`truth_offset` fits ``delta`` (px, x and y) by least squares over
-the pixels and frames, for Ecc and Err, on the conventional analysis without smoothing and with a
+``e - T ~ grad T . delta``. :func:`truth_offset` fits ``delta`` (px, x and y) by least squares
+(:mod:`validation._truth_offset`: each frame's constant removed, the pixels two or more inside the
+mask, the frames from a quarter of the sequence on), for Ecc and Err, on the conventional analysis
+without smoothing and with a
 Gaussian of 1 px, and reports the segment curves' error (RMS over the six segments and the
 frames, the spec's segments) against the truth as given and against the truth moved by ``delta``:
 a smooth error the segment means keep (what the bands of the DENSE route must cover), not the
@@ -41,11 +43,12 @@ import numpy as np
 from scipy import ndimage
 from scipy.special import ndtr
 
-from sfem_filters.imaging import conventional_analysis, read_dense_sim
+from sfem_filters.imaging import conventional_analysis, read_dense_sim, reference_points
 from sfem_filters.imaging.dense import psf_sigma_px
 from sfem_filters.imaging.strain import mask_centre, segment_labels
 
 from ._core import fmt, md_table
+from ._truth_offset import fit_offset, registered_truth
 from .strain_dense_sim import _truncated, case_folders
 
 NAME = "border_views"
@@ -182,27 +185,21 @@ def truth_offset(case, conventional: dict, name: str) -> list:
     """The offset ``delta`` (px) that best maps the truth onto each conventional strain, and what it does to the segments.
 
     ``conventional``: ``{sigma: ConventionalStrain}`` of ``case`` (noise-free). Module docstring,
-    "where the truth sits"; the truth's gradient by central differences on the pixel grid
-    (one-sided at the mask's edge, NaN beyond).
+    "where the truth sits"; the fit and the moved truth are :mod:`validation._truth_offset`'s.
     """
-    rows, cols = np.nonzero(case.reference_mask)
-    points = np.column_stack([cols, rows]).astype(float)
+    points = reference_points(case.reference_mask)
     labels = segment_labels(points, mask_centre(case.reference_mask))
     out = []
     for sigma, conv in conventional.items():
         for q in ("Ecc", "Err"):
             truth_img = case.truth_ecc if q == "Ecc" else case.truth_err
-            gy, gx = np.gradient(truth_img, axis=(1, 2))
-            g = np.stack([gx[:, rows, cols], gy[:, rows, cols]], axis=-1)
-            truth = truth_img[:, rows, cols]
+            truth = truth_img[:, points[:, 1].astype(int), points[:, 0].astype(int)]
             est = np.asarray(getattr(conv.strain, q), float)
-            diff = est - truth
-            ok = np.isfinite(diff) & np.all(np.isfinite(g), axis=-1)
-            delta = np.linalg.lstsq(g[ok], diff[ok], rcond=None)[0]
-            moved = truth + np.where(ok, g @ delta, 0.0)
+            delta = fit_offset(points, case.reference_mask, est, truth)[0]
+            moved = registered_truth(points, truth, case.reference_mask.shape, delta)
 
             def seg_rms(ref):
-                err = [np.nanmean(np.where(ok, est - ref, np.nan)[:, labels == k], axis=1) for k in range(6)]
+                err = [np.nanmean((est - ref)[:, labels == k], axis=1) for k in range(6)]
                 return float(np.sqrt(np.nanmean(np.square(err))))
             out.append({"case": name, "strain": q, "sigma_px": float(sigma), "delta_x_px": float(delta[0]),
                         "delta_y_px": float(delta[1]), "segment_rms_error": seg_rms(truth),
@@ -276,7 +273,8 @@ def _offset_table(rows) -> str:
              fmt(100 * r["segment_rms_error"], ".2f"), fmt(100 * r["segment_rms_error_truth_moved"], ".2f")]
             for r in rows]
     return (md_table(cols, body) + "\n\nWhere the truth sits: the offset delta that best maps the truth onto the "
-            "noise-free conventional strain (e - T ~ grad T . delta, least squares over pixels and frames), and the "
+            "noise-free conventional strain (e - T ~ c_t + grad T . delta, least squares over the pixels two or more inside "
+            "the mask and the frames from a quarter of the sequence on, each frame's constant c_t removed), and the "
             "six segment curves' error (RMS over segments and frames) against the truth as given and moved by delta.")
 
 
