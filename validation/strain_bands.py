@@ -1,11 +1,12 @@
 """What the DENSE route's bands can and cannot see: their error model against the truth, and the tracks' share.
 
 The route's 95% bands (:mod:`sfem_filters.cardiac.strain_bands`) add to the smoother's variance an
-excess-error variance ``tau_t^2 = tau0^2 + k^2 m_t^2`` whose two parameters are fitted by moments to
+excess-error variance ``tau_t^2 = tau0^2 + k^2 m_t^2 + j^2 c_t^2`` (``c`` the curve's second difference
+over the frames, its bend) whose three parameters are fitted by moments to
 the curve's disagreement with the unsmoothed finite-difference strain of the same tracks. This claim
 asks, on every given DENSE-Sim case, both SNRs and three seeds (the strain page's runs,
 :mod:`validation.strain_dense_sim`: the spec's noise, :func:`sfem_filters.cardiac.dense_case_strain`
-with :func:`sfem_filters.cardiac.image_settings`), two questions of the six segment curves:
+with :func:`sfem_filters.cardiac.image_settings`), three questions of the six segment curves:
 
 1. **Is the form right?** The same two parameters fitted instead to the estimate's true error (the
    same moment equations, :func:`sfem_filters.cardiac.strain_bands.discrepancy_variance`, with the
@@ -31,10 +32,11 @@ with :func:`sfem_filters.cardiac.image_settings`), two questions of the six segm
    diagnostic of the benchmark's truth, not a method (the route never sees the truth or ``s``).
 
 Reported per case and SNR, means over the seeds (strain in percentage points): the segment curves'
-RMS error, the bands' RMS sd (total, and the smoother's own), the route's coverage (and the coverage of
-the same bands with the six segments' pooled excess, the route's rule before the partial pooling:
-before and after from one run), the fitted
-``tau0`` and ``k`` of the route (RMS over its six segments, with the mean weight of the segments'
+RMS error, the bands' RMS sd (total, and the smoother's own), the route's coverage (and, before and
+after from one run, the coverage of the rule before the bend term, ``tau0`` and ``k`` alone fitted to
+the same disagreement, and of the same bands with the six segments' pooled excess, the rule before
+the partial pooling), the fitted
+``tau0``, ``k`` and ``j`` of the route (RMS over its six segments, with the mean weight of the segments'
 own fits against their pooled one, :func:`sfem_filters.cardiac.strain_route.curve_discrepancy`) and
 of the truth, the coverage with the truth's parameters, and the
 near-peak RMS errors of the estimate, of the reference and of their difference, and the coverage
@@ -49,7 +51,8 @@ from pathlib import Path
 import numpy as np
 
 from sfem_filters.cardiac import dense_case_strain, image_settings
-from sfem_filters.cardiac.strain_bands import discrepancy_variance
+from sfem_filters.cardiac.strain_bands import curve_curvature, discrepancy_variance
+from sfem_filters.cardiac.strain_route import curve_discrepancy
 from sfem_filters.imaging import (add_complex_noise, conventional_analysis, phase_to_displacement, read_dense_sim,
                                   reference_points, segment_curves, truth_at_points)
 from sfem_filters.imaging.strain import Z95
@@ -72,8 +75,8 @@ TOLERANCES = {"*": (1e-6, 1e-9), "seconds": None}
 HALF_WINDOW = 3
 PCT = 100.0
 QUANTITIES = {"Ecc": np.argmin, "Err": np.argmax}
-FIELDS = ("error_rms", "sd_rms", "sd_model_rms", "coverage_pct", "coverage_pct_pooled", "tau0", "k", "own_weight",
-          "tau0_truth", "k_truth",
+FIELDS = ("error_rms", "sd_rms", "sd_model_rms", "coverage_pct", "coverage_pct_pooled", "coverage_pct_two_term",
+          "tau0", "k", "j", "own_weight", "tau0_truth", "k_truth", "j_truth",
           "coverage_pct_truth_fit", "near_peak_error_rms", "near_peak_reference_error_rms", "near_peak_difference_rms",
           "coverage_pct_registered")
 
@@ -115,27 +118,34 @@ def truth_offset(case) -> dict:
 
 def quantity_row(q, route, truth_curves, registered_curves=None) -> dict:
     """One quantity's metrics (module docstring) from the route's result and the true segment curves."""
-    seg = route.segment_curves
+    seg, glob = route.segment_curves, route.global_curves
     m, sd, sd_model = (np.asarray(seg[k], float) for k in (q, f"{q}_sd", f"{q}_sd_model"))      # (6, F)
+    c = curve_curvature(m.T).T                                                       # each segment's bend
     t = np.asarray(truth_curves, float)
     e = m - t
-    ok = np.isfinite(e) & np.isfinite(sd_model)
-    tau0_2, k2 = discrepancy_variance(-e[ok], m[ok], sd_model[ok] ** 2)
-    fitted = np.sqrt(sd_model ** 2 + tau0_2 + k2 * m ** 2)
+    ok = np.isfinite(e) & np.isfinite(sd_model) & np.isfinite(c)
+    tau0_2, k2, j2 = discrepancy_variance(-e[ok], m[ok], sd_model[ok] ** 2, c[ok])
+    fitted = np.sqrt(sd_model ** 2 + tau0_2 + k2 * m ** 2 + j2 * c ** 2)
     disc = route.settings["discrepancy_sd"][q]
-    seg_tau = np.asarray(disc["segments"], float)                                    # (6, 2): tau0, k per segment
-    tau0, k = np.sqrt(np.mean(seg_tau ** 2, axis=0))
-    p0, pk = np.asarray(disc["segments_pooled"], float)
-    pooled_sd = np.sqrt(sd_model ** 2 + p0 ** 2 + pk ** 2 * m ** 2)
+    seg_tau = np.asarray(disc["segments"], float)                                    # (6, 3): tau0, k, j per segment
+    tau0, k, j = np.sqrt(np.mean(seg_tau ** 2, axis=0))
+    p0, pk, pj = np.asarray(disc["segments_pooled"], float)
+    pooled_sd = np.sqrt(sd_model ** 2 + p0 ** 2 + pk ** 2 * m ** 2 + pj ** 2 * c ** 2)
+    # the rule before the bend term, from the same run: the same disagreement, two terms
+    curves = np.vstack([np.asarray(glob[q], float)[None], m])                        # (7, F): global, segments
+    diffs = np.vstack([np.asarray(glob[f"{q}_reference"], float)[None], np.asarray(seg[f"{q}_reference"], float)])
+    tau2 = curve_discrepancy((diffs - curves).T, curves.T, curvature=False)
+    two_term_sd = np.sqrt(sd_model ** 2 + tau2[1:, :1] + tau2[1:, 1:2] * m ** 2)
     e_near = _near_peak_means(e, t, QUANTITIES[q])
     tr_near = _near_peak_means(np.asarray(seg[f"{q}_reference"], float) - t, t, QUANTITIES[q])
 
     def rms(a):
         return float(np.sqrt(np.nanmean(np.asarray(a, float) ** 2)))
     return {"error_rms": PCT * rms(e), "sd_rms": PCT * rms(sd), "sd_model_rms": PCT * rms(sd_model),
-            "coverage_pct": _coverage(m, sd, t), "tau0": PCT * float(tau0), "k": float(k),
+            "coverage_pct": _coverage(m, sd, t), "tau0": PCT * float(tau0), "k": float(k), "j": float(j),
             "own_weight": float(np.mean(disc["segment_weights"])), "coverage_pct_pooled": _coverage(m, pooled_sd, t),
-            "tau0_truth": PCT * float(np.sqrt(tau0_2)), "k_truth": float(np.sqrt(k2)),
+            "coverage_pct_two_term": _coverage(m, two_term_sd, t),
+            "tau0_truth": PCT * float(np.sqrt(tau0_2)), "k_truth": float(np.sqrt(k2)), "j_truth": float(np.sqrt(j2)),
             "coverage_pct_truth_fit": _coverage(m, fitted, t), "near_peak_error_rms": PCT * rms(e_near),
             "near_peak_reference_error_rms": PCT * rms(tr_near),
             "near_peak_difference_rms": PCT * rms(e_near - tr_near),
@@ -197,7 +207,7 @@ def figure(rows, path) -> str:
         ax = axes[0, col]
         ax.axhspan(*COVERAGE_GOAL, color="0.88", label="goal 85-99%")
         rules = (("coverage_pct", "route (partially pooled)", "C0", -0.24),
-                 ("coverage_pct_pooled", "segments pooled (before)", "C1", -0.08),
+                 ("coverage_pct_two_term", "two terms (before the bend)", "C1", -0.08),
                  ("coverage_pct_truth_fit", "form fitted to the truth", "C2", 0.08),
                  ("coverage_pct_registered", "route, truth re-registered", "C4", 0.24))
         for k, (key, name, colour, dx) in enumerate(rules):
@@ -238,14 +248,17 @@ def mean_rows(rows) -> list:
 
 
 def markdown(results: dict) -> str:
-    cols = ["case, SNR", "strain", "RMS error", "band sd: total / smoother's", "coverage [%] (segments pooled)",
-            "tau0 / k: route (segments' own share)", "tau0 / k: fitted to the truth", "coverage with those [%]",
+    cols = ["case, SNR", "strain", "RMS error", "band sd: total / smoother's",
+            "coverage [%] (two terms; segments pooled)", "tau0 / k / j: route (segments' own share)",
+            "tau0 / k / j: fitted to the truth", "coverage with those [%]",
             "near the peak: error of ours / of the reference / of the difference",
             "coverage against the re-registered truth [%]"]
     body = [[f"{r['case']}, {r['snr']:g}", r["quantity"], fmt(r["error_rms"], ".2f"),
              f"{fmt(r['sd_rms'], '.2f')} / {fmt(r['sd_model_rms'], '.2f')}",
-             f"{fmt(r['coverage_pct'], '.1f')} ({fmt(r['coverage_pct_pooled'], '.1f')})",
-             f"{fmt(r['tau0'], '.2f')} / {fmt(r['k'], '.3f')} ({fmt(r['own_weight'], '.2f')})", f"{fmt(r['tau0_truth'], '.2f')} / {fmt(r['k_truth'], '.3f')}",
+             f"{fmt(r['coverage_pct'], '.1f')} ({fmt(r['coverage_pct_two_term'], '.1f')}; "
+             f"{fmt(r['coverage_pct_pooled'], '.1f')})",
+             f"{fmt(r['tau0'], '.2f')} / {fmt(r['k'], '.3f')} / {fmt(r['j'], '.2f')} ({fmt(r['own_weight'], '.2f')})",
+             f"{fmt(r['tau0_truth'], '.2f')} / {fmt(r['k_truth'], '.3f')} / {fmt(r['j_truth'], '.2f')}",
              fmt(r["coverage_pct_truth_fit"], ".1f"),
              f"{fmt(r['near_peak_error_rms'], '.2f')} / {fmt(r['near_peak_reference_error_rms'], '.2f')} / "
              f"{fmt(r['near_peak_difference_rms'], '.2f')}", fmt(r["coverage_pct_registered"], ".1f")]
@@ -253,10 +266,14 @@ def markdown(results: dict) -> str:
     return (md_table(cols, body) + "\n\nSegment curves (six per run), means over "
             f"{max(len({r['seed'] for r in results['rows']}), 1)} seed(s); strain in percentage points. RMS error: of the "
             "curves against the truth over segment-frames. Band sd: the total (what the bands use) and the smoother's "
-            "own. Coverage: of the true segment curves by the route's 95% bands; in brackets by the same bands with "
-            "the six segments' pooled excess (the route's rule before the partial pooling), from the same run. tau0 / k: the excess-error parameters the route fitted to its disagreement with the tracks (RMS over "
-            "the six segments; in brackets the mean weight of each segment's own fit against the six segments' pooled "
-            "one), and the same parameters fitted to the true error (pooled over the segments); coverage with those: of the truth by bands of the route's form "
+            "own. Coverage: of the true segment curves by the route's 95% bands; in brackets, from the same run, by "
+            "the bands of the rule before the bend term (tau0 and k alone, fitted to the same disagreement) and by the "
+            "route's bands with the six segments' pooled excess (the rule before the partial pooling). tau0 / k / j: "
+            "the excess-error parameters the route fitted to its disagreement with the tracks (tau_t^2 = tau0^2 + "
+            "k^2 m_t^2 + j^2 c_t^2, c the curve's second difference over the frames; RMS over the six segments; in "
+            "brackets the mean weight of each segment's own fit against the six segments' pooled one), and the same "
+            "parameters fitted to the true error (pooled over the segments); coverage with those: of the truth by "
+            "bands of the route's form "
             "with the truth's parameters (a yardstick, it reads the truth). Near the peak: the RMS over segments of "
             f"the mean error within {results['half_window_frames']} frames of each segment's true peak, of our curve, "
             "of the reference the route measured its excess error against (the tracks' unsmoothed finite-difference "
@@ -296,6 +313,7 @@ def check(results: dict, tier: str) -> list:
     problems += [f"{r['case']} SNR {r['snr']:g} seed {r['seed']} {r['quantity']}: {k} is {r.get(k)}"
                 for r in results["rows"] for k in FIELDS if r.get(k) is None or not np.isfinite(r[k])]
     problems += [f"{r['case']} {r['quantity']}: {k} = {r[k]} outside 0-100" for r in results["rows"]
-                 for k in ("coverage_pct", "coverage_pct_pooled", "coverage_pct_truth_fit", "coverage_pct_registered")
+                 for k in ("coverage_pct", "coverage_pct_pooled", "coverage_pct_two_term", "coverage_pct_truth_fit",
+                           "coverage_pct_registered")
                  if not 0.0 <= r[k] <= 100.0]
     return problems + ([] if results["rows"] else ["no rows"])

@@ -9,9 +9,9 @@ every name stays importable from there. Strain is a fraction; gradients are dime
 * :func:`linearised_rows`, :func:`strain_and_sd`, :func:`point_variance`: the first-order (delta
   method) strain variance from a covariance of the displacement gradient.
 * :func:`noise_scale`: the maximum-likelihood common scale of the model's covariances.
-* :func:`linearised_disagreement`, :func:`curve_noise_variance`, :func:`discrepancy_variance`: the
-  empirical-Bayes excess error of a curve against the unsmoothed finite-difference strain of the
-  same tracks; :func:`moment_mean_variance` and :func:`pooling_weights`: each segment's own excess
+* :func:`linearised_disagreement`, :func:`curve_noise_variance`, :func:`discrepancy_variance`,
+  :func:`curve_curvature`: the empirical-Bayes excess error of a curve against the unsmoothed
+  finite-difference strain of the same tracks; :func:`moment_mean_variance` and :func:`pooling_weights`: each segment's own excess
   partially pooled with the six segments' common one (random effects, moments).
 
 **Why linearised.** The Green-Lagrange strain of a noisy gradient is biased upwards by its
@@ -39,7 +39,7 @@ from ..imaging.strain import green_strain, project_strain, radial_circumferentia
 
 __all__ = ["STRAINS", "element_gradient_operator", "gradient_operators", "linearised_rows", "strain_and_sd",
            "point_variance", "noise_scale", "linearised_disagreement", "curve_noise_variance", "discrepancy_variance",
-           "moment_mean_variance", "pooling_weights"]
+           "moment_mean_variance", "pooling_weights", "curve_curvature"]
 
 #: Which displacement gradient the strain is computed from (``strain=``).
 STRAINS = ("recovered", "element")
@@ -170,7 +170,31 @@ def curve_noise_variance(diff) -> float:
     return float(np.nanmean(d2 ** 2) / 1.5)
 
 
-def discrepancy_variance(diff, estimate, noise_var) -> tuple:
+def curve_curvature(curve) -> np.ndarray:
+    """Each frame's second difference ``m_t+1 - 2 m_t + m_t-1`` of a curve (or of each column), the ends copied inward.
+
+    The shape of a smoothing's bias at a kink: a linear smoother of width ``h`` frames misses a curve
+    by about ``-(h^2 / 2) m''`` (the leading term of a kernel smoother's bias), so its error is
+    largest where the curve bends (the onset of a contraction, a peak), even where the curve itself
+    is small. NaN where a neighbour is missing; zeros for fewer than 3 frames (no bend to see).
+
+    Parameters
+    ----------
+    curve : (F,) or (F, k) array
+        The curve(s) per frame (any unit).
+    """
+    m = as_float_array("curve", curve, allow_nan=True)
+    if m.ndim not in (1, 2):
+        raise ValueError(f"curve: expected (F,) or (F, k), got shape {m.shape}")
+    if m.shape[0] < 3:
+        return np.zeros_like(m)
+    c = np.empty_like(m)
+    c[1:-1] = m[2:] - 2 * m[1:-1] + m[:-2]
+    c[0], c[-1] = c[1], c[-2]
+    return c
+
+
+def discrepancy_variance(diff, estimate, noise_var, curvature: bool = True) -> tuple:
     """Excess error variance of a curve against an unbiased, noisy reference (empirical Bayes, moments).
 
     ``diff`` is, frame by frame, the reference minus the estimate (the curve's mean of
@@ -178,22 +202,30 @@ def discrepancy_variance(diff, estimate, noise_var) -> tuple:
     the reference does not share (what the model lacks, and the part of the estimate's noise
     that the smoother's variance misses) and ``n`` the reference's noise, of variance
     ``noise_var`` (:func:`curve_noise_variance`). So ``E[d_t^2] - noise_var = E[b_t^2]``. That
-    variance is modelled as ``tau_t^2 = tau0^2 + k^2 m_t^2`` (``m`` the estimate): a part that does
-    not depend on the strain, and one proportional to it (the bias of a smoothing scales with the
-    field it flattens), both fitted by non-negative least squares to the moment equations
-    ``d_t^2 - noise_var_t = tau0^2 + k^2 m_t^2``, so the data choose the profile over the frames;
-    both are zero (in the mean) when the estimate agrees with the reference within the noise.
-    What no moment of this kind can see: an error the reference shares (a bias of the tracks).
+    variance is modelled as ``tau_t^2 = tau0^2 + k^2 m_t^2 + j^2 c_t^2`` (``m`` the estimate, ``c``
+    its second difference over the frames, :func:`curve_curvature`): a part that does not depend
+    on the strain, one proportional to it (the bias of a smoothing scaling with the field it
+    flattens) and one proportional to its bend (a smoother's bias at a kink, the onset of a
+    contraction, where the strain is still small), all fitted by non-negative least squares to the
+    moment equations ``d_t^2 - noise_var_t = tau0^2 + k^2 m_t^2 + j^2 c_t^2``, so the data choose
+    the profile over the frames; all are zero (in the mean) when the estimate agrees with the
+    reference within the noise. What no moment of this kind can see: an error the reference shares
+    (a bias of the tracks).
 
     Parameters
     ----------
     diff : (F,) array
         Reference minus estimate per frame (NaN where missing); 2 finite frames or more. Several
-        curves sharing one model: their frames concatenated.
+        curves sharing one model: their frames concatenated (the curvature of each is then best
+        given through ``curvature`` as an array, see below).
     estimate : (F,) array
         The estimated curve (curves).
     noise_var : float or (F,) array
         The reference's noise variance per frame (units of ``diff`` squared), >= 0.
+    curvature : bool or (F,) array
+        True: the bend term from ``estimate``'s own second difference (one curve; 3 frames or
+        more); an array: that second difference per frame (several curves concatenated, each's
+        own); False: no bend term (``j^2 = 0``; the rule before it).
 
     Returns
     -------
@@ -201,20 +233,27 @@ def discrepancy_variance(diff, estimate, noise_var) -> tuple:
         The constant part (units of the values squared), >= 0.
     k2 : float
         The relative part (dimensionless), >= 0.
+    j2 : float
+        The bend part (frames^4: ``j c_t`` is in the values' unit), >= 0; 0 without the term.
     """
     d = as_float_array("diff", diff, shape=(None,), allow_nan=True)
     m = as_float_array("estimate", estimate, shape=d.shape, allow_nan=True)
     v = np.broadcast_to(as_float_array("noise_var", noise_var, allow_nan=True), d.shape)
     if np.any(v < 0):
         raise ValueError("noise_var: expected non-negative variances, got a negative one")
-    ok = np.isfinite(d) & np.isfinite(m) & np.isfinite(v)
+    if isinstance(curvature, (bool, np.bool_)):
+        c = curve_curvature(m) if curvature else None
+    else:
+        c = as_float_array("curvature", curvature, shape=d.shape, allow_nan=True)
+    ok = np.isfinite(d) & np.isfinite(m) & np.isfinite(v) & (True if c is None else np.isfinite(c))
     if ok.sum() < 2:
         raise ValueError(f"diff, estimate, noise_var: expected at least 2 frames where all are finite, got {ok.sum()}")
-    A = np.column_stack([np.ones(int(ok.sum())), m[ok] ** 2])
+    cols = [np.ones(int(ok.sum())), m[ok] ** 2] + ([] if c is None else [c[ok] ** 2])
+    A = np.column_stack(cols)
     scale = np.maximum(np.abs(A).max(axis=0), 1e-300)                      # column scaling for nnls
     sol, _ = nnls(A / scale, d[ok] ** 2 - v[ok])
-    tau0_2, k2 = sol / scale
-    return float(tau0_2), float(k2)
+    sol = sol / scale
+    return float(sol[0]), float(sol[1]), (float(sol[2]) if c is not None else 0.0)
 
 
 def moment_mean_variance(moments) -> float:

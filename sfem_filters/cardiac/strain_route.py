@@ -166,14 +166,18 @@ The DENSE route of issue 42 (items 3 and 4), as a library function, :func:`dense
    square, less the curve's own noise variance from its second differences in time
    (:func:`curve_noise_variance`, at the curve's level so that the noise's correlation over the
    pixels is in it), estimates the estimate's excess mean square error. Its variance is
-   ``tau0^2 + k^2 m_t^2`` (a constant part and one proportional to the curve's square, the bias of
-   a smoothing scaling with what it flattens; the data fit both, so they choose the profile over
-   the frames, :func:`discrepancy_variance`), one model for the global curve and one for each
+   ``tau0^2 + k^2 m_t^2 + j^2 c_t^2`` (a constant part; one proportional to the curve's square, the
+   bias of a smoothing scaling with what it flattens; and one proportional to the curve's bend ``c``,
+   its second difference over the frames, :func:`curve_curvature`: a smoother's bias at a kink, such
+   as the onset of a contraction, where the strain is still small but the estimate leads it; the
+   data fit all three, so they choose the profile over the frames, :func:`discrepancy_variance`),
+   one model for the global curve and one for each
    segment, partially pooled with the six segments' common model (:func:`curve_discrepancy`: a
    segment keeps its own model only as far as it differs from the others by more than its moments'
    noise explains, so one segment whose tracks carry a bias of their own does not widen the other
-   five's bands); each pixel takes its segment's ``tau0`` and ``k`` (a pixel's own finite
-   differences are far too noisy to tell). Reported as ``settings["discrepancy_sd"]``. With the resolution-aware operator (step 2) the tracks see the
+   five's bands); each pixel takes its segment's ``tau0``, ``k`` and ``j`` with its own estimate's
+   value and bend (a pixel's own finite differences are far too noisy to tell). Reported as
+   ``settings["discrepancy_sd"]``. With the resolution-aware operator (step 2) the tracks see the
    blurred field and the estimate does not, so the finite differences of the data are compared with
    those of the model's prediction of the data (``D U`` through :class:`ObservationScaling`): the
    disagreement is then the blurred error of the estimate, not the blur itself.
@@ -230,7 +234,7 @@ from .dense_model import INFORMATION_FLOOR, MESHES, PROCESS_FRACTIONS, PROCESS_P
 from .measured import NOMINAL
 from .strain_bands import STRAINS, _component_rows, _covariance_from_blocks, curve_noise_variance, \
     discrepancy_variance, element_gradient_operator, gradient_operators, linearised_disagreement, linearised_rows, \
-    moment_mean_variance, noise_scale, point_variance, pooling_weights, strain_and_sd
+    moment_mean_variance, noise_scale, point_variance, pooling_weights, strain_and_sd, curve_curvature
 # the contours route takes these rows from here (the same maths): re-exported
 from .strain_bands import _covariance_from_rows, _curve_rows, _element_of, _gradient_rows  # noqa: F401
 
@@ -445,19 +449,20 @@ class DenseRouteStrain(DenseStrain):
         return out
 
 
-def curve_discrepancy(diffs, estimates, details: bool = False):
-    """(tau0^2, k^2) of the global curve (row 0) and of each segment (the other rows), the segments partially pooled.
+def curve_discrepancy(diffs, estimates, details: bool = False, curvature: bool = True):
+    """(tau0^2, k^2, j^2) of the global curve (row 0) and of each segment (the others), the segments partially pooled.
 
-    Each curve's noise variance is its own (:func:`curve_noise_variance` of its disagreement).
-    The segments' excess is fitted twice by :func:`discrepancy_variance`: once to the moments of all
-    their frames (the pooled model; one segment's frames alone give a noisy moment, which the
-    non-negativity clips upwards) and once to each segment's own. Each segment then takes
-    ``w_g`` of its own parameters and ``1 - w_g`` of the pooled (:func:`pooling_weights`, random
-    effects by moments, with each segment's mean excess's sampling variance from its frames' moments
-    allowing for their serial correlation, :func:`moment_mean_variance`): segments that differ no
-    more than their moments' noise explains share the pooled model; one whose tracks carry a bias of
-    their own (a wider disagreement than the others by far more than its noise) keeps it, instead of
-    widening the other five segments' bands by it.
+    Each curve's noise variance is its own (:func:`curve_noise_variance` of its disagreement), and so
+    is its bend (:func:`curve_curvature` of its estimate). The segments' excess is fitted twice by
+    :func:`discrepancy_variance`: once to the moments of all their frames (the pooled model; one
+    segment's frames alone give a noisy moment, which the non-negativity clips upwards) and once to
+    each segment's own. Each segment then takes ``w_g`` of its own parameters and ``1 - w_g`` of the
+    pooled (:func:`pooling_weights`, random effects by moments, with each segment's mean excess's
+    sampling variance from its frames' moments allowing for their serial correlation,
+    :func:`moment_mean_variance`): segments that differ no more than their moments' noise explains
+    share the pooled model; one whose tracks carry a bias of their own (a wider disagreement than the
+    others by far more than its noise) keeps it, instead of widening the other five segments' bands
+    by it.
 
     Parameters
     ----------
@@ -465,25 +470,30 @@ def curve_discrepancy(diffs, estimates, details: bool = False):
         Per curve (global, then the S segments): the mean linearised disagreement
         (:func:`linearised_disagreement`) and the estimated curve, per frame.
     details : bool
-        Also return a dict with the pooled segments' ``(tau0^2, k^2)`` and the weights ``w_g``.
+        Also return a dict with the pooled segments' ``(tau0^2, k^2, j^2)`` and the weights ``w_g``.
+    curvature : bool
+        Include the bend term ``j^2 c_t^2`` (False: ``j^2 = 0``, the rule before it).
     """
     d = as_float_array("diffs", diffs, shape=(None, None), allow_nan=True)
     m = as_float_array("estimates", estimates, shape=d.shape, allow_nan=True)
-    tau = np.zeros((d.shape[1], 2))
+    c = curve_curvature(m) if curvature else np.zeros_like(m)
+    tau = np.zeros((d.shape[1], 3))
     usable = [g for g in range(d.shape[1]) if np.sum(np.isfinite(d[1:-1, g] - 0.5 * (d[:-2, g] + d[2:, g]))) >= 1]
     v = {g: curve_noise_variance(d[:, g]) for g in usable}
+    bend = (lambda g: c[:, g]) if curvature else (lambda g: False)
     if 0 in v:
-        tau[0] = discrepancy_variance(d[:, 0], m[:, 0], v[0])
+        tau[0] = discrepancy_variance(d[:, 0], m[:, 0], v[0], bend(0))
     segs = [g for g in usable if g > 0]
-    pooled, weights = np.zeros(2), np.zeros(d.shape[1] - 1)
+    pooled, weights = np.zeros(3), np.zeros(d.shape[1] - 1)
     if segs:
         pooled = np.array(discrepancy_variance(np.concatenate([d[:, g] for g in segs]),
                                                np.concatenate([m[:, g] for g in segs]),
-                                               np.concatenate([np.full(d.shape[0], v[g]) for g in segs])))
+                                               np.concatenate([np.full(d.shape[0], v[g]) for g in segs]),
+                                               np.concatenate([c[:, g] for g in segs]) if curvature else False))
         tau[1:] = pooled
-        own = np.array([discrepancy_variance(d[:, g], m[:, g], v[g]) for g in segs])
-        m2 = np.array([np.nanmean(m[:, g] ** 2) for g in segs])               # each segment's mean of m_t^2
-        w = pooling_weights(own[:, 0] + own[:, 1] * m2, pooled[0] + pooled[1] * m2,
+        own = np.array([discrepancy_variance(d[:, g], m[:, g], v[g], bend(g)) for g in segs])
+        means = np.array([[1.0, np.nanmean(m[:, g] ** 2), np.nanmean(c[:, g] ** 2)] for g in segs])
+        w = pooling_weights(np.sum(own * means, axis=1), means @ pooled,
                             [moment_mean_variance(d[:, g] ** 2 - v[g]) for g in segs])
         for o, g, wg in zip(own, segs, w):
             tau[g] = wg * o + (1 - wg) * pooled
@@ -723,17 +733,19 @@ def dense_strain(tracks: LagrangianDisplacement, reference_mask, pixel_size_m: f
         sd_all = sd_curves[:, q_i * (1 + N_SEGMENTS):(q_i + 1) * (1 + N_SEGMENTS)]
         d_all = np.stack([global_curve(diffs[q][:, g]) if g.size else np.full(F, np.nan) for g in groups], axis=1)
         tau, pool = (curve_discrepancy(d_all, m_all, details=True) if cfg.discrepancy
-                     else (np.zeros((len(groups), 2)), {"pooled": np.zeros(2), "weights": np.zeros(N_SEGMENTS)}))
-        # a pixel takes its segment's excess (its own finite differences are far too noisy to tell)
+                     else (np.zeros((len(groups), 3)), {"pooled": np.zeros(3), "weights": np.zeros(N_SEGMENTS)}))
+        # a pixel takes its segment's excess (its own finite differences are far too noisy to tell), with its
+        # own estimate's value and bend
         tp = tau[1:][labels]
-        total_sd[q] = np.sqrt(pixel_sd[q] ** 2 + tp[None, :, 0] + tp[None, :, 1] * means[q] ** 2)
+        total_sd[q] = np.sqrt(pixel_sd[q] ** 2 + tp[None, :, 0] + tp[None, :, 1] * means[q] ** 2
+                              + tp[None, :, 2] * np.nan_to_num(curve_curvature(means[q])) ** 2)
         tau_report[q] = {"global": np.sqrt(tau[0]).tolist(), "segments": np.sqrt(tau[1:]).tolist(),
                          "segments_pooled": np.sqrt(pool["pooled"]).tolist(),
                          "segment_weights": np.asarray(pool["weights"], float).tolist()}
         for d, sl in ((glob, 0), (segs, slice(1, None))):
             mu, sd_m = m_all[:, sl].T, sd_all[:, sl].T
-            c0, k2 = (tau[1:, :1], tau[1:, 1:]) if d is segs else (tau[0, 0], tau[0, 1])
-            sd = np.sqrt(sd_m ** 2 + c0 + k2 * mu ** 2)
+            c0, k2, j2 = (tau[1:, :1], tau[1:, 1:2], tau[1:, 2:]) if d is segs else tau[0]
+            sd = np.sqrt(sd_m ** 2 + c0 + k2 * mu ** 2 + j2 * np.nan_to_num(curve_curvature(mu.T).T) ** 2)
             d[q], d[f"{q}_sd"], d[f"{q}_lo"], d[f"{q}_hi"] = mu, sd, mu - Z95 * sd, mu + Z95 * sd
             d[f"{q}_sd_model"] = sd_m
             d[f"{q}_reference"] = (m_all + d_all)[:, sl].T      # what the excess error was measured against
@@ -764,7 +776,9 @@ def dense_strain(tracks: LagrangianDisplacement, reference_mask, pixel_size_m: f
                     "mask_noise_evidence": ({f"{k:g}": v for k, v in mask_table.items()} if mask_table
                                             else "the masks at their stated level" if cfg.border_masks
                                             else "no masks"),
-                    "discrepancy_sd": {"what": "[tau0 (fraction), k (relative)], tau_t^2 = tau0^2 + k^2 m_t^2; "
+                    "discrepancy_sd": {"what": "[tau0 (fraction), k (relative), j (frames^2)], tau_t^2 = tau0^2 + "
+                                               "k^2 m_t^2 + j^2 c_t^2, c the curve's second difference over the "
+                                               "frames; "
                                                "one model for the global curve; segments: one per segment (6 rows), "
                                                "segment_weights of its own fit and the rest from the six segments' "
                                                "pooled fit (segments_pooled)",

@@ -4,8 +4,9 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from scipy.ndimage import gaussian_filter1d
 
-from sfem_filters.cardiac.strain_bands import moment_mean_variance, pooling_weights
+from sfem_filters.cardiac.strain_bands import curve_curvature, moment_mean_variance, pooling_weights
 from sfem_filters.cardiac.strain_route import curve_discrepancy
 
 
@@ -62,7 +63,7 @@ def _segments(rng, F=60, offset=0.0):
 
 def test_segments_that_differ_only_by_noise_share_the_pooled_model():
     d, m = _segments(np.random.default_rng(5))
-    tau, det = curve_discrepancy(d, m, details=True)
+    tau, det = curve_discrepancy(d, m, details=True, curvature=False)
     assert np.all(det["weights"] < 0.2)
     assert np.allclose(tau[1:], tau[1], rtol=0.2, atol=1e-7)
 
@@ -71,13 +72,31 @@ def test_a_segment_whose_tracks_carry_a_bias_of_their_own_keeps_it_and_does_not_
     """One segment's reference offset by 3 points: pooled, every segment's excess took a sixth of it;
     partially pooled, that segment keeps most of it and the other five stay near their own."""
     d, m = _segments(np.random.default_rng(5), offset=0.03)
-    tau, det = curve_discrepancy(d, m, details=True)
+    tau, det = curve_discrepancy(d, m, details=True, curvature=False)
     excess = tau[1:, 0] + tau[1:, 1] * np.mean(m[:, 1:] ** 2, axis=0)
     pooled = det["pooled"][0] + det["pooled"][1] * np.mean(m[:, 1] ** 2)
-    clean, _ = curve_discrepancy(*_segments(np.random.default_rng(5)), details=True)
+    clean, _ = curve_discrepancy(*_segments(np.random.default_rng(5)), details=True, curvature=False)
     clean_excess = clean[1, 0] + clean[1, 1] * np.mean(m[:, 1] ** 2)
     assert np.all(det["weights"][:5] > 0.9)          # far from the pooled fit, each by far more than its noise
     assert det["weights"][5] > 0.5                   # a smooth bias: few independent frames, so partly pooled
     assert excess[5] > 0.6 * 0.03 ** 2
     assert np.all(excess[:5] < 0.3 * pooled)
     assert np.all(excess[:5] < 1.5 * clean_excess)
+
+
+def test_segments_smoothed_at_the_onset_share_a_bend_term():
+    """Six segments whose estimates lead a kinked onset the same way (a Gaussian smoothing of 4 frames),
+    each seen through its own noise: they differ only by noise, so they share the pooled model, whose
+    bend term is positive and whose variance matches the bias's mean square."""
+    rng = np.random.default_rng(3)
+    F = 60
+    t = np.arange(F, dtype=float)
+    truth = 0.4 * np.clip((t - 15) / 20, 0, 1) ** 2 * np.exp(-np.clip(t - 35, 0, None) / 10)
+    m1 = gaussian_filter1d(truth, 4.0, mode="nearest")
+    m = np.tile(m1[:, None], (1, 7))
+    d = (truth - m1)[:, None] + 0.001 * rng.standard_normal((F, 7))
+    tau, det = curve_discrepancy(d, m, details=True)
+    assert tau.shape == (7, 3) and det["pooled"].shape == (3,)
+    assert np.all(det["weights"] < 0.2) and det["pooled"][2] > 0
+    var = det["pooled"][0] + det["pooled"][1] * m1 ** 2 + det["pooled"][2] * curve_curvature(m1) ** 2
+    assert np.mean(var) == pytest.approx(np.mean((truth - m1) ** 2), rel=0.5)
