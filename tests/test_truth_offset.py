@@ -90,3 +90,23 @@ def test_fit_offset_uses_the_inner_pixels_of_the_later_frames():
     s, A, b = fit_offset(P, mask, estimate, truth)
     assert np.allclose(s, [-0.25, 0.2], atol=1e-8)
     assert np.allclose(np.linalg.solve(A, b), s)
+
+
+def test_equations_are_weighted_by_the_precision_of_their_own_fit():
+    """The same shifted field seen with noise of sd 2e-5 and 2e-4: the normal equations scale as
+    1 / sigma^2, so their sum solves close to the precise one's answer, not midway."""
+    mask = _annulus()
+    P = reference_points(mask)
+    truth = _field(P, frames=8)
+    rng = np.random.default_rng(4)
+    use = np.broadcast_to(ndimage.binary_erosion(mask, iterations=2)[P[:, 1].astype(int), P[:, 0].astype(int)],
+                          truth.shape)
+    g = grid_gradient(P, truth, mask.shape)
+    fits = []
+    for sd, shift in ((2e-5, (0.2, -0.1)), (2e-4, (-0.4, 0.3))):
+        est = _field(P, frames=8, shift=shift) + sd * rng.standard_normal(truth.shape)
+        fits.append(offset_equations(est, truth, *g, use))
+    ratio = np.trace(fits[0][0]) / np.trace(fits[1][0])
+    assert 50 < ratio < 200                                                    # (2e-4 / 2e-5)^2 = 100
+    s = np.linalg.solve(fits[0][0] + fits[1][0], fits[0][1] + fits[1][1])
+    assert np.allclose(s, (0.2, -0.1), atol=0.02)

@@ -65,9 +65,14 @@ def offset_equations(estimate, truth, gx, gy, use) -> tuple:
 
 
 def registered_truth(points, truth, shape, s_px) -> np.ndarray:
-    """The truth (F, P) moved by the offset ``s_px`` to first order: ``truth + s . grad(truth)``."""
+    """The truth (F, P) moved by the offset ``s_px`` to first order: ``truth + s . grad(truth)``.
+
+    A pixel with no reference neighbour along an axis (no gradient there) keeps its value along that
+    axis, so the moved truth covers every pixel the truth does.
+    """
     gx, gy = grid_gradient(points, truth, shape)
-    return np.asarray(truth, float) + s_px[0] * gx + s_px[1] * gy
+    # a pixel with no neighbour along an axis has no gradient there: it keeps its value along that axis
+    return np.asarray(truth, float) + s_px[0] * np.nan_to_num(gx) + s_px[1] * np.nan_to_num(gy)
 
 
 def fit_use(mask, points, n_frames: int) -> np.ndarray:

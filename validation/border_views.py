@@ -273,8 +273,8 @@ def _offset_table(rows) -> str:
              fmt(100 * r["segment_rms_error"], ".2f"), fmt(100 * r["segment_rms_error_truth_moved"], ".2f")]
             for r in rows]
     return (md_table(cols, body) + "\n\nWhere the truth sits: the offset delta that best maps the truth onto the "
-            "noise-free conventional strain (e - T ~ c_t + grad T . delta, least squares over the pixels two or more inside "
-            "the mask and the frames from a quarter of the sequence on, each frame's constant c_t removed), and the "
+            "noise-free conventional strain (e - T ~ c_t + grad T . delta, least squares over the pixels two or more "
+            "inside the mask and the frames from a quarter of the sequence on, each frame's constant c_t removed), and the "
             "six segment curves' error (RMS over segments and frames) against the truth as given and moved by delta.")
 
 

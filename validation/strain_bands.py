@@ -8,7 +8,7 @@ asks, on every given DENSE-Sim case, both SNRs and three seeds (the strain page'
 :mod:`validation.strain_dense_sim`: the spec's noise, :func:`sfem_filters.cardiac.dense_case_strain`
 with :func:`sfem_filters.cardiac.image_settings`), three questions of the six segment curves:
 
-1. **Is the form right?** The same two parameters fitted instead to the estimate's true error (the
+1. **Is the form right?** The same three parameters fitted instead to the estimate's true error (the
    same moment equations, :func:`sfem_filters.cardiac.strain_bands.discrepancy_variance`, with the
    truth in place of the tracks and the smoother's own variance in place of the tracks' noise):
    the coverage of the truth by bands of that form is what the form can do when its parameters
@@ -186,7 +186,7 @@ def compute(settings: dict, out_dir) -> dict:
            "truth_offset_px": {name: {k: o[k] for k in ("s_px", "s_px_Ecc", "s_px_Err")}
                                for name, o in offsets.items()},
            "truth_offset_pooled_px": s_pooled,
-           "units": "strain in percentage points, k dimensionless, coverage in percent of segment-frames"}
+           "units": "strain in percentage points, k and j dimensionless, coverage in percent of segment-frames"}
     if settings.get("figure"):
         out["figure"] = figure(rows, out_dir / FIGURE)
     return out

@@ -11,8 +11,9 @@ every name stays importable from there. Strain is a fraction; gradients are dime
 * :func:`noise_scale`: the maximum-likelihood common scale of the model's covariances.
 * :func:`linearised_disagreement`, :func:`curve_noise_variance`, :func:`discrepancy_variance`,
   :func:`curve_curvature`: the empirical-Bayes excess error of a curve against the unsmoothed
-  finite-difference strain of the same tracks; :func:`moment_mean_variance` and :func:`pooling_weights`: each segment's own excess
-  partially pooled with the six segments' common one (random effects, moments).
+  finite-difference strain of the same tracks, and :func:`excess_variance` of it;
+  :func:`moment_mean_variance` and :func:`pooling_weights`: each segment's own excess partially
+  pooled with the six segments' common one (random effects, moments).
 
 **Why linearised.** The Green-Lagrange strain of a noisy gradient is biased upwards by its
 noise, ``E[e . E(G + n) e] = e . E(G) e + E|n e|^2 / 2``: a shared, slowly varying offset of every
@@ -39,7 +40,7 @@ from ..imaging.strain import green_strain, project_strain, radial_circumferentia
 
 __all__ = ["STRAINS", "element_gradient_operator", "gradient_operators", "linearised_rows", "strain_and_sd",
            "point_variance", "noise_scale", "linearised_disagreement", "curve_noise_variance", "discrepancy_variance",
-           "moment_mean_variance", "pooling_weights", "curve_curvature"]
+           "moment_mean_variance", "pooling_weights", "curve_curvature", "excess_variance"]
 
 #: Which displacement gradient the strain is computed from (``strain=``).
 STRAINS = ("recovered", "element")
@@ -171,12 +172,13 @@ def curve_noise_variance(diff) -> float:
 
 
 def curve_curvature(curve) -> np.ndarray:
-    """Each frame's second difference ``m_t+1 - 2 m_t + m_t-1`` of a curve (or of each column), the ends copied inward.
+    """Each frame's second difference ``m_t+1 - 2 m_t + m_t-1`` of a curve (or of each column) over the frames.
 
     The shape of a smoothing's bias at a kink: a linear smoother of width ``h`` frames misses a curve
     by about ``-(h^2 / 2) m''`` (the leading term of a kernel smoother's bias), so its error is
     largest where the curve bends (the onset of a contraction, a peak), even where the curve itself
-    is small. NaN where a neighbour is missing; zeros for fewer than 3 frames (no bend to see).
+    is small. The first and last frames take their neighbour's value (the nearest interior second
+    difference). NaN where a neighbour is missing; zeros for fewer than 3 frames (no bend to see).
 
     Parameters
     ----------
@@ -192,6 +194,32 @@ def curve_curvature(curve) -> np.ndarray:
     c[1:-1] = m[2:] - 2 * m[1:-1] + m[:-2]
     c[0], c[-1] = c[1], c[-2]
     return c
+
+
+def excess_variance(tau, curves) -> np.ndarray:
+    """The excess-error variance ``tau0^2 + k^2 m_t^2 + j^2 c_t^2`` of curves over the frames.
+
+    Parameters
+    ----------
+    tau : (3,) or (k, 3) array
+        ``(tau0^2, k^2, j^2)`` (:func:`discrepancy_variance`), one for all curves or one row per
+        curve (column of ``curves``).
+    curves : (F,) or (F, k) array
+        The estimated curves ``m``, frames along the first axis; ``c`` is each one's bend
+        (:func:`curve_curvature`), taken as 0 where it is undefined (a missing neighbour).
+
+    Returns
+    -------
+    (F,) or (F, k) array, in the curves' unit squared.
+    """
+    m = as_float_array("curves", curves, allow_nan=True)
+    t = as_float_array("tau", tau)
+    if t.shape not in ((3,), (m.shape[-1] if m.ndim == 2 else -1, 3)):
+        raise ValueError(f"tau: expected (3,) or ({m.shape[-1] if m.ndim == 2 else 1}, 3), got {t.shape}")
+    if np.any(t < 0):
+        raise ValueError("tau: expected non-negative variances, got a negative one")
+    t0, k2, j2 = t[..., 0], t[..., 1], t[..., 2]
+    return t0 + k2 * m ** 2 + j2 * np.nan_to_num(curve_curvature(m)) ** 2
 
 
 def discrepancy_variance(diff, estimate, noise_var, curvature: bool = True) -> tuple:
@@ -216,8 +244,9 @@ def discrepancy_variance(diff, estimate, noise_var, curvature: bool = True) -> t
     ----------
     diff : (F,) array
         Reference minus estimate per frame (NaN where missing); 2 finite frames or more. Several
-        curves sharing one model: their frames concatenated (the curvature of each is then best
-        given through ``curvature`` as an array, see below).
+        curves sharing one model: their frames concatenated, and then each curve's own bend must
+        be given through ``curvature`` as an array (``True`` would take second differences across
+        the joins between the curves).
     estimate : (F,) array
         The estimated curve (curves).
     noise_var : float or (F,) array
@@ -234,7 +263,9 @@ def discrepancy_variance(diff, estimate, noise_var, curvature: bool = True) -> t
     k2 : float
         The relative part (dimensionless), >= 0.
     j2 : float
-        The bend part (frames^4: ``j c_t`` is in the values' unit), >= 0; 0 without the term.
+        The bend part (dimensionless: ``c`` is a per-frame second difference, in the values' unit;
+        ``j`` is about ``h^2 / 2`` for a smoother ``h`` frames wide, so it depends on the frame
+        rate), >= 0; 0 without the term.
     """
     d = as_float_array("diff", diff, shape=(None,), allow_nan=True)
     m = as_float_array("estimate", estimate, shape=d.shape, allow_nan=True)

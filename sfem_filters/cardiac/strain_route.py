@@ -234,7 +234,8 @@ from .dense_model import INFORMATION_FLOOR, MESHES, PROCESS_FRACTIONS, PROCESS_P
 from .measured import NOMINAL
 from .strain_bands import STRAINS, _component_rows, _covariance_from_blocks, curve_noise_variance, \
     discrepancy_variance, element_gradient_operator, gradient_operators, linearised_disagreement, linearised_rows, \
-    moment_mean_variance, noise_scale, point_variance, pooling_weights, strain_and_sd, curve_curvature
+    moment_mean_variance, noise_scale, point_variance, pooling_weights, strain_and_sd, curve_curvature, \
+    excess_variance
 # the contours route takes these rows from here (the same maths): re-exported
 from .strain_bands import _covariance_from_rows, _curve_rows, _element_of, _gradient_rows  # noqa: F401
 
@@ -737,15 +738,13 @@ def dense_strain(tracks: LagrangianDisplacement, reference_mask, pixel_size_m: f
         # a pixel takes its segment's excess (its own finite differences are far too noisy to tell), with its
         # own estimate's value and bend
         tp = tau[1:][labels]
-        total_sd[q] = np.sqrt(pixel_sd[q] ** 2 + tp[None, :, 0] + tp[None, :, 1] * means[q] ** 2
-                              + tp[None, :, 2] * np.nan_to_num(curve_curvature(means[q])) ** 2)
+        total_sd[q] = np.sqrt(pixel_sd[q] ** 2 + excess_variance(tp, means[q]))
         tau_report[q] = {"global": np.sqrt(tau[0]).tolist(), "segments": np.sqrt(tau[1:]).tolist(),
                          "segments_pooled": np.sqrt(pool["pooled"]).tolist(),
                          "segment_weights": np.asarray(pool["weights"], float).tolist()}
         for d, sl in ((glob, 0), (segs, slice(1, None))):
             mu, sd_m = m_all[:, sl].T, sd_all[:, sl].T
-            c0, k2, j2 = (tau[1:, :1], tau[1:, 1:2], tau[1:, 2:]) if d is segs else tau[0]
-            sd = np.sqrt(sd_m ** 2 + c0 + k2 * mu ** 2 + j2 * np.nan_to_num(curve_curvature(mu.T).T) ** 2)
+            sd = np.sqrt(sd_m ** 2 + (excess_variance(tau[1:], mu.T).T if d is segs else excess_variance(tau[0], mu)))
             d[q], d[f"{q}_sd"], d[f"{q}_lo"], d[f"{q}_hi"] = mu, sd, mu - Z95 * sd, mu + Z95 * sd
             d[f"{q}_sd_model"] = sd_m
             d[f"{q}_reference"] = (m_all + d_all)[:, sl].T      # what the excess error was measured against
@@ -776,7 +775,7 @@ def dense_strain(tracks: LagrangianDisplacement, reference_mask, pixel_size_m: f
                     "mask_noise_evidence": ({f"{k:g}": v for k, v in mask_table.items()} if mask_table
                                             else "the masks at their stated level" if cfg.border_masks
                                             else "no masks"),
-                    "discrepancy_sd": {"what": "[tau0 (fraction), k (relative), j (frames^2)], tau_t^2 = tau0^2 + "
+                    "discrepancy_sd": {"what": "[tau0 (fraction), k (relative), j (dimensionless)], tau_t^2 = tau0^2 + "
                                                "k^2 m_t^2 + j^2 c_t^2, c the curve's second difference over the "
                                                "frames; "
                                                "one model for the global curve; segments: one per segment (6 rows), "

@@ -6,7 +6,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.ndimage import gaussian_filter1d
 
-from sfem_filters.cardiac.strain_bands import curve_curvature, moment_mean_variance, pooling_weights
+from sfem_filters.cardiac.strain_bands import (curve_curvature, curve_noise_variance, discrepancy_variance,
+                                               moment_mean_variance, pooling_weights)
 from sfem_filters.cardiac.strain_route import curve_discrepancy
 
 
@@ -100,3 +101,24 @@ def test_segments_smoothed_at_the_onset_share_a_bend_term():
     assert np.all(det["weights"] < 0.2) and det["pooled"][2] > 0
     var = det["pooled"][0] + det["pooled"][1] * m1 ** 2 + det["pooled"][2] * curve_curvature(m1) ** 2
     assert np.mean(var) == pytest.approx(np.mean((truth - m1) ** 2), rel=0.5)
+
+
+def test_the_pooled_fit_takes_each_segments_own_bend_not_the_joins_between_them():
+    """Segments whose curves start and end at different values: the pooled fit is the moment fit of their
+    frames concatenated with each curve's own second difference, not one taken across the joins."""
+    rng = np.random.default_rng(11)
+    F = 50
+    t = np.linspace(0, 1, F)
+    m = np.column_stack([0.05 * g + 0.2 * t ** 2 for g in range(7)])               # each a different ramp
+    d = 0.002 * rng.standard_normal((F, 7)) + 0.05 * curve_curvature(m) * 40 + 0.02 * m
+    tau, det = curve_discrepancy(d, m, details=True)
+    segs = range(1, 7)
+    noise = np.concatenate([np.full(F, curve_noise_variance(d[:, g])) for g in segs])
+    own_bends = np.concatenate([curve_curvature(m[:, g]) for g in segs])
+    want = discrepancy_variance(np.concatenate([d[:, g] for g in segs]), np.concatenate([m[:, g] for g in segs]),
+                                noise, own_bends)
+    assert np.allclose(det["pooled"], want)
+    across = discrepancy_variance(np.concatenate([d[:, g] for g in segs]), np.concatenate([m[:, g] for g in segs]),
+                                  noise, True)
+    assert not np.allclose(det["pooled"], across)
+
