@@ -477,22 +477,21 @@ def curve_discrepancy(diffs, estimates, details: bool = False, curvature: bool =
     """
     d = as_float_array("diffs", diffs, shape=(None, None), allow_nan=True)
     m = as_float_array("estimates", estimates, shape=d.shape, allow_nan=True)
-    c = curve_curvature(m) if curvature else np.zeros_like(m)
+    c = curve_curvature(m) if curvature else np.zeros_like(m)           # each curve's own bend (columns)
     tau = np.zeros((d.shape[1], 3))
     usable = [g for g in range(d.shape[1]) if np.sum(np.isfinite(d[1:-1, g] - 0.5 * (d[:-2, g] + d[2:, g]))) >= 1]
     v = {g: curve_noise_variance(d[:, g]) for g in usable}
-    bend = (lambda g: c[:, g]) if curvature else (lambda g: False)
     if 0 in v:
-        tau[0] = discrepancy_variance(d[:, 0], m[:, 0], v[0], bend(0))
+        tau[0] = discrepancy_variance(d[:, 0], m[:, 0], v[0], curvature and c[:, 0])
     segs = [g for g in usable if g > 0]
     pooled, weights = np.zeros(3), np.zeros(d.shape[1] - 1)
     if segs:
         pooled = np.array(discrepancy_variance(np.concatenate([d[:, g] for g in segs]),
                                                np.concatenate([m[:, g] for g in segs]),
                                                np.concatenate([np.full(d.shape[0], v[g]) for g in segs]),
-                                               np.concatenate([c[:, g] for g in segs]) if curvature else False))
+                                               curvature and np.concatenate([c[:, g] for g in segs])))
         tau[1:] = pooled
-        own = np.array([discrepancy_variance(d[:, g], m[:, g], v[g], bend(g)) for g in segs])
+        own = np.array([discrepancy_variance(d[:, g], m[:, g], v[g], curvature and c[:, g]) for g in segs])
         means = np.array([[1.0, np.nanmean(m[:, g] ** 2), np.nanmean(c[:, g] ** 2)] for g in segs])
         w = pooling_weights(np.sum(own * means, axis=1), means @ pooled,
                             [moment_mean_variance(d[:, g] ** 2 - v[g]) for g in segs])
