@@ -11,9 +11,11 @@ from __future__ import annotations
 import importlib
 import os
 import pkgutil
+import sys
 from pathlib import Path
 
 from docutils import nodes
+from sphinx.pycode import ModuleAnalyzer
 
 import sfem_filters
 
@@ -207,8 +209,33 @@ def _literal_for_unresolved(app, env, node, contnode):
     return None
 
 
+def _data_docstring(app, what, name, obj, options, lines) -> None:
+    """A constant's own ``#:`` comment where it is defined, not its type's docstring (a tuple's), and
+    its value when it is a short tuple of names (a dict of builders shows no value).
+
+    A constant re-exported by a subpackage is documented under the subpackage's name, where the
+    source analyser finds no comment; the module that defines it is the one of sfem_filters whose
+    ``#:`` comments name it and which holds the same object."""
+    if what != "data":
+        return
+    short = name.rsplit(".", 1)[-1]
+    for modname in sorted(m for m in list(sys.modules) if m.startswith("sfem_filters")):
+        if getattr(sys.modules[modname], short, None) is not obj:
+            continue
+        try:
+            docs = ModuleAnalyzer.for_module(modname).find_attr_docs()
+        except Exception:                 # a module without source (compiled) or that the analyser refuses
+            continue
+        if ("", short) in docs:
+            lines[:] = list(docs[("", short)])
+            break
+    if isinstance(obj, tuple) and all(isinstance(v, str) for v in obj):
+        lines += ["", "Value: " + ", ".join(f"``{v!r}``" for v in obj) + "."]
+
+
 def setup(app):
     app.connect("config-inited", write_api_pages)
+    app.connect("autodoc-process-docstring", _data_docstring)
     app.connect("missing-reference", _literal_for_unresolved)
     return {"parallel_read_safe": True}
 

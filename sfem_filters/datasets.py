@@ -362,6 +362,17 @@ def fetch(name: str, *, cache_dir=None, downloader=None, progressbar: bool = Fal
         HTTPS).
     progressbar : bool
         Show pooch's progress bar (needs tqdm).
+
+    Raises
+    ------
+    DatasetNotFoundError
+        When a file cannot be downloaded (no network, the host refuses): the message says which
+        and how else to get the data set (:func:`how_to_get`).
+
+    See Also
+    --------
+    dataset_path : the data directory (``SFEM_FILTERS_DATA``) and the cache first, then, with
+        ``download=True``, this download; what a script should call.
     """
     ds = _dataset(name)
     root = _cache_dir(cache_dir)
@@ -369,8 +380,15 @@ def fetch(name: str, *, cache_dir=None, downloader=None, progressbar: bool = Fal
         return os.path.join(root, ds.path)
     for f in ds.downloads:
         folder, fname = os.path.split(os.path.join(root, f.local))
-        pooch.retrieve(ds.source.url(f.remote), known_hash=f"sha256:{f.sha256}", fname=fname, path=folder,
-                       downloader=downloader, progressbar=progressbar)
+        url = ds.source.url(f.remote)
+        try:
+            pooch.retrieve(url, known_hash=f"sha256:{f.sha256}", fname=fname, path=folder,
+                           downloader=downloader, progressbar=progressbar)
+        except OSError as exc:          # requests' errors are OSErrors: no network, a refused host, HTTP 404
+            reason = str(exc).splitlines()[0][:200] if str(exc) else type(exc).__name__
+            raise DatasetNotFoundError(
+                f"data set {name!r}: could not download {url} ({type(exc).__name__}: {reason}).\n"
+                + how_to_get(name)) from exc
     if ds.build is not None:
         ds.build(root)
     missing = _missing(ds, root)

@@ -48,8 +48,20 @@ def test_strain_writes_the_issue_json_with_bands_around_the_curves(short_case, t
     assert "reference pixels x 6 frames" in printed.out and "progress" not in printed.err
     # the case has a ground truth: the summary line shows its global peaks beside ours
     t = d["truth"]["global"]
-    assert (f"the case's ground truth {100 * np.nanmin(np.array(t['Ecc'], float)):.2f}% / "
-            f"{100 * np.nanmax(np.array(t['Err'], float)):.2f}%;") in printed.out
+    assert (f"the case's ground truth: Ecc {100 * np.nanmin(np.array(t['Ecc'], float)):.2f}%, "
+            f"Err {100 * np.nanmax(np.array(t['Err'], float)):.2f}%;") in printed.out
+    # our peaks and their frames' times as the JSON has them, with the band of the curve there
+    g, ms = d["global"], 1e3 * np.array(d["frame_times_s"], float)
+    k = int(np.nanargmin(np.array(g["Ecc"], float)))
+    assert (f"global peak Ecc {100 * g['Ecc'][k]:.2f}% at {ms[k]:.0f} ms (95% band of the curve there: "
+            f"{100 * g['Ecc_lo'][k]:.2f} to {100 * g['Ecc_hi'][k]:.2f}%)") in printed.out
+    labels = np.array(d["labels"])
+    assert labels.shape == (P,) and set(labels) <= set(range(6))
+    e = np.array(d["strain"]["Ecc"], float)                   # labels say which pixels make each segment's curve
+    for s in set(labels):
+        np.testing.assert_allclose(np.array(d["segments"]["Ecc"][s], float), e[:, labels == s].mean(axis=1),
+                                   rtol=1e-9, atol=1e-12)
+    assert np.array(d["displacement"], float).shape == (F, P, 2)
 
 
 @pytest.mark.needs_data(CASE)

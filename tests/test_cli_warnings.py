@@ -30,8 +30,8 @@ def test_warnings_reach_the_user_as_one_line_without_a_source_path():
     assert out.returncode == 0, out.stderr
     during, after = out.stderr.split("-- after\n")
     lines = during.splitlines()
-    assert lines[0].startswith("sfem-filters: warning: filter inconsistent: NIS above its 99.9% chi-square bound for "
-                               "1 frames in a row (loop 2, frames 3-3)")
+    assert lines[0].startswith("sfem-filters: warning: filter inconsistent: the innovations' normalised squares (NIS) "
+                               "above their 99.9% chi-square bound for 1 frames in a row (frames 3-3, iteration 2)")
     assert lines[1:] == ["sfem-filters: warning: a message over two lines",
                          "sfem-filters: warning (DeprecationWarning): an old name",
                          "sfem-filters: warning: from a worker"]

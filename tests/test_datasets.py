@@ -13,6 +13,7 @@ import shutil
 
 import numpy as np
 import pytest
+import requests
 import scipy.io
 
 from sfem_filters import datasets
@@ -222,6 +223,22 @@ def test_dataset_path_downloads_when_asked_and_a_bad_download_is_refused(publish
     monkeypatch.setattr(datasets.pooch, "retrieve", through(good))
     assert datasets.dataset_path(name, download=True) == os.path.join(no_data, name)
     assert len(good.urls) == len(datasets.DATASETS[name].downloads)
+
+
+def test_a_failed_download_is_one_clear_error_saying_how_else_to_get_it(no_data):
+    """No network (a downloader that raises what requests raises offline): the error names the data
+    set and the URL, and says how to get the data otherwise; no traceback of requests is needed."""
+    import requests
+
+    def offline(url, output_file, pooch_):
+        raise requests.exceptions.ConnectionError(f"HTTPSConnectionPool: Max retries exceeded with url: {url}")
+    name = "dense_sim/invivo_subject_1"
+    with pytest.raises(datasets.DatasetNotFoundError) as exc:
+        datasets.fetch(name, downloader=offline)
+    text = str(exc.value)
+    assert f"data set {name!r}: could not download https://raw.githubusercontent.com/" in text
+    assert "ConnectionError" in text and "SFEM_FILTERS_DATA" in text and "Hbarbaroux/DENSE_Sim" in text
+    assert not any(n.endswith(".npy") for _, _, ns in os.walk(no_data) for n in ns)
 
 
 def write_strainnet_case(folder, label, masks):

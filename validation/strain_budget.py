@@ -282,7 +282,7 @@ def markdown(results: dict) -> str:
             "line and first progress: seconds to the first text on stderr and to the run's own first progress "
             f"line (`{results['rows'][0]['first_progress_line'] if results['rows'] else ''}`); peak memory: the "
             f"command's process alone. Budget {results['budget_s']:.0f} s and {results['budget_gb']:.0f} GB "
-            "(issue 42, item 3), on the machine and load of the header. Scores against each case's truth, in "
+            "(a slice of up to about 1300 pixels and 62 frames), on the machine and load of the header. Scores against each case's truth, in "
             "percentage points (the strain page's metrics; not goals here). A resampled case is the given one on "
             "another matrix over the same field of view" + (
                 f"; the finer one is the smallest matrix whose reference myocardium has at least "

@@ -1,6 +1,6 @@
 """Strain from myocardium masks alone: tracked borders as data, the interior from the physics.
 
-The contours route of issue 42 (item 2), Shi & Liu (2003) section 2.6 as a strain estimator,
+The contours route, Shi & Liu (2003) section 2.6 as a strain estimator,
 :func:`contour_strain`. No phase is used: the only input is a myocardium mask per frame.
 
 1. **Landmarks.** The reference mask's endo- and epicardial contours (marching squares at level
@@ -250,7 +250,7 @@ class ContourStrain(DenseStrain):
     ROUTE: ClassVar[str] = "contours"
 
     def to_dict(self) -> dict:
-        """The issue-42 JSON names (as the DENSE route), ``route`` = ``"contours"``, and the landmarks."""
+        """The strain report's JSON names (as the DENSE route), ``route`` = ``"contours"``, and the landmarks."""
         out = super().to_dict()
         L = self.tracks.points
         out["landmarks"] = {"points": L.tolist(), "contour": self.tracks.contour.tolist(),

@@ -1,6 +1,6 @@
 """DENSE displacements in, Green-Lagrange strain with its uncertainty out, by the finite-element smoother.
 
-The DENSE route of issue 42 (items 3 and 4), as a library function, :func:`dense_strain`:
+The DENSE route, as a library function, :func:`dense_strain`:
 
 1. **Mesh.** The reference myocardium (the non-zero pixels of the reference mask) is meshed at
    a chosen element size, apart from the pixels (:func:`reference_mesh`): its marching-squares
@@ -118,7 +118,7 @@ The DENSE route of issue 42 (items 3 and 4), as a library function, :func:`dense
    ``strain="recovered"``, :func:`gradient_operators`): at each node the area-weighted mean of the
    constant gradients of the linear triangles around it (nodal averaging, Zienkiewicz & Zhu 1992),
    interpolated at each reference pixel by the shape functions. Why, by measurement (one case at
-   SNR 30, the error budget of issue 42's strain work; ``strain="element"`` reproduces it): the
+   SNR 30, the error budget of the strain work; ``strain="element"`` reproduces it): the
    linear triangle's own constant gradient (``strain="element"``) jumps from element to element and
    carries the noise of its three nodes alone, so it is the noisiest part of the route (pixel
    RMSE of Ecc worse than the unsmoothed finite differences); a finer mesh is no remedy (at
@@ -443,7 +443,7 @@ class DenseRouteStrain(DenseStrain):
     Err_sd_model: np.ndarray = field(repr=False)
 
     def to_dict(self) -> dict:
-        """The issue-42 JSON names, plus ``strain.Ecc_sd_model`` and ``strain.Err_sd_model``."""
+        """The strain report's JSON names, plus ``strain.Ecc_sd_model`` and ``strain.Err_sd_model``."""
         out = super().to_dict()
         for q in ("Ecc", "Err"):
             out["strain"][f"{q}_sd_model"] = json_list(getattr(self, f"{q}_sd_model"))

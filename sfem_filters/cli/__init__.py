@@ -29,7 +29,7 @@ from tqdm import tqdm  # noqa: E402
 from ..filtering.smoother import MEMORY_ADVICE, InsufficientMemory  # noqa: E402
 from ..resources import blas_threads  # noqa: E402
 from . import compare, dense, observe, strain  # noqa: E402
-from ._common import _message, _positive_int  # noqa: E402
+from ._common import _check_outputs, _message, _positive_int  # noqa: E402
 from .compare import cmd_compare  # noqa: E402
 from .dense import cmd_dense  # noqa: E402
 from .observe import cmd_observe  # noqa: E402
@@ -93,6 +93,7 @@ def main(argv=None) -> int:
     job of a batch failed (or none gave a result), 2 on an error (one line on stderr), 130 when interrupted."""
     args = build_parser().parse_args(argv)
     try:
+        _check_outputs(args)                  # before any work: an output it could not write at the end
         # BLAS: --blas-threads, else SFEM_FILTERS_BLAS_THREADS, else the measured default
         with blas_threads(args.blas_threads), _warnings_as_lines():
             return {"compare": cmd_compare, "dense": cmd_dense, "observe": cmd_observe,

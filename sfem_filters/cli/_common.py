@@ -5,7 +5,9 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import sys
+import tempfile
 
 from .._io import write_json
 from ..cardiac.effects import CATALOGUE
@@ -121,6 +123,44 @@ def _progress(args) -> bool:
 def _message(command: str, kind: str, text: str) -> None:
     """One line of the command line's own on stderr: ``sfem-filters COMMAND: KIND: TEXT``."""
     print(f"sfem-filters {command}: {kind}: {text}", file=sys.stderr)
+
+
+#: the options of any verb that name a file it writes, and those that name a folder it writes into
+OUTPUT_FILES = ("json", "csv", "out")
+OUTPUT_FOLDERS = ("figures", "export", "checkpoint_dir", "batch_dir")
+
+
+def _check_outputs(args) -> None:
+    """Refuse, before any work, an output the verb could not write at its end.
+
+    Every option of ``OUTPUT_FILES`` must name a file that is not a folder, and every one of
+    ``OUTPUT_FOLDERS`` a folder that is not a file. The folder each is written into is made now
+    (as the writers would make it at the end) and a probe file is written and removed there, so
+    that a folder nobody may write into is found now, not after the run.
+
+    Raises
+    ------
+    ValueError
+        Naming the option (``--json: ...``), the path and what was expected.
+    """
+    for names, folder in ((OUTPUT_FILES, False), (OUTPUT_FOLDERS, True)):
+        for name in names:
+            path = getattr(args, name, None)
+            if not path:
+                continue
+            flag = "--" + name.replace("_", "-")
+            if folder and os.path.exists(path) and not os.path.isdir(path):
+                raise ValueError(f"{flag}: expected a folder to write into, got the file {path!r}")
+            if not folder and os.path.isdir(path):
+                raise ValueError(f"{flag}: expected a file to write, got the folder {path!r}")
+            where = path if folder else (os.path.dirname(os.path.abspath(path)))
+            try:
+                os.makedirs(where, exist_ok=True)
+                with tempfile.TemporaryFile(dir=where):
+                    pass
+            except OSError as exc:
+                raise ValueError(f"{flag}: cannot write {path!r}: {exc.strerror or exc} "
+                                 f"({exc.filename or where})") from None
 
 
 def _write_json(path, payload):

@@ -156,6 +156,9 @@ def cmd_strain(args) -> int:
         if src["masks"] is None:
             raise ValueError("--route contours: expected the myocardium masks of the reference and of every frame; the "
                              "sequence file has no reference_mask and frame_masks (use --route dense)")
+        if args.snr:
+            _message("strain", "note", "--snr: the noise goes into the phase, which only the conventional analysis "
+                     "beside the contours route reads; the route itself reads the masks, which carry no phase")
         ours = contour_strain(src["masks"], src["pixel_size_m"], src["frame_times_s"],
                               ContourRouteSettings(start_deg=args.segment_start), progress=say)
         _message("strain", "note", "the contours route's 95% bands hold how well the masks' borders are known "
@@ -206,15 +209,16 @@ def cmd_strain(args) -> int:
     truth = ""
     if "truth" in out:
         tg = out["truth"]["global"]
-        truth = (f"; the case's ground truth {100 * np.nanmin(np.asarray(tg['Ecc'], float)):.2f}% / "
-                 f"{100 * np.nanmax(np.asarray(tg['Err'], float)):.2f}%")
+        truth = (f"; the case's ground truth: Ecc {100 * np.nanmin(np.asarray(tg['Ecc'], float)):.2f}%, "
+                 f"Err {100 * np.nanmax(np.asarray(tg['Err'], float)):.2f}%")
+    ms = 1e3 * np.asarray(ours.frame_times_s, float)
     print(f"{len(ours.points)} reference pixels x {len(ours.frame_times_s)} frames; global peak Ecc "
-          f"{100 * g['Ecc'][peak_cc]:.2f}% (95% {100 * g['Ecc_lo'][peak_cc]:.2f} to {100 * g['Ecc_hi'][peak_cc]:.2f}) "
-          f"at {ours.frame_times_s[peak_cc]:.3f} s, Err {100 * g['Err'][peak_rr]:.2f}% "
-          f"(95% {100 * g['Err_lo'][peak_rr]:.2f} to {100 * g['Err_hi'][peak_rr]:.2f}) at "
-          f"{ours.frame_times_s[peak_rr]:.3f} s; conventional (sigma {args.conventional_sigma:g} px) "
-          f"{100 * np.nanmin(conv.global_Ecc):.2f}% / {100 * np.nanmax(conv.global_Err):.2f}%{truth}; "
-          f"{out['seconds']:.0f} s")
+          f"{100 * g['Ecc'][peak_cc]:.2f}% at {ms[peak_cc]:.0f} ms (95% band of the curve there: "
+          f"{100 * g['Ecc_lo'][peak_cc]:.2f} to {100 * g['Ecc_hi'][peak_cc]:.2f}%), Err {100 * g['Err'][peak_rr]:.2f}% "
+          f"at {ms[peak_rr]:.0f} ms ({100 * g['Err_lo'][peak_rr]:.2f} to {100 * g['Err_hi'][peak_rr]:.2f}%); "
+          f"conventional (sigma {args.conventional_sigma:g} px): Ecc {100 * np.nanmin(conv.global_Ecc):.2f}%, "
+          f"Err {100 * np.nanmax(conv.global_Err):.2f}%{truth}; route and baselines {out['seconds']:.0f} s "
+          "(the last progress line gives the total, files included)")
     _write_json(args.json, out)
     if args.csv:
         say(f"writing the CSV table {args.csv}")

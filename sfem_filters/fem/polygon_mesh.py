@@ -2,7 +2,7 @@
 
 A region (the reference myocardium: an epicardial polygon with the endocardial polygon as a
 hole) is meshed at an element size ``size`` chosen apart from the pixels, so that the cost of
-a filter on it is set by the mesh and not by the image (issue 42, item 3). Points anywhere in
+a filter on it is set by the mesh and not by the image. Points anywhere in
 the region are then observed through the element shape functions
 (:func:`sfem_filters.fem.observation.point_observation_matrix`, Eq. 12 as an interpolation).
 

@@ -281,7 +281,7 @@ class IteratedSmoother:
         inner = replace(self, process_noise="fixed", measurement_noise="fixed", covariance=False)
         scaled_noise, symbol, tag = ((scaled_process_noise, "Q", "noise") if kind == "process"
                                      else (scaled_measurement_noise, "R", "Rnoise"))
-        fits, evidence = {}, {}
+        fits, evidence, caught = {}, {}, {}
         bar = None
         if progress:
             from tqdm import tqdm
@@ -289,8 +289,11 @@ class IteratedSmoother:
 
         def at(k, start):
             cp = None if checkpoint is None else f"{checkpoint}.{tag}{k:+.4f}"
-            fits[k] = inner._fit(scaled_noise(model, 4.0 ** k), y, progress=progress, checkpoint=cp,
-                                 description=f"{description} ({symbol} x {4.0 ** k:.3g})", start=start)
+            # a trial level's warnings are kept, and only the chosen level's are shown (below)
+            with warnings.catch_warnings(record=True) as caught[k]:
+                warnings.simplefilter("always")
+                fits[k] = inner._fit(scaled_noise(model, 4.0 ** k), y, progress=progress, checkpoint=cp,
+                                     description=f"{description} ({symbol} x {4.0 ** k:.3g})", start=start)
             evidence[k] = fits[k].log_likelihood
             if bar is not None:
                 bar.update(1)
@@ -320,6 +323,9 @@ class IteratedSmoother:
         finally:
             if bar is not None:
                 bar.close()
+        for w in caught.get(best, ()):
+            warnings.warn_explicit(f"{w.message} ({description}, at the {kind} noise level chosen: {symbol} x "
+                                   f"{4.0 ** best:.3g})", w.category, w.filename, w.lineno)
         # the walk stopped at an end of the range while the evidence still rose by more than noise_tol
         inward = best - 1.0 if best == kmax else best + 1.0
         edge = best in (kmin, kmax) and inward in evidence and evidence[best] > evidence[inward] + self.noise_tol

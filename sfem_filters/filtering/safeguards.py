@@ -85,8 +85,10 @@ class Safeguards:
             nis_run.clear()
         if len(nis_run) == self.divergence_frames:
             self.divergences.append((loop, t))
-            msg = (f"filter inconsistent: NIS above its {self.divergence_level:.1%} chi-square bound for "
-                   f"{self.divergence_frames} frames in a row (loop {loop}, frames {nis_run[0]}-{t})")
+            msg = (f"filter inconsistent: the innovations' normalised squares (NIS) above their "
+                   f"{self.divergence_level:.1%} chi-square bound for {self.divergence_frames} frames in a row "
+                   f"(frames {nis_run[0]}-{t}, iteration {loop}): the data move in a way the model's motion does "
+                   f"not allow there")
             if self.stop_on_divergence:
                 raise FilterDivergence(msg)
             warnings.warn(msg, RuntimeWarning)

@@ -8,8 +8,8 @@ differences on the reference pixel grid, central where both neighbours exist, on
 otherwise), with no smoothing or with a Gaussian of ``sigma`` pixels inside the mask. The
 smoothing acts on the displacement before differencing (normalised convolution): of the two
 choices it reproduces the spec's reference pattern (sigma 1 takes a large part off the peak
-radial strain, while smoothing the strain tensor instead barely lowers it; see the report of
-issue 42's foundation).
+radial strain, while smoothing the strain tensor instead barely lowers it; both were measured
+when this baseline was built).
 
 >>> import numpy as np
 >>> from sfem_filters.imaging.dense import make_dense_case

@@ -295,7 +295,8 @@ def curve_peak(curve, kind: str) -> tuple:
 @dataclass(frozen=True, eq=False)
 class StrainEstimate:
     """Strain of every reference pixel and frame with its sd, and the global and segment curves:
-    what every strain route returns (issue 42's JSON names, :meth:`to_dict`). Strains are
+    what every strain route returns (the strain report's JSON names, :meth:`to_dict`; the docs' how-to
+    'Strain from your DENSE images' tables them). Strains are
     Green-Lagrange fractions; the curves' ``*_lo`` and ``*_hi`` their 95% band.
 
     Attributes
@@ -350,13 +351,14 @@ class StrainEstimate:
         return d[f"{quantity}_lo"], d[f"{quantity}_hi"]
 
     def to_dict(self) -> dict:
-        """The issue-42 JSON names (lists, ``None`` for NaN), ``route`` the class's :attr:`ROUTE`."""
+        """The strain report's JSON names (lists, ``None`` for NaN), ``route`` the class's :attr:`ROUTE`;
+        ``labels`` the segment of each point, ``displacement`` the estimate's (F, P, 2) in pixels."""
         seg = {"start_deg": self.start_deg, **{k: json_list(v) for k, v in self.segment_curves.items()}}
         return {"route": self.ROUTE, "points": json_list(self.points), "frame_times_s": json_list(self.frame_times_s),
-                "centre": json_list(self.centre),
+                "centre": json_list(self.centre), "labels": np.asarray(self.labels, int).tolist(),
                 "strain": {q: json_list(getattr(self, q)) for q in ("Ecc", "Err", "Ecr", "Ecc_sd", "Err_sd")},
                 "global": {k: json_list(v) for k, v in self.global_curves.items()}, "segments": seg,
-                "seconds": self.seconds, "settings": self.settings}
+                "displacement": json_list(self.displacement), "seconds": self.seconds, "settings": self.settings}
 
 
 def json_list(a) -> list:

@@ -1,7 +1,8 @@
 """What a strain report adds to the curves: peaks and time to peak, the ground truth's curves, a tidy CSV.
 
-Works on the JSON that ``sfem-filters strain`` writes (issue 42, "The command and its JSON"), as a
-dict, so that a saved report can be re-read, tabulated and drawn again without rerunning anything.
+Works on the JSON that ``sfem-filters strain`` writes (the docs' how-to 'Strain from your DENSE
+images' tables its keys), as a dict, so that a saved report can be re-read, tabulated and drawn
+again without rerunning anything.
 A report holds *method blocks*: the route's own (the top level, ``report["route"]`` names it,
 ``"dense"`` or ``"contours"``) and the optional ``conventional``, ``spline`` and ``truth`` blocks,
 each with the same names:

@@ -227,11 +227,14 @@ def test_the_cli_runs_the_contours_route_on_a_shipped_case(tmp_path, capsys):
     The in-vivo case's first 16 frames (its global Ecc peaks at frame 12), written as the case is published."""
     case = str(write_case_frames(datasets.dataset_path("dense_sim/invivo_subject_1"), tmp_path / "case", 16))
     out = tmp_path / "s.json"
-    assert main(["strain", case, "--route", "contours", "--json", str(out), "--quiet"]) == 0
+    assert main(["strain", case, "--route", "contours", "--snr", "30", "--json", str(out), "--quiet"]) == 0
     d = json.loads(out.read_text())
     assert d["route"] == "contours" and "spline" in d and "conventional" in d
     g = np.array(d["global"]["Ecc"], float)
     assert np.all(np.isfinite(g)) and np.nanmin(g) < -0.03              # the ring shortens
     assert np.nanmax(np.array(d["global"]["Err"], float)) > 0.03         # and thickens
-    # even with --quiet, the one caveat on the bands it printed
-    assert "sfem-filters strain: note: the contours route's 95% bands hold how well" in capsys.readouterr().err
+    # even with --quiet, the caveat on the bands, and that --snr reaches only the conventional analysis
+    err = capsys.readouterr().err
+    assert "sfem-filters strain: note: the contours route's 95% bands hold how well" in err
+    assert "sfem-filters strain: note: --snr: the noise goes into the phase, which only the conventional" in err
+    assert d["settings"]["noise_snr"] == 30.0

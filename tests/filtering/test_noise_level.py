@@ -52,7 +52,8 @@ def test_estimated_level_is_the_evidence_maximum_and_near_the_truth(seed, log4_f
     rng = np.random.default_rng(seed)
     model, y = _data(rng, 3, 2, 2, 120, 4.0 ** log4_factor)
     est = IteratedSmoother(process_noise="estimate", damping=0.0).run(model, y)
-    grid = {k: IteratedSmoother(damping=0.0).run(model.with_process_noise(4.0 ** k), y).log_likelihood
+    only_evidence = IteratedSmoother(damping=0.0, covariance=False)
+    grid = {k: only_evidence.run(model.with_process_noise(4.0 ** k), y).log_likelihood
             for k in range(-6, 4)}
     chosen = max(d["log_evidence"] for d in est.noise_search)
     assert chosen >= max(grid.values()) - 0.05
@@ -74,7 +75,8 @@ def test_estimated_measurement_level_is_the_evidence_maximum_and_near_the_truth(
     rng = np.random.default_rng(seed)
     model, y = _data(rng, 3, 2, 4, 150, 1.0, 4.0 ** log4_factor)
     est = IteratedSmoother(measurement_noise="estimate", damping=0.0).run(model, y)
-    grid = {k: IteratedSmoother(damping=0.0).run(model.with_measurement_noise(4.0 ** k), y).log_likelihood
+    only_evidence = IteratedSmoother(damping=0.0, covariance=False)
+    grid = {k: only_evidence.run(model.with_measurement_noise(4.0 ** k), y).log_likelihood
             for k in range(-5, 5)}
     assert max(d["log_evidence"] for d in est.measurement_noise_search) >= max(grid.values()) - 0.05
     assert est.process_noise_scale == 1.0 and est.noise_search == []
@@ -177,3 +179,22 @@ def test_a_level_at_the_end_of_the_range_is_warned_about_and_one_inside_is_not()
         warnings.filterwarnings("ignore", "filter inconsistent")
         wide = IteratedSmoother(process_noise="estimate", damping=0.0).run(model, y)
     assert 4.0 < wide.process_noise_scale < 4.0 ** 3
+
+
+def test_only_the_chosen_levels_warnings_are_shown(monkeypatch):
+    """Each level tried warns (a stand-in for a filter's NIS warning); the user sees the chosen level's
+    warning alone, once, saying which level it is, not one per level tried."""
+    model, y = _data(np.random.default_rng(3), 3, 2, 2, 40, 16.0)
+    fit = IteratedSmoother._fit
+
+    def warning_fit(self, model, observations, **kwargs):
+        warnings.warn(f"trial warning from {kwargs['description']}", RuntimeWarning)
+        return fit(self, model, observations, **kwargs)
+    monkeypatch.setattr(IteratedSmoother, "_fit", warning_fit)
+    with warnings.catch_warnings(record=True) as shown:
+        warnings.simplefilter("always")
+        est = IteratedSmoother(process_noise="estimate", covariance=False).run(model, y, description="run")
+    assert len(est.noise_search) >= 3
+    texts = [str(w.message) for w in shown if "trial warning" in str(w.message)]
+    scale = f"{est.process_noise_scale:.3g}"
+    assert texts == [f"trial warning from run (Q x {scale}) (run, at the process noise level chosen: Q x {scale})"]

@@ -114,7 +114,8 @@ def test_divergence_is_reported_and_can_stop_the_run():
     b = pinned_benchmark(0)
     model = benchmark_model(b, "perfect_kf")
     y = b.observations + 5e-3
-    with pytest.warns(RuntimeWarning, match="filter inconsistent: NIS above its 99.9% chi-square bound"):
+    with pytest.warns(RuntimeWarning, match=r"filter inconsistent: the innovations' normalised squares \(NIS\) "
+                                            r"above their 99.9% chi-square bound"):
         cyclic_estimate(model, y)
     with pytest.raises(FilterDivergence, match="for 4 frames in a row"):
         cyclic_estimate(model, y, safeguards=Safeguards(stop_on_divergence=True))
