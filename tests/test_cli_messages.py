@@ -1,7 +1,10 @@
 """The command line's argument errors say what was expected, never an internal name."""
+import argparse
+
 import pytest
 
 from sfem_filters.cli import build_parser, main
+from sfem_filters.cli._common import OUTPUT_FILES, OUTPUT_FOLDERS
 
 
 @pytest.mark.parametrize("argv, expected", [
@@ -41,32 +44,39 @@ def test_dense_example_without_data_says_how_to_get_it(tmp_path, monkeypatch, ca
     assert "subject_a" in err and "SFEM_FILTERS_DATA" in err
 
 
-@pytest.mark.parametrize("verb", [["strain", "CASE"], ["dense", "example"], ["compare"], ["observe", "CASE"]])
-@pytest.mark.parametrize("option, target, expected", [
-    ("--json", "folder", "--json: expected a file to write, got the folder"),
-    ("--figures", "file", "--figures: expected a folder to write into, got the file"),
-    ("--json", "under_file", "--json: cannot write"),
-    ("--figures", "under_file", "--figures: cannot write"),
-    ("--csv", "under_file", "--csv: cannot write"),
-    ("--out", "under_file", "--out: cannot write"),
-    ("--checkpoint-dir", "file", "--checkpoint-dir: expected a folder to write into, got the file"),
-])
+def _output_cases():
+    """(verb argv, option, target kind, expected) for every verb and every output option it has."""
+    kinds = [("folder", "expected a file to write, got the folder"), ("under_file", "cannot write")]
+    kinds_dir = [("file", "expected a folder to write into, got the file"), ("under_file", "cannot write")]
+    verbs = {"strain": ["strain", "CASE"], "dense": ["dense", "example"], "compare": ["compare"],
+             "observe": ["observe", "CASE"]}
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    cases = []
+    for verb, argv in verbs.items():
+        dests = {a.dest for a in sub.choices[verb]._actions}
+        for names, targets in ((OUTPUT_FILES, kinds), (OUTPUT_FOLDERS, kinds_dir)):
+            for name in sorted(set(names) & dests):
+                option = "--" + name.replace("_", "-")
+                cases += [pytest.param(argv, option, kind, f"{option}: {text}", id=f"{verb}{option}-{kind}")
+                          for kind, text in targets]
+    return cases
+
+
+@pytest.mark.parametrize("verb, option, target, expected", _output_cases())
 def test_an_output_it_could_not_write_is_refused_before_any_work(verb, option, target, expected, tmp_path,
                                                                  monkeypatch, capsys):
-    """A --json, --csv, --out, --figures or --checkpoint-dir that cannot be written is an error naming the
-    option before the verb reads its input (the verb itself is replaced by one that fails the test)."""
-    parser_actions = {a.dest for a in build_parser()._subparsers._group_actions[0].choices[verb[0]]._actions}
-    if option.lstrip("-").replace("-", "_") not in parser_actions:
-        pytest.skip(f"{verb[0]} has no {option}")
+    """A --json, --csv, --out, --figures, --export, --checkpoint-dir or --batch-dir that cannot be
+    written is an error naming the option before the verb reads its input (the verb itself is
+    replaced by one that fails the test)."""
     a_file = tmp_path / "a_file"
     a_file.write_text("x")
     path = {"folder": tmp_path, "file": a_file, "under_file": a_file / "sub" / "x.out"}[target]
     for name in ("strain", "dense", "compare", "observe"):
         monkeypatch.setattr(f"sfem_filters.cli.cmd_{name}", lambda args: pytest.fail("the verb ran"))
     argv = [*verb, option, str(path)]
-    if verb[0] in ("strain", "observe"):
-        argv += ["--json" if verb[0] == "strain" else "--out", str(tmp_path / "fine" / "x.json")] \
-            if option not in ("--json", "--out") else []
+    required = {"strain": "--json", "observe": "--out"}.get(verb[0])
+    if required and option != required:
+        argv += [required, str(tmp_path / "fine" / "x.out")]
     assert main(argv) == 2
     err = capsys.readouterr().err
     assert expected in err, err
