@@ -26,6 +26,18 @@ def test_argument_errors_name_the_expectation_not_our_functions(argv, expected, 
     assert "invalid" not in err and "_seeds" not in err and "_positive" not in err and "_integer" not in err
 
 
+@pytest.mark.parametrize("argv", [["strain", "CASE", "--json", "x.json", "--snr", "abc"], ["strain"], ["bogus"],
+                                  ["compare", "--seed", "x"]])
+def test_an_argument_error_is_two_lines_not_the_whole_usage(argv, capsys):
+    """The error and where the options are listed; the strain verb's usage alone is a screenful."""
+    with pytest.raises(SystemExit) as exc:
+        build_parser().parse_args(argv)
+    assert exc.value.code == 2
+    lines = capsys.readouterr().err.splitlines()
+    assert len(lines) == 2 and "error: " in lines[0] and "usage:" not in lines[0], lines
+    assert lines[1].endswith("--help` lists every option)")
+
+
 def test_dense_help_lists_the_sequence_keys_and_names_the_docs_page(capsys):
     with pytest.raises(SystemExit):
         build_parser().parse_args(["dense", "--help"])

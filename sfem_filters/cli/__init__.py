@@ -29,7 +29,7 @@ from tqdm import tqdm  # noqa: E402
 from ..filtering.smoother import MEMORY_ADVICE, InsufficientMemory  # noqa: E402
 from ..resources import blas_threads  # noqa: E402
 from . import compare, dense, observe, strain  # noqa: E402
-from ._common import _check_outputs, _message, _positive_int  # noqa: E402
+from ._common import ArgumentParser, _check_outputs, _message, _positive_int  # noqa: E402
 from .compare import cmd_compare  # noqa: E402
 from .dense import cmd_dense  # noqa: E402
 from .observe import cmd_observe  # noqa: E402
@@ -39,7 +39,7 @@ __all__ = ["build_parser", "main"]
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="sfem-filters", description=(
+    p = ArgumentParser(prog="sfem-filters", description=(
         "Stochastic finite-element filters for cardiac kinematics and material (Shi & Liu 2003)."))
     p.add_argument("--blas-threads", type=_positive_int, metavar="N",
                    help="BLAS threads of this run (default: the library's measured best, 1, or the environment "

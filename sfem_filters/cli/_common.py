@@ -110,9 +110,9 @@ def _batch_options(p, unit: str, workers_help: str = "") -> None:
 def _progress_options(p, what: str) -> None:
     """``--quiet`` and ``--no-progress`` of a verb that shows progress on stderr (``what``)."""
     p.add_argument("-q", "--quiet", action="store_true",
-                   help=f"for scripts: no progress on stderr ({what}); the results, errors and warnings are still "
-                        "printed. Implies --no-progress")
-    p.add_argument("--no-progress", action="store_true", help="no progress on stderr: the same as --quiet")
+                   help=f"for scripts: no progress on stderr ({what}); the results, notes, errors and warnings "
+                        "are still printed")
+    p.add_argument("--no-progress", action="store_true", help="another name for -q/--quiet")
 
 
 def _progress(args) -> bool:
@@ -123,6 +123,14 @@ def _progress(args) -> bool:
 def _message(command: str, kind: str, text: str) -> None:
     """One line of the command line's own on stderr: ``sfem-filters COMMAND: KIND: TEXT``."""
     print(f"sfem-filters {command}: {kind}: {text}", file=sys.stderr)
+
+
+class ArgumentParser(argparse.ArgumentParser):
+    """argparse's parser whose argument errors are two lines (the error, where the options are listed),
+    not the verb's whole usage first (the strain verb's usage alone is 15 lines)."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message}\n(`{self.prog} --help` lists every option)\n")
 
 
 #: the options of any verb that name a file it writes, and those that name a folder it writes into
