@@ -1,5 +1,5 @@
-"""The command line shows a warning as one line without a source path, in its worker processes
-too, and leaves Python's format to library users (a fresh interpreter: pytest records warnings)."""
+"""The command line shows a warning as one line without a source path, each text once, in its worker
+processes too, and leaves Python's format to library users (a fresh interpreter: pytest records warnings)."""
 import subprocess
 import sys
 
@@ -10,6 +10,7 @@ from sfem_filters.filtering.safeguards import Safeguards
 
 def command(args):
     Safeguards(divergence_frames=1).check_nis([], 2, 3, 1e6, 2)        # the filter's own warning
+    Safeguards(divergence_frames=1).check_nis([], 2, 3, 1e6, 2)        # the same again (a covariance pass): once
     warnings.warn("a message\n  over two lines", UserWarning)
     warnings.warn("an old name", DeprecationWarning)
     pool = resources.process_pool(1)                                    # the rounds' workers
@@ -22,6 +23,7 @@ warnings.simplefilter("always")
 assert cli.main(["compare", "--seed", "0"]) == 0
 print("-- after", file=sys.stderr, flush=True)
 Safeguards(divergence_frames=1).check_nis([], 2, 3, 1e6, 2)              # a library user: Python's format
+Safeguards(divergence_frames=1).check_nis([], 2, 3, 1e6, 2)              # and Python's rule ("always" here)
 """
 
 
@@ -36,4 +38,4 @@ def test_warnings_reach_the_user_as_one_line_without_a_source_path():
                          "sfem-filters: warning (DeprecationWarning): an old name",
                          "sfem-filters: warning: from a worker"]
     assert ".py" not in during
-    assert "safeguards.py:" in after and "RuntimeWarning: filter inconsistent" in after
+    assert "safeguards.py:" in after and after.count("RuntimeWarning: filter inconsistent") == 2

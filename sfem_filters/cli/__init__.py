@@ -73,13 +73,23 @@ def _warning_line(message, category, filename, lineno, line=None) -> str:
 @contextlib.contextmanager
 def _warnings_as_lines():
     """Show warnings as :func:`_warning_line` while the command runs (not at import: a library
-    user keeps Python's format); recorded warnings (``catch_warnings(record=True)``) stay records."""
-    saved = warnings.formatwarning
-    warnings.formatwarning = _warning_line
+    user keeps Python's format), each text once: a warning repeated word for word (a filter check
+    that a later pass over the same data repeats) is not shown again, which Python's own
+    once-per-place rule stops doing whenever any code enters ``warnings.catch_warnings``. Recorded
+    warnings (``catch_warnings(record=True)``) stay records."""
+    saved_format, saved_show = warnings.formatwarning, warnings.showwarning
+    shown = set()
+
+    def show_once(message, category, filename, lineno, file=None, line=None):
+        key = (category, " ".join(str(message).split()))
+        if key not in shown:
+            shown.add(key)
+            saved_show(message, category, filename, lineno, file, line)
+    warnings.formatwarning, warnings.showwarning = _warning_line, show_once
     try:
         yield
     finally:
-        warnings.formatwarning = saved
+        warnings.formatwarning, warnings.showwarning = saved_format, saved_show
 
 
 def _close_progress_bars() -> None:
