@@ -387,7 +387,7 @@ def fetch(name: str, *, cache_dir=None, downloader=None, progressbar: bool = Fal
         except OSError as exc:          # requests' errors are OSErrors: no network, a refused host, HTTP 404
             reason = str(exc).splitlines()[0][:200] if str(exc) else type(exc).__name__
             raise DatasetNotFoundError(
-                f"data set {name!r}: could not download {url} ({type(exc).__name__}: {reason}).\n"
+                f"data set {name!r}: could not download {url} into {folder} ({type(exc).__name__}: {reason}).\n"
                 + how_to_get(name)) from exc
     if ds.build is not None:
         ds.build(root)

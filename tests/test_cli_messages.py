@@ -93,3 +93,23 @@ def test_an_output_it_could_not_write_is_refused_before_any_work(verb, option, t
     err = capsys.readouterr().err
     assert expected in err, err
     assert str(path) in err
+
+
+def test_an_unwritable_folder_is_found_by_the_probe_and_nothing_is_created(tmp_path, monkeypatch, capsys):
+    """The probe is what finds a folder nobody may write into (root may write anywhere, so the probe is
+    made to fail here); an empty path is refused; a refused run leaves no output folder behind."""
+    for name in ("strain", "dense", "compare", "observe"):
+        monkeypatch.setattr(f"sfem_filters.cli.cmd_{name}", lambda args: pytest.fail("the verb ran"))
+
+    def refused(*args, **kwargs):
+        raise PermissionError(13, "Permission denied")
+    monkeypatch.setattr("sfem_filters.cli._common.tempfile.TemporaryFile", refused)
+    target = tmp_path / "new" / "deeper" / "figures"
+    assert main(["compare", "--figures", str(target)]) == 2
+    assert f"--figures: cannot write {str(target)!r}: Permission denied ({tmp_path})" in capsys.readouterr().err
+    assert not (tmp_path / "new").exists()
+    monkeypatch.undo()
+    for name in ("strain", "dense", "compare", "observe"):
+        monkeypatch.setattr(f"sfem_filters.cli.cmd_{name}", lambda args: pytest.fail("the verb ran"))
+    assert main(["strain", "CASE", "--json", ""]) == 2
+    assert "--json: expected a file path, got an empty one" in capsys.readouterr().err

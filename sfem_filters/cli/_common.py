@@ -138,13 +138,22 @@ OUTPUT_FILES = ("json", "csv", "out")
 OUTPUT_FOLDERS = ("figures", "export", "checkpoint_dir", "batch_dir")
 
 
+def _nearest_existing(path: str) -> str:
+    """``path`` if it exists, else its nearest existing ancestor (where it would be made)."""
+    p = os.path.abspath(path)
+    while not os.path.exists(p) and os.path.dirname(p) != p:
+        p = os.path.dirname(p)
+    return p
+
+
 def _check_outputs(args) -> None:
     """Refuse, before any work, an output the verb could not write at its end.
 
-    Every option of ``OUTPUT_FILES`` must name a file that is not a folder, and every one of
-    ``OUTPUT_FOLDERS`` a folder that is not a file. The folder each is written into is made now
-    (as the writers would make it at the end) and a probe file is written and removed there, so
-    that a folder nobody may write into is found now, not after the run.
+    Every option of ``OUTPUT_FILES`` must name a file that is not a folder (and, if it exists, one
+    that may be written), and every one of ``OUTPUT_FOLDERS`` a folder that is not a file. The
+    nearest folder that exists on the way to each (the folder itself, or where it would be made) must
+    be a folder a probe file can be written into and removed from. Nothing is created: a run refused
+    later (a missing input) leaves no empty output folders behind.
 
     Raises
     ------
@@ -154,21 +163,25 @@ def _check_outputs(args) -> None:
     for names, folder in ((OUTPUT_FILES, False), (OUTPUT_FOLDERS, True)):
         for name in names:
             path = getattr(args, name, None)
-            if not path:
+            if path is None:
                 continue
             flag = "--" + name.replace("_", "-")
+            if not str(path).strip():
+                raise ValueError(f"{flag}: expected a {'folder' if folder else 'file'} path, got an empty one")
             if folder and os.path.exists(path) and not os.path.isdir(path):
                 raise ValueError(f"{flag}: expected a folder to write into, got the file {path!r}")
             if not folder and os.path.isdir(path):
                 raise ValueError(f"{flag}: expected a file to write, got the folder {path!r}")
-            where = path if folder else (os.path.dirname(os.path.abspath(path)))
+            if not folder and os.path.exists(path) and not os.access(path, os.W_OK):
+                raise ValueError(f"{flag}: cannot write {path!r}: the file is not writable")
+            base = _nearest_existing(path if folder else os.path.dirname(os.path.abspath(path)))
+            if not os.path.isdir(base):
+                raise ValueError(f"{flag}: cannot write {path!r}: {base!r} is a file, not a folder")
             try:
-                os.makedirs(where, exist_ok=True)
-                with tempfile.TemporaryFile(dir=where):
+                with tempfile.TemporaryFile(dir=base):
                     pass
             except OSError as exc:
-                raise ValueError(f"{flag}: cannot write {path!r}: {exc.strerror or exc} "
-                                 f"({exc.filename or where})") from None
+                raise ValueError(f"{flag}: cannot write {path!r}: {exc.strerror or exc} ({base})") from None
 
 
 def _write_json(path, payload):

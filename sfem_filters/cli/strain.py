@@ -217,8 +217,8 @@ def cmd_strain(args) -> int:
           f"{100 * g['Ecc_lo'][peak_cc]:.2f} to {100 * g['Ecc_hi'][peak_cc]:.2f}%), Err {100 * g['Err'][peak_rr]:.2f}% "
           f"at {ms[peak_rr]:.0f} ms ({100 * g['Err_lo'][peak_rr]:.2f} to {100 * g['Err_hi'][peak_rr]:.2f}%); "
           f"conventional (sigma {args.conventional_sigma:g} px): Ecc {100 * np.nanmin(conv.global_Ecc):.2f}%, "
-          f"Err {100 * np.nanmax(conv.global_Err):.2f}%{truth}; route and baselines {out['seconds']:.0f} s "
-          "(the last progress line gives the total, files included)")
+          f"Err {100 * np.nanmax(conv.global_Err):.2f}%{truth}; {out['seconds']:.0f} s from reading the input "
+          "to the report (the last progress line gives the total, files included)")
     _write_json(args.json, out)
     if args.csv:
         say(f"writing the CSV table {args.csv}")

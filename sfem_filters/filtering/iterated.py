@@ -58,6 +58,7 @@ posterior at the mode: :func:`exact_laplace`, :func:`with_covariance`), and here
 from __future__ import annotations
 
 import math
+import sys
 import warnings
 from dataclasses import dataclass, replace
 
@@ -289,11 +290,17 @@ class IteratedSmoother:
 
         def at(k, start):
             cp = None if checkpoint is None else f"{checkpoint}.{tag}{k:+.4f}"
-            # a trial level's warnings are kept, and only the chosen level's are shown (below)
-            with warnings.catch_warnings(record=True) as caught[k]:
-                warnings.simplefilter("always")
-                fits[k] = inner._fit(scaled_noise(model, 4.0 ** k), y, progress=progress, checkpoint=cp,
-                                     description=f"{description} ({symbol} x {4.0 ** k:.3g})", start=start)
+            # a trial level's warnings are kept, and only the chosen level's are shown (below); a level
+            # that fails shows its own before the error goes on
+            try:
+                with warnings.catch_warnings(record=True) as caught[k]:
+                    warnings.simplefilter("always")
+                    fits[k] = inner._fit(scaled_noise(model, 4.0 ** k), y, progress=progress, checkpoint=cp,
+                                         description=f"{description} ({symbol} x {4.0 ** k:.3g})", start=start)
+            except BaseException:
+                _reemit(caught.get(k, ()), f"({description}, at the {kind} noise level tried when it stopped: "
+                                           f"{symbol} x {4.0 ** k:.3g})")
+                raise
             evidence[k] = fits[k].log_likelihood
             if bar is not None:
                 bar.update(1)
@@ -323,9 +330,8 @@ class IteratedSmoother:
         finally:
             if bar is not None:
                 bar.close()
-        for w in caught.get(best, ()):
-            warnings.warn_explicit(f"{w.message} ({description}, at the {kind} noise level chosen: {symbol} x "
-                                   f"{4.0 ** best:.3g})", w.category, w.filename, w.lineno)
+        _reemit(caught.get(best, ()), f"({description}, at the {kind} noise level chosen: {symbol} x "
+                                      f"{4.0 ** best:.3g})")
         # the walk stopped at an end of the range while the evidence still rose by more than noise_tol
         inward = best - 1.0 if best == kmax else best + 1.0
         edge = best in (kmin, kmax) and inward in evidence and evidence[best] > evidence[inward] + self.noise_tol
@@ -355,6 +361,15 @@ class IteratedSmoother:
         of the prior mean."""
         return gauss_newton_fit(self, model, observations, progress=progress, checkpoint=checkpoint,
                                 description=description, start=start)
+
+
+def _reemit(records, note: str) -> None:
+    """Show recorded warnings again, each with ``note`` after its text, as from the place that first
+    warned (its module too, so that a filter by module still applies)."""
+    modules = {getattr(m, "__file__", None): name for name, m in list(sys.modules.items())}
+    for w in records:
+        warnings.warn_explicit(f"{w.message} {note}", w.category, w.filename, w.lineno,
+                               module=modules.get(w.filename, __name__), source=w.source)
 
 
 def iterated_smoother(model, observations, *, progress: bool = False, checkpoint=None,

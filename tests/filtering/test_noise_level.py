@@ -1,5 +1,6 @@
 """The process and measurement noise levels estimated by maximum evidence
 (``IteratedSmoother(process_noise="estimate")``, ``measurement_noise="estimate"``)."""
+import re
 import warnings
 
 import numpy as np
@@ -198,3 +199,33 @@ def test_only_the_chosen_levels_warnings_are_shown(monkeypatch):
     texts = [str(w.message) for w in shown if "trial warning" in str(w.message)]
     scale = f"{est.process_noise_scale:.3g}"
     assert texts == [f"trial warning from run (Q x {scale}) (run, at the process noise level chosen: Q x {scale})"]
+
+
+def test_the_chosen_levels_warnings_keep_their_module_and_a_failing_levels_are_shown(monkeypatch):
+    """A filter by module still silences the re-shown warnings (they come from where they first
+    came); a level whose run fails shows its own warnings before the error goes on."""
+    model, y = _data(np.random.default_rng(3), 3, 2, 2, 40, 16.0)
+    fit = IteratedSmoother._fit
+    calls = []
+
+    def warning_fit(self, model, observations, **kwargs):
+        calls.append(kwargs["description"])
+        warnings.warn(f"trial warning from {kwargs['description']}", RuntimeWarning)
+        if failing and len(calls) == 2:
+            raise FloatingPointError("the second level failed")
+        return fit(self, model, observations, **kwargs)
+    monkeypatch.setattr(IteratedSmoother, "_fit", warning_fit)
+    failing = False
+    with warnings.catch_warnings(record=True) as shown:
+        warnings.simplefilter("always")
+        warnings.filterwarnings("ignore", module=re.escape(__name__))
+        IteratedSmoother(process_noise="estimate", covariance=False).run(model, y, description="run")
+    assert not [w for w in shown if "trial warning" in str(w.message)]
+    failing, calls[:] = True, []
+    with warnings.catch_warnings(record=True) as shown:
+        warnings.simplefilter("always")
+        with pytest.raises(FloatingPointError, match="the second level failed"):
+            IteratedSmoother(process_noise="estimate", covariance=False).run(model, y, description="run")
+    texts = [str(w.message) for w in shown if "trial warning" in str(w.message)]
+    assert texts == [f"trial warning from {calls[1]} (run, at the process noise level tried when it stopped: "
+                     f"{calls[1].removeprefix('run (').removesuffix(')')})"]
