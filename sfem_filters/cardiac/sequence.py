@@ -29,7 +29,8 @@ provenance     ()               optional: free text on where the data come from
 ============== ================ =====================================================================
 
 Other keys are kept as ``extra`` (for example ``frame_times_s`` (F,), each frame's time in
-seconds, which the ``strain`` command reads where the frames are not evenly spaced from 0).
+seconds, which the ``strain`` command reads where the frames are not evenly spaced from 0; without
+``frame_interval``, evenly spaced ``frame_times_s`` give it their spacing).
 
 Image convention: x grows to the right (columns), y grows downwards (rows); point ``i`` is at
 ``points[i] + displacement[t, i]`` in frame ``t``.
@@ -152,6 +153,8 @@ def make_sequence(points, displacement, **optional) -> Sequence:
         if optional.get(key) is not None:
             kw[key] = positive(key, as_float_array(key, optional[key], (), numeric_only=True),
                                {"frame_interval": "s", "pixel_spacing": "m"}[key])
+    if kw.get("frame_interval") is None and optional.get("frame_times_s") is not None:
+        kw["frame_interval"] = _even_spacing(optional["frame_times_s"], F)
     if optional.get("pressure") is not None:
         kw["pressure"] = as_float_array("pressure", optional["pressure"], (F,), numeric_only=True)
     if optional.get("reference_mask") is not None:
@@ -327,3 +330,19 @@ def moved_on_lattice(seq: Sequence, quarter_turns: int = 0, mirror: bool = False
     d.update(seq.extra)
     d.update(points=pts, **vecs, **{k: np.ascontiguousarray(m) for k, m in masks.items()})
     return make_sequence(**d)
+
+
+def _even_spacing(frame_times_s, n_frames: int):
+    """The spacing (s) of evenly spaced frame times, or None: a sequence without ``frame_interval``
+    takes it from its ``frame_times_s`` (DENSE gives each frame's time after the encoding) when they
+    are ``n_frames`` finite, increasing times whose longest and shortest steps differ by under 1% of
+    their median; uneven times give None (the frame interval stays unrecorded, and the reports say
+    so)."""
+    t = np.asarray(frame_times_s, float)
+    if t.shape != (n_frames,) or n_frames < 2 or not np.all(np.isfinite(t)):
+        return None
+    dt = np.diff(t)
+    step = float(np.median(dt))
+    if step <= 0 or np.ptp(dt) > 0.01 * step:
+        return None
+    return step

@@ -56,6 +56,25 @@ def test_sequence_round_trip(tmp_path):
     assert back.frame_interval == seq.frame_interval and back.pixel_spacing == seq.pixel_spacing
 
 
+@given(start=st.floats(0.0, 0.1), step=st.floats(1e-3, 0.1), frames=st.integers(3, 12),
+       jitter=st.floats(0.02, 0.5))
+def test_frame_times_without_an_interval_give_it_when_evenly_spaced(start, step, frames, jitter):
+    """A DENSE sequence records each frame's time after the encoding (frame_times_s) and often no
+    frame_interval: evenly spaced times give it their step, times whose last step is longer by 2% or
+    more leave it unrecorded; a frame_interval given wins; the times stay in extra for the strain
+    command; times that are not one per frame give nothing."""
+    times = start + step * np.arange(frames)
+    uneven = times.copy()
+    uneven[-1] += jitter * step
+    pts, disp = np.ones((5, 2)), np.zeros((frames, 5, 2))
+    even = make_sequence(pts, disp, frame_times_s=times)
+    assert even.frame_interval == pytest.approx(step, rel=1e-9)
+    np.testing.assert_array_equal(even.extra["frame_times_s"], times)
+    assert make_sequence(pts, disp, frame_times_s=uneven).frame_interval is None
+    assert make_sequence(pts, disp, frame_times_s=times, frame_interval=0.5).frame_interval == 0.5
+    assert make_sequence(pts, disp, frame_times_s=times[:-1]).frame_interval is None
+
+
 @pytest.mark.parametrize("kwargs, match", [
     (dict(points=np.zeros((5, 3)), displacement=np.zeros((3, 5, 2))), r"points: expected shape \(any, 2\)"),
     (dict(points=np.ones((5, 2)), displacement=np.zeros((3, 4, 2))), r"displacement: expected shape \(any, 5, 2\)"),
