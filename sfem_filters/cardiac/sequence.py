@@ -228,11 +228,14 @@ def load_sequence(path) -> Sequence:
         raise ValueError(f"{path}: {exc}") from None
 
 
-def save_sequence(seq: Sequence, path) -> None:
-    """Write a sequence in the documented format (compressed npz), creating its directory."""
-    folder = os.path.dirname(os.path.abspath(os.fspath(path)))
-    os.makedirs(folder, exist_ok=True)
-    np.savez_compressed(path, **seq.to_dict())
+def save_sequence(seq: Sequence, path) -> str:
+    """Write a sequence in the documented format (compressed npz), creating its directory; returns the
+    path written (``path``, with ``.npz`` appended when it lacks it, as numpy does)."""
+    path = os.fspath(path)
+    written = path if path.endswith(".npz") else path + ".npz"
+    os.makedirs(os.path.dirname(os.path.abspath(written)), exist_ok=True)
+    np.savez_compressed(written, **seq.to_dict())
+    return written
 
 
 EXAMPLE_SEQUENCES = ("subject_a",)

@@ -55,7 +55,7 @@ def cmd_observe(args) -> int:
     if over:
         series = replace(series, **over)
     seq, tracks, vel, masks = observe(series, TrackingOptions(window=args.window))
-    save_sequence(seq, args.out)
+    written = save_sequence(seq, args.out)
     c = tracks.step_confidence[1:]
     print(f"frames {seq.n_frames}; border points {len(tracks.points)} (endo {int((tracks.contour == 0).sum())}, "
           f"epi {int((tracks.contour == 1).sum())}); match confidence c median {np.median(c):.2f} "
@@ -64,7 +64,7 @@ def cmd_observe(args) -> int:
     if vel is not None:
         print(f"velocity points {len(vel.points)}; LPC median {np.median(vel.lpc):.2f} "
               f"(5-95%: {np.percentile(vel.lpc, 5):.2f}-{np.percentile(vel.lpc, 95):.2f})")
-    print(f"wrote {args.out}", file=sys.stderr)
+    print(f"wrote {written}", file=sys.stderr)
     if args.figures:
         for p in observe_figures({"tracks": tracks, "masks": masks, "velocity": vel}, args.figures):
             print(f"wrote {p}", file=sys.stderr)

@@ -50,10 +50,12 @@ def test_example_sequence_is_found_and_valid():
 def test_sequence_round_trip(tmp_path):
     seq = annulus_sequence(None, n_frames=4, seed=1)
     path = tmp_path / "s.npz"
-    save_sequence(seq, path)
+    assert save_sequence(seq, path) == str(path)
     back = load_sequence(path)
     np.testing.assert_array_equal(back.displacement, seq.displacement)
     assert back.frame_interval == seq.frame_interval and back.pixel_spacing == seq.pixel_spacing
+    # a name without the suffix gets it (as numpy does), and the path returned is the file written
+    assert save_sequence(seq, tmp_path / "bare") == str(tmp_path / "bare.npz") and (tmp_path / "bare.npz").is_file()
 
 
 @given(start=st.floats(0.0, 0.1), step=st.floats(1e-3, 0.1), frames=st.integers(3, 12),
