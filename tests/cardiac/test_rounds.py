@@ -5,6 +5,8 @@ from concurrent.futures.process import BrokenProcessPool
 from types import SimpleNamespace
 
 import inspect
+import warnings
+
 import numpy as np
 import pytest
 from scipy import sparse
@@ -822,3 +824,19 @@ def test_the_rounds_smooth_the_material_when_the_evidence_prefers_it(monkeypatch
     assert out.stop_reason == "no significant candidate"
     keys = [closing._key(v) for v in fitted]
     assert len(keys) == len(set(keys)), keys
+
+
+def test_a_screening_fit_keeps_its_filter_warnings_to_itself(monkeypatch):
+    """A screening fit (a few iterations, far from its mode) does not show the filter's consistency
+    warnings; a fit to the full limit does, and any other warning passes either way."""
+    def run(*args, **kwargs):
+        warnings.warn("filter inconsistent: the innovations' normalised squares (NIS) above ...", RuntimeWarning)
+        warnings.warn("another warning", RuntimeWarning)
+        return SimpleNamespace(name="x")
+    monkeypatch.setattr(closing.workers, "run", run)
+    spec, estimator = ModelSpec(landmarks=8), EstimatorSettings(max_iterations=5)
+    for limit, shown in ((3, ["another warning"]), (None, ["filter inconsistent", "another warning"])):
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            closing.workers._fit(None, spec, estimator, max_iterations=limit)
+        assert [str(c.message).split(":")[0] for c in caught] == shown

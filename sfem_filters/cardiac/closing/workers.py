@@ -30,8 +30,12 @@ def _fit(setup, spec: ModelSpec, estimator: EstimatorSettings, *, progress: bool
     name = spec.label(spec.drive)
     # one BLAS thread per fit, whether the fits run one after the other or side by side: the
     # threads' order of summation is then the same, and so is every figure (measured: a second
-    # BLAS thread does not make a fit of the shipped slice faster, benchmarks/blas_threads.py)
-    with blas_threads(1):
+    # BLAS thread does not make a fit of the shipped slice faster, benchmarks/blas_threads.py).
+    # A screening fit stops after a few iterations, far from its mode: its filter's consistency
+    # warnings say nothing of the model (the fit kept is refitted to the full limit, and warns then)
+    with blas_threads(1), warnings.catch_warnings():
+        if max_iterations is not None:
+            warnings.filterwarnings("ignore", message="filter inconsistent")
         out = run(setup, spec.effects, spec.drive, parameterisation=spec.material_map, name=description or name,
                   effect_rates=spec.effect_rates, drive_trend=spec.drive_trend, process_scale=spec.process_scale,
                   spring_scale=spec.spring_scale, estimator=estimator.estimator, max_loops=estimator.max_loops,
