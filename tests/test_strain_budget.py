@@ -1,4 +1,4 @@
-"""The strain-budget claim's resampled cases (validation/strain_budget.py): a finer grid, the same case."""
+"""The strain-budget claim's resampled cases (validation/strain_budget.py): a finer or coarser grid, the same case."""
 from __future__ import annotations
 
 import sys
@@ -55,8 +55,8 @@ def test_zoom_one_reproduces_the_case(tmp_path):
 
 
 @settings(max_examples=8, deadline=None)
-@given(zoom=st.floats(0.8, 1.6), dx=st.floats(-2.0, 2.0), dy=st.floats(-2.0, 2.0))
-def test_a_finer_grid_keeps_the_anatomy_the_motion_and_the_acquisition(tmp_path_factory, zoom, dx, dy):
+@given(zoom=st.floats(0.65, 1.6), dx=st.floats(-2.0, 2.0), dy=st.floats(-2.0, 2.0))
+def test_a_finer_or_coarser_grid_keeps_the_anatomy_the_motion_and_the_acquisition(tmp_path_factory, zoom, dx, dy):
     tmp = tmp_path_factory.mktemp("zoom")
     src = _write_case(tmp / "src", (dx, dy))
     info = write_resampled_case(src, tmp / "dst", zoom)

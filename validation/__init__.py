@@ -24,7 +24,8 @@ __all__ = ["CLAIMS", "claim"]
 CLAIMS = {name: name for name in ("table1", "calibration", "calibration_annulus", "laplace", "peers", "peers_measured",
                                    "whole_runs", "whole_runs_smoother", "speed", "closing_loop", "rounds_synthetic",
                                    "search", "springs", "strain_dense_sim", "strain_contours", "border_views",
-                                   "first_run", "strain_budget", "strain_variants", "strain_bands")}
+                                   "first_run", "strain_budget", "strain_variants", "strain_bands",
+                                   "strain_resolution")}
 
 
 def claim(name: str):
