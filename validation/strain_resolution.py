@@ -89,14 +89,14 @@ def _ours(results: dict) -> list:
 
 def markdown(results: dict) -> str:
     conv = _better_conventional(results["rows"])
-    cols = ["case", "matrix (pixel)", "SNR", "reference pixels", "RMSE Ecc / Err (conventional)",
+    cols = ["case", "matrix (pixel)", "SNR", "pixels", "RMSE Ecc / Err (conventional)",
             "global peak error Ecc / Err", "segment peak error Ecc / Err", "coverage Ecc / Err [%]",
-            "conventional, no smoothing: global peak error Err", "s"]
+            "global peak error Err, conventional unsmoothed", "s"]
     raw = {(r["case"], r["snr"]): r for r in results["rows"] if r["method"] == "conventional, sigma 0 px"}
     body = []
     for r in _ours(results):
         key = (r["case"], r["snr"], r["seed"])
-        body.append([r["subject"], f"{r['matrix']} x {r['matrix']} ({r['pixel_mm']:.2f} mm)", f"{r['snr']:g}",
+        body.append([r["subject"], f"{r['matrix']} ({r['pixel_mm']:.2f} mm)", f"{r['snr']:g}",
                      r["n_points"],
                      f"{fmt(r['pixel_rmse_Ecc'], '.2f')} / {fmt(r['pixel_rmse_Err'], '.2f')} "
                      f"({fmt(conv[key + ('pixel_rmse_Ecc',)], '.2f')} / {fmt(conv[key + ('pixel_rmse_Err',)], '.2f')})",
@@ -108,7 +108,7 @@ def markdown(results: dict) -> str:
     lo, hi = GOALS["coverage"]
     text = (md_table(cols, body)
             + f"\n\nOur route's default for images on each case as given and resampled to coarser matrices over the "
-            f"same field of view; one noise draw (seed {results['seed']}) per case, matrix and SNR. Strain in "
+            f"same field of view (matrix: its side; pixels: the reference myocardium's); one noise draw (seed {results['seed']}) per case, matrix and SNR. Strain in "
             "percentage points (Green-Lagrange); RMSE over every reference pixel and frame, in brackets the better "
             "of the two conventional variants (no smoothing, sigma 1 px); peak errors signed (estimate - truth); "
             "segment peak error: the mean over the six segments of its absolute value; coverage: of the true "
