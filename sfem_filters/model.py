@@ -36,6 +36,7 @@ from .fem.statespace import ModalSystem
 from .filtering.linear import LinearObservation
 from .filtering.linearised import LinearisedModel, linearise_dense
 from .filtering.protocol import measurement_cov, process_profile
+from .resources import frame_map
 
 __all__ = ["SFEMModel"]
 
@@ -511,8 +512,9 @@ class SFEMModel(LinearObservation):
         costs O(n^2 p), and ``M_t`` (Eq. 33) comes straight out of the modal sensitivity without
         its modal-to-nodal product. ``states`` is (n_frames, dim_state) with one theta; ``M_t`` is
         taken at each frame's kinematic state and load (``sensitivity=False``: theta held fixed,
-        no ``M_t``, the exact linear model of that material). The theta-dependent parts are
-        cached for the last two materials. Falls back to
+        no ``M_t``, the exact linear model of that material); the frames' ``M_t`` are taken side by
+        side on :class:`~sfem_filters.resources.frame_threads` threads where set (the same numbers).
+        The theta-dependent parts are cached for the last two materials. Falls back to
         :func:`sfem_filters.filtering.linearised.linearise_dense` for ``jacobian="expm_frechet"``
         or a discretisation that is not a :class:`ModalSystem`.
         """
@@ -541,9 +543,10 @@ class SFEMModel(LinearObservation):
                 plan = stiffness_plan(J, dofs)
                 if modal_stiffness_pays(plan, T - 1, nx // 2, budget):
                     G = system.modal_stiffness_derivatives(dirs, dofs, J, plan)
-            for t in range(T - 1):
+            def frame(t):
                 M[t, :nx] = system.sensitivity(z[t, :nx], self.load(z[t], t), dirs, dofs, combine=J, modal=True,
                                                modal_stiffness=G)
+            frame_map(frame, range(T - 1))          # frames side by side where frame_threads(n) says so
         P0 = np.asarray(self.P0)
         return LinearisedModel(A=base["A"], M=M, c=base["c"], H=base["H"], R=base["R"], Q=base["Q"],
                                xi0=base["xi0"], P0=base["P0"], theta_bar=theta[:p_out].copy(),

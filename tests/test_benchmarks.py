@@ -25,6 +25,8 @@ SMALLEST = {
     "rounds_parallel.py": (["--subject", "annulus", "--frames", "6", "--max-iterations", "1", "--max-rounds", "1"],
                            "rounds: the two reports identical but for wall times: True"),
     "blas_threads.py": (["--quick"], ""),
+    "frame_threads.py": (["--subject", "annulus", "--frames", "6", "--max-iterations", "2"],
+                         "baseline fit: the two reports identical but for wall times: True"),
 }
 
 

@@ -1,4 +1,5 @@
 """The resources module: the memory probe, the cores and worker processes, the BLAS threads."""
+import dataclasses
 import os
 
 import numpy as np
@@ -10,6 +11,7 @@ import sfem_filters.cardiac.strain_route as strain_module
 import sfem_filters.cli as cli
 import sfem_filters.filtering.cyclic as cyclic_module
 import sfem_filters.filtering.iterated as iterated_module
+import sfem_filters.filtering.laplace as laplace_module
 from sfem_filters import resources
 from sfem_filters.cardiac import closing
 from sfem_filters.filtering import smoother as smoother_module
@@ -93,6 +95,16 @@ def test_a_bad_environment_variable_is_refused_by_name(bad, monkeypatch):
     assert chosen_blas_threads() == resources.DEFAULT_BLAS_THREADS
 
 
+class _Lean:
+    """A model of one restart state, for a result whose kinematic variances are missing."""
+    n_restart = 1
+
+
+def _lean_result():
+    fields = {f.name: None for f in dataclasses.fields(laplace_module.SmootherResult)}
+    return laplace_module.SmootherResult(**{**fields, "P_diag": np.full((2, 1), np.nan)})
+
+
 class _Seen(Exception):
     """Raised by a stand-in at the start of an entry point's work, once the threads are seen."""
 
@@ -107,7 +119,8 @@ def _record(seen):
 @pytest.mark.parametrize("setting, expected", [(None, 1), ("2", 2)])
 def test_the_estimators_entry_points_run_under_the_chosen_threads(setting, expected, monkeypatch):
     """IteratedSmoother.run, cyclic_estimate (CyclicEKF.run), the strain routes (dense_strain, whose one
-    Kalman pass does not go through IteratedSmoother, and contour_strain) and the command line run their
+    Kalman pass does not go through IteratedSmoother, and contour_strain), the smoother's covariance pass
+    completed afterwards (filtering.laplace.with_covariance) and the command line run their
     work under blas_threads(): the default, or the environment variable; the threads come back after."""
     if setting is None:
         monkeypatch.delenv(BLAS_THREADS_ENV, raising=False)
@@ -119,6 +132,7 @@ def test_the_estimators_entry_points_run_under_the_chosen_threads(setting, expec
     monkeypatch.setattr(cli, "cmd_compare", _record(seen))
     monkeypatch.setattr(strain_module, "StrainRouteSettings", _record(seen))
     monkeypatch.setattr(contours_module, "ContourRouteSettings", _record(seen))
+    monkeypatch.setattr(laplace_module, "check_observations", _record(seen))
     with threadpool_limits(limits=3 - expected, user_api="blas"):
         before = _blas()
         with pytest.raises(_Seen):
@@ -131,8 +145,10 @@ def test_the_estimators_entry_points_run_under_the_chosen_threads(setting, expec
             strain_module.dense_strain(None, None, None)
         with pytest.raises(_Seen):
             contours_module.contour_strain(None, None, None)
+        with pytest.raises(_Seen):
+            laplace_module.with_covariance(_Lean(), None, _lean_result())
         assert _blas() == before
-    assert [s == [expected] * len(s) for s in seen] == [True] * 5
+    assert [s == [expected] * len(s) for s in seen] == [True] * 6
 
 
 def test_the_command_line_says_what_is_wrong_with_the_environment_variable(monkeypatch, capsys):
@@ -198,3 +214,42 @@ def test_the_process_pool_starts_fresh_processes_that_work():
         assert pid != os.getpid() and pool.submit(abs, -3).result(timeout=60) == 3
     finally:
         pool.shutdown(wait=True)
+
+
+# --- frame threads -------------------------------------------------------------------------------------------------
+
+def test_frame_map_keeps_the_order_and_the_errors_and_nests():
+    from sfem_filters.resources import chosen_frame_threads, frame_map, frame_threads
+    assert chosen_frame_threads() == 1
+    with frame_threads(3):
+        assert chosen_frame_threads() == 3
+        assert frame_map(lambda t: t * t, range(7)) == [t * t for t in range(7)]
+        with frame_threads(1):
+            assert chosen_frame_threads() == 1
+        assert chosen_frame_threads() == 3
+        with pytest.raises(ZeroDivisionError):
+            frame_map(lambda t: 1 / (t - 4), range(7))
+    assert chosen_frame_threads() == 1
+    assert frame_map(str, []) == []
+
+
+@pytest.mark.parametrize("bad, error", [(0, ValueError), (-2, ValueError), (1.5, TypeError), (True, TypeError)])
+def test_frame_threads_refuses_a_bad_number_by_name(bad, error):
+    from sfem_filters.resources import frame_threads
+    with pytest.raises(error, match="n: expected a positive integer number of threads"):
+        frame_threads(bad)
+
+
+def test_a_linearisation_is_the_same_to_the_bit_on_threads():
+    """Each frame's sensitivity (Eq. 33) is its own: taken on three threads, every M_t is the same."""
+    from helpers import small_model
+    from sfem_filters.resources import frame_threads
+    rng = np.random.default_rng(3)
+    model = small_model(rng, n_frames=9)
+    z = np.tile(model.x0, (model.n_frames, 1))
+    z[:, :model.dim_x] += 1e-4 * rng.standard_normal((model.n_frames, model.dim_x))
+    one = model.linearise(z)
+    with frame_threads(3):
+        three = model.linearise(z)
+    assert one.M.shape[0] == model.n_frames - 1 and np.abs(one.M).max() > 0
+    assert np.array_equal(one.M, three.M)

@@ -23,6 +23,7 @@ from .memory import check_memory
 from .protocol import OutputOperators
 from .safeguards import Safeguards
 from .smoother import smooth
+from ..resources import limits_blas_threads
 
 __all__ = ["SmootherResult", "laplace_at_mode", "exact_laplace", "with_covariance"]
 
@@ -211,6 +212,7 @@ def exact_laplace(model, observations, result: SmootherResult, *, safeguards: Sa
     return out
 
 
+@limits_blas_threads
 def with_covariance(model, observations, result: SmootherResult, *,
                     safeguards: Safeguards | None = None) -> SmootherResult:
     """A result of a run made with ``covariance=False``, completed with the marginal variances of
@@ -221,7 +223,9 @@ def with_covariance(model, observations, result: SmootherResult, *,
     ``P_theta``, bit for bit), and the variances a run with ``covariance=True`` reports. A search
     that fits many models and keeps few (the rounds of
     :func:`sfem_filters.cardiac.closing.closing_the_loop`) pays for the variances only of those it
-    keeps. A result that has them is returned as it is.
+    keeps. A result that has them is returned as it is. It runs on the estimators' BLAS threads
+    (:func:`~sfem_filters.resources.blas_threads`, as :class:`~sfem_filters.filtering.iterated.IteratedSmoother`
+    runs), so its figures are those of a run with ``covariance=True`` to the last bit.
 
     Parameters
     ----------

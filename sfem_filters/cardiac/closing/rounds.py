@@ -100,7 +100,7 @@ import numpy as np
 
 from ..._validate import integer
 from ...filtering import diagnostics
-from ...resources import blas_threads
+from ...resources import blas_threads, frame_threads, usable_cores
 from ..crossval import observation_folds, spline_cross_validation
 from ..measured import Run, exact_posterior, measured_wall_kinematics, prepare, with_covariance
 from ..reference import spline_reference
@@ -146,8 +146,11 @@ def closing_the_loop(seq: Sequence, model: ModelSpec = ModelSpec(), estimator: E
         How many fits of a round (its candidates, corrections, backward steps) run side by side, each
         in its own process on one BLAS thread (:func:`fit_workers`; ``None``: one per core, as far as
         the memory holds them). The rounds take the same path and give the same figures whatever the
-        number: the fits are the same and are judged in the same order. The baseline is one fit.
-        Default 1 (this process only, as inside a batch job whose workers are already busy).
+        number: the fits are the same and are judged in the same order. The baseline is one fit;
+        it and the other fits made in this process (a kept fit's confirmation and covariance) take
+        each linearisation's frames on as many threads as this allows, up to the usable cores
+        (:class:`~sfem_filters.resources.frame_threads`, the same figures). Default 1 (this process
+        only, one thread, as inside a batch job whose workers are already busy).
     progress : bool
         Progress on stderr (:func:`progress_line`): a line as the baseline and each round end (what
         was tried, with its score and evidence; what was kept, or ``stopped: <reason>``; the held-out
@@ -197,14 +200,18 @@ def closing_the_loop(seq: Sequence, model: ModelSpec = ModelSpec(), estimator: E
         cv_possible = False             # the evidence decides; rounds then report no CV
     start = model
     parameterisation = model.parameterisation
+    # the fits made in this process (the baseline, a kept fit's confirmation and covariance) come one
+    # at a time while any worker waits: they take each linearisation's frames on the cores the run
+    # may use (the same figures; workers=1, as in a batch job, keeps them on one)
+    threads = 1 if workers == 1 else min(workers or usable_cores(), usable_cores())
     fits = None
     try:
-        base = _fit(setup, start, estimator, progress=progress,
+        base = _fit(setup, start, estimator, progress=progress, threads=threads,
                     description="baseline (" + ("material fixed" if parameterisation == "none"
                                                 else f"{parameterisation} map") + ")")
         fits = _Fits(setup, estimator, 1 if effects != "auto" or workers == 1
                      else fit_workers(workers, base.model.dim_state, seq.n_frames),
-                     folds if criterion == "cv" else None, progress, warm_start=loop.warm_start)
+                     folds if criterion == "cv" else None, progress, warm_start=loop.warm_start, threads=threads)
         return _rounds(seq, setup, start, base, fits, estimator, loop, cv_possible=cv_possible, tracker=tracker,
                        progress=progress)
     except KeyboardInterrupt:
@@ -280,7 +287,7 @@ def _rounds(seq, setup, start: ModelSpec, base, fits, estimator: EstimatorSettin
 
     def kept(number, variant, added, replaced, trial, ranking, threshold, tried, cv) -> Round:
         if getattr(trial.result, "method", "") == "iterated_smoother":
-            with blas_threads(1):                      # on one BLAS thread, as its fit (_fit)
+            with blas_threads(1), frame_threads(fits.threads):     # as its fit (_fit)
                 trial = with_covariance(setup, trial)
         return Round(number, variant, added, replaced, trial, ranking, threshold, tried, log_evidence(trial),
                      cv if cv is not None or not cv_possible else round_cross_validation(setup, variant, trial, folds))

@@ -10,7 +10,7 @@ from tqdm.auto import tqdm
 
 from ..._validate import integer
 from ...filtering.smoother import PEAK_FACTOR, WORKING
-from ...resources import available_memory, blas_threads, process_pool, starting_workers, usable_cores
+from ...resources import available_memory, blas_threads, frame_threads, process_pool, starting_workers, usable_cores
 from ..measured import Run, run
 from ..specs import EstimatorSettings, ModelSpec
 from .criteria import round_cross_validation
@@ -21,19 +21,21 @@ __all__ = ["fit_workers", "usable_cores"]
 
 def _fit(setup, spec: ModelSpec, estimator: EstimatorSettings, *, progress: bool = False,
          description: str | None = None, covariance: bool = True, warm_start=None,
-         max_iterations: int | None = None) -> Run:
+         max_iterations: int | None = None, threads: int = 1) -> Run:
     """One fit of the model ``spec`` with ``estimator`` (its ``max_iterations`` resolved);
     ``description`` names it on its progress bar (``"baseline (region map)"``, ``"round 2: +
     active_polar"``; default the spec's label), and the run's name is the spec's label.
     ``covariance``, ``warm_start``: :func:`~sfem_filters.cardiac.measured.run`'s; ``max_iterations``:
-    a limit below the estimator's (a screening fit)."""
+    a limit below the estimator's (a screening fit); ``threads``: each linearisation's frames on this
+    many threads (:class:`~sfem_filters.resources.frame_threads`: the same figures, sooner where
+    cores idle)."""
     name = spec.label(spec.drive)
     # one BLAS thread per fit, whether the fits run one after the other or side by side: the
     # threads' order of summation is then the same, and so is every figure (measured: a second
     # BLAS thread does not make a fit of the shipped slice faster, benchmarks/blas_threads.py).
     # A screening fit stops after a few iterations, far from its mode: its filter's consistency
     # warnings say nothing of the model (the fit kept is refitted to the full limit, and warns then)
-    with blas_threads(1), warnings.catch_warnings():
+    with blas_threads(1), frame_threads(threads), warnings.catch_warnings():
         if max_iterations is not None:
             warnings.filterwarnings("ignore", message="filter inconsistent")
         out = run(setup, spec.effects, spec.drive, parameterisation=spec.material_map, name=description or name,
@@ -82,12 +84,14 @@ class _Fits:
     """
 
     def __init__(self, setup, estimator: EstimatorSettings, workers: int, cv_folds, progress: bool,
-                 warm_start: bool = False):
+                 warm_start: bool = False, threads: int = 1):
         smoother = estimator.estimator == "smoother"
         # most fits are tried and let go: the smoother makes the variances of their kinematics and
         # strains only for those kept (kept(), measured.with_covariance: the same figures)
         self.setup, self.estimator, self.covariance = setup, estimator, not smoother
         self.workers, self.cv_folds = workers, cv_folds
+        # the fits made here (one at a time, while the workers wait) take their frames on these threads
+        self.threads = int(threads)
         self.progress, self.warm_start = progress, bool(warm_start) and smoother
         self.pool = None
         if workers > 1:
@@ -145,7 +149,7 @@ class _Fits:
                         f.cancel()
         for v, name in zip(variants[done:], names[done:]):
             yield _fit_job(self.setup, v, self.estimator, self.cv_folds, progress=self.progress,
-                           description=f"{label}: {name}", **how)
+                           description=f"{label}: {name}", threads=self.threads, **how)
 
     def close(self) -> None:
         if self.pool is not None:
