@@ -282,10 +282,12 @@ class frame_threads:
     depends on that frame's state alone, so the frames can be taken side by side: every thread
     writes its own frames' rows with the same operations, so the results are the same to the bit
     whatever ``n`` (each thread's BLAS calls stay on the BLAS threads set by :class:`blas_threads`).
-    Their products and loops release the interpreter's lock, so a second thread uses a second core;
-    measured on the measured slice's baseline fit (``benchmarks/frame_threads.py``), about a sixth of
-    the fit's time on two. Use it where the cores would otherwise idle: the rounds' fits made in
-    their own process while the worker processes wait
+    Their products and loops release the interpreter's lock, so a second thread uses a second core
+    for that part of a fit: on the measured slice's baseline fit with the ``dense`` command's default
+    search, about 6% of the fit's wall time on two threads (``benchmarks/frame_threads.py``, best of
+    two; the rest of a fit, its forward and backward passes, runs frame after frame). Use it where
+    the cores would otherwise idle: the rounds' fits made in their own process while the worker
+    processes wait
     (:func:`~sfem_filters.cardiac.closing.closing_the_loop`), not inside workers already busy.
 
     Parameters
