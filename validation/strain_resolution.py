@@ -55,6 +55,8 @@ TIERS = {"quick": {"cases": ["phantom_subject_1"], "matrices": [90], "snr": [30.
 TOLERANCES = {"*": (1e-6, 1e-9), "seconds": None, "cpu_seconds": None, "peak_rss_mb": None}
 #: How the images are resampled (:func:`validation.strain_budget.write_resampled_case` ``method``).
 RESAMPLING = "fourier"
+_RESAMPLED = {"fourier": "the images resampled by their band-limited interpolant",
+              "linear": "the images resampled by linear interpolation"}
 
 
 def _native_size(folder: Path) -> int:
@@ -124,7 +126,7 @@ def markdown(results: dict) -> str:
     lo, hi = GOALS["coverage"]
     text = (md_table(cols, body)
             + f"\n\nOur route's default for images on each case as given and resampled to coarser matrices over the "
-            f"same field of view ({results.get('resampling', 'linear')} resampling; matrix: its side; resolution: the "
+            f"same field of view ({_RESAMPLED.get(results.get('resampling', 'linear'))}; matrix: its side; resolution: the "
             "acquired resolution in pixels, as the file states it and as the magnitude's edge spread measures it; "
             f"pixels: the reference myocardium's); one noise draw (seed {results['seed']}) per case, matrix and SNR. Strain in "
             "percentage points (Green-Lagrange); RMSE over every reference pixel and frame, in brackets the better "
