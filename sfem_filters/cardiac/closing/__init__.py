@@ -64,4 +64,5 @@ from .workers import _fit, _Fits, _fit_job, fit_workers
 __all__ = ["LoopResult", "Round", "closing_the_loop", "candidate_loads", "spans", "log_evidence",
            "format_report", "removals", "fit_workers", "usable_cores", "versus_spline", "SELECTIONS",
            "DRIVE_CORRECTIONS", "time_courses", "CRITERIA", "round_cross_validation", "DEFAULT_CANDIDATES", "LAPLACE",
-           "length_display", "not_converged_note", "progress_line", "RoundsInterrupted", "STIFF_SPRINGS"]
+           "length_display", "not_converged_note", "progress_line", "RoundsInterrupted", "STIFF_SPRINGS",
+           "SEARCHES"]
