@@ -283,9 +283,9 @@ class frame_threads:
     writes its own frames' rows with the same operations, so the results are the same to the bit
     whatever ``n`` (each thread's BLAS calls stay on the BLAS threads set by :class:`blas_threads`).
     Their products and loops release the interpreter's lock, so a second thread uses a second core
-    for that part of a fit: on the measured slice's baseline fit with the ``dense`` command's default
-    search, about 6% of the fit's wall time on two threads (``benchmarks/frame_threads.py``, best of
-    two; the rest of a fit, its forward and backward passes, runs frame after frame). Use it where
+    for that part of a fit; the rest, its forward and backward passes, runs frame after frame, so
+    the fit as a whole gains less (``benchmarks/frame_threads.py`` prints the ratio on the measured
+    slice's baseline fit, against one thread in the same run). Use it where
     the cores would otherwise idle: the rounds' fits made in their own process while the worker
     processes wait
     (:func:`~sfem_filters.cardiac.closing.closing_the_loop`), not inside workers already busy.
