@@ -267,12 +267,21 @@ def limits_blas_threads(run):
 
 # --- threads over a fit's frames ----------------------------------------------------------------------------------
 
-_frame_threads: list = []                   # the frame_threads(n) in force, innermost last
+_frame_local = threading.local()            # per thread: the frame_threads(n) in force there, innermost last
+
+
+def _frame_stack() -> list:
+    stack = getattr(_frame_local, "stack", None)
+    if stack is None:
+        stack = _frame_local.stack = []
+    return stack
 
 
 def chosen_frame_threads() -> int:
-    """The threads :func:`frame_map` uses: those of the innermost :class:`frame_threads` in force, else 1."""
-    return _frame_threads[-1] if _frame_threads else 1
+    """The threads :func:`frame_map` uses: those of the innermost :class:`frame_threads` in force in
+    this thread, else 1 (so the pool's own threads map one frame at a time, never nesting)."""
+    stack = _frame_stack()
+    return stack[-1] if stack else 1
 
 
 class frame_threads:
@@ -312,11 +321,11 @@ class frame_threads:
         self.threads = int(n)
 
     def __enter__(self):
-        _frame_threads.append(self.threads)
+        _frame_stack().append(self.threads)
         return self
 
     def __exit__(self, *exc) -> None:
-        _frame_threads.pop()
+        _frame_stack().pop()
 
     def __repr__(self) -> str:
         return f"frame_threads({self.threads})"
@@ -324,13 +333,15 @@ class frame_threads:
 
 def frame_map(fn, items) -> list:
     """``[fn(i) for i in items]``, on :func:`chosen_frame_threads` threads (in order; an error of
-    ``fn`` is raised as it is)."""
+    ``fn`` is raised as it is). The first item is taken alone before the others start, so that any
+    cache it fills (a system's divided differences, say) is filled once, not by every thread."""
     items = list(items)
-    n = min(chosen_frame_threads(), len(items))
+    n = min(chosen_frame_threads(), len(items) - 1)
     if n <= 1:
         return [fn(i) for i in items]
+    first = fn(items[0])
     with ThreadPoolExecutor(n) as pool:
-        return list(pool.map(fn, items))
+        return [first] + list(pool.map(fn, items[1:]))
 
 
 def best_of(fn, repeat: int) -> float:

@@ -229,8 +229,22 @@ def test_frame_map_keeps_the_order_and_the_errors_and_nests():
         assert chosen_frame_threads() == 3
         with pytest.raises(ZeroDivisionError):
             frame_map(lambda t: 1 / (t - 4), range(7))
+        # the pool's own threads take their items one at a time: no nested pools
+        assert frame_map(lambda t: chosen_frame_threads(), range(5)) == [3, 1, 1, 1, 1]
     assert chosen_frame_threads() == 1
     assert frame_map(str, []) == []
+
+
+def test_frame_threads_hold_in_their_own_thread_only():
+    import threading
+    from sfem_filters.resources import chosen_frame_threads, frame_threads
+    seen = []
+    with frame_threads(2):
+        other = threading.Thread(target=lambda: seen.append(chosen_frame_threads()))
+        other.start()
+        other.join()
+        assert chosen_frame_threads() == 2
+    assert seen == [1]
 
 
 @pytest.mark.parametrize("bad, error", [(0, ValueError), (-2, ValueError), (1.5, TypeError), (True, TypeError)])

@@ -137,10 +137,12 @@ def fourier_operator(n_old: int, n_new: int) -> np.ndarray:
     zoom): new pixel ``j``'s centre lies at ``(j + 1/2) n_old / n_new - 1/2`` old pixels from the
     old pixel 0's centre. Row ``j`` is the periodic Dirichlet kernel there over the frequencies
     both grids hold, ``|k| <= min(n_old, n_new) / 2`` cycles per field of view (the Nyquist term of
-    an even size at half weight on each side, so ``n_new = n_old`` gives the identity). For an
-    image whose spectrum lies within that band (a DENSE acquisition's holds no frequency above
-    ``N_im_pre_spiral / 2``), this is what a reconstruction straight onto the new matrix gives:
-    no blur beyond the acquisition's. Apply as ``R @ image @ R.T``.
+    an even size at half weight on each side, so ``n_new = n_old`` gives the identity). Every
+    frequency ``|k| < min(n_old, n_new) / 2`` is sampled exactly; above it the image's content is
+    cut (a Nyquist line of an even smaller grid comes out at half its amplitude). For an image whose
+    content lies below that limit, this is what a reconstruction straight onto the new matrix
+    gives, with no blur of its own; what lies above it is lost, as on a coarser acquisition. Apply
+    as ``R @ image @ R.T``.
     """
     n_old, n_new = int(n_old), int(n_new)
     x = (np.arange(n_new) + 0.5) * n_old / n_new - 0.5
@@ -179,10 +181,9 @@ def write_resampled_case(src, dst, zoom: float, frames: int | None = None, metho
         Keep the first ``frames`` frames (and the reference mask, and the frame times they need).
     method : {"linear", "fourier"}
         How the complex signal is resampled: linear interpolation (the default; it adds a blur of
-        about a pixel of the finer grid), or the band-limited interpolant of each image
-        (:func:`fourier_operator`: what a reconstruction on the new matrix gives, for images
-        that hold no frequency above either grid's limit). The masks and the truth are
-        interpolated linearly either way.
+        about a pixel of the given grid), or the band-limited interpolant of each image
+        (:func:`fourier_operator`: no blur of its own; content above the coarser grid's limit is
+        cut). The masks and the truth are interpolated linearly either way.
     """
     src, dst = Path(src), Path(dst)
     if not zoom > 0:
