@@ -121,14 +121,13 @@ def markdown(results: dict) -> str:
         groups.setdefault((r["case"], r["snr"]), []).append(r)
     cols = ["case", "matrix (pixel)", "resolution [px]: file / edges", "SNR", "pixels", "RMSE Ecc / Err (conventional)",
             "global peak error Ecc / Err", "segment peak error Ecc / Err", "coverage Ecc / Err [%]",
-            "global peak error Err, conventional unsmoothed", "s"]
+            "global peak error Err, conventional unsmoothed"]
     body = []
     for (case, snr), rs in groups.items():
         r0 = rs[0]
         m = {k: _mean(r[k] for r in rs) for k in ("pixel_rmse_Ecc", "pixel_rmse_Err", "global_peak_error_Ecc",
                                                   "global_peak_error_Err", "segment_peak_error_Ecc_mean",
-                                                  "segment_peak_error_Err_mean", "coverage_pct_Ecc", "coverage_pct_Err",
-                                                  "seconds")}
+                                                  "segment_peak_error_Err_mean", "coverage_pct_Ecc", "coverage_pct_Err")}
         c = {q: _mean(conv[(case, snr, r["seed"], q)] for r in rs) for q in ("pixel_rmse_Ecc", "pixel_rmse_Err")}
         unsmoothed = _mean(raw[(case, snr, r["seed"])]["global_peak_error_Err"] for r in rs)
         body.append([r0["subject"], f"{r0['matrix']} ({r0['pixel_mm']:.2f} mm)",
@@ -139,7 +138,7 @@ def markdown(results: dict) -> str:
                      f"{fmt(m['global_peak_error_Ecc'], '+.2f')} / {fmt(m['global_peak_error_Err'], '+.2f')}",
                      f"{fmt(m['segment_peak_error_Ecc_mean'], '.2f')} / {fmt(m['segment_peak_error_Err_mean'], '.2f')}",
                      f"{fmt(m['coverage_pct_Ecc'], '.1f')} / {fmt(m['coverage_pct_Err'], '.1f')}",
-                     fmt(unsmoothed, "+.2f"), fmt(m["seconds"], ".0f")])
+                     fmt(unsmoothed, "+.2f")])
     lo, hi = GOALS["coverage"]
     draws = (f"one noise draw (seed {seeds[0]})" if len(seeds) == 1
              else f"means over {len(seeds)} noise draws (seeds {', '.join(str(s) for s in seeds)})")
@@ -152,7 +151,7 @@ def markdown(results: dict) -> str:
             "of the two conventional variants at each draw (no smoothing, sigma 1 px); peak errors signed "
             "(estimate - truth); segment peak error: the mean over the six segments of its absolute value; coverage: "
             "of the true segment curves by our 95% bands; the unsmoothed conventional analysis's global peak error of "
-            "Err beside ours, from the same tracks; s: seconds a run. The goals of the main strain page, at every "
+            "Err beside ours, from the same tracks (each run's seconds are in the JSON). The goals of the main strain page, at every "
             "draw: pixel RMSE below the better conventional; |global peak error| at most "
             f"{GOALS['global_peak_error_Ecc']:g} (Ecc) and {GOALS['global_peak_error_Err']:g} (Err); mean segment "
             f"peak error at most {GOALS['segment_peak_error_Ecc_mean']:g} (Ecc) and "
