@@ -29,9 +29,9 @@ def test_the_table_shows_means_over_the_draws_and_the_goals_judge_every_draw():
     text = markdown({"rows": _rows(0, -2.0) + _rows(1, -3.5), "seeds": [0, 1], "resampling": "fourier"})
     row = next(line for line in text.splitlines() if line.startswith("| heart"))
     cells = [c.strip() for c in row.strip("|").split("|")]
-    assert cells[1] == "90 (2.49 mm)" and cells[2] == "1.50 / 1.60" and cells[3] == "30"
-    assert cells[6] == "+0.30 / -2.75"                 # the mean of -2.0 and -3.5
-    assert cells[9] == "-4.50"                         # the unsmoothed conventional's mean over the draws
+    assert cells[1] == "90 (2.49 mm; 400 pixels)" and cells[2] == "1.50 / 1.60" and cells[3] == "30"
+    assert cells[5] == "+0.30 / -2.75"                 # the mean of -2.0 and -3.5
+    assert cells[8] == "-4.50"                         # the unsmoothed conventional's mean over the draws
     assert "means over 2 noise draws (seeds 0, 1)" in text
     # the mean (-2.75) meets the goal of 3.0, the draw at -3.5 does not: the goal is missed, with the worst draw
     assert "heart, 90 x 90 SNR 30: global peak Err -3.50" in text

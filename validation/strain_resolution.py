@@ -119,7 +119,7 @@ def markdown(results: dict) -> str:
     groups = {}
     for r in _ours(results):
         groups.setdefault((r["case"], r["snr"]), []).append(r)
-    cols = ["case", "matrix (pixel)", "resolution [px]: file / edges", "SNR", "pixels", "RMSE Ecc / Err (conventional)",
+    cols = ["case", "matrix (pixel; myocardium)", "resolution [px]: file / edges", "SNR", "RMSE Ecc / Err (conventional)",
             "global peak error Ecc / Err", "segment peak error Ecc / Err", "coverage Ecc / Err [%]",
             "global peak error Err, conventional unsmoothed"]
     body = []
@@ -130,9 +130,9 @@ def markdown(results: dict) -> str:
                                                   "segment_peak_error_Err_mean", "coverage_pct_Ecc", "coverage_pct_Err")}
         c = {q: _mean(conv[(case, snr, r["seed"], q)] for r in rs) for q in ("pixel_rmse_Ecc", "pixel_rmse_Err")}
         unsmoothed = _mean(raw[(case, snr, r["seed"])]["global_peak_error_Err"] for r in rs)
-        body.append([r0["subject"], f"{r0['matrix']} ({r0['pixel_mm']:.2f} mm)",
+        body.append([r0["subject"], f"{r0['matrix']} ({r0['pixel_mm']:.2f} mm; {r0['n_points']} pixels)",
                      f"{fmt(r0.get('resolution_px_file'), '.2f')} / {fmt(r0.get('resolution_px_edges'), '.2f')}",
-                     f"{snr:g}", r0["n_points"],
+                     f"{snr:g}",
                      f"{fmt(m['pixel_rmse_Ecc'], '.2f')} / {fmt(m['pixel_rmse_Err'], '.2f')} "
                      f"({fmt(c['pixel_rmse_Ecc'], '.2f')} / {fmt(c['pixel_rmse_Err'], '.2f')})",
                      f"{fmt(m['global_peak_error_Ecc'], '+.2f')} / {fmt(m['global_peak_error_Err'], '+.2f')}",
@@ -146,7 +146,7 @@ def markdown(results: dict) -> str:
             + f"\n\nOur route's default for images on each case as given and resampled to coarser matrices over the "
             f"same field of view ({_RESAMPLED.get(results.get('resampling', 'linear'))}; matrix: its side; resolution: the "
             "acquired resolution in pixels, as the file states it and as the magnitude's edge spread measures it; "
-            f"pixels: the reference myocardium's); {draws} per case, matrix and SNR. Strain in "
+            f"myocardium: the reference myocardium's pixels); {draws} per case, matrix and SNR. Strain in "
             "percentage points (Green-Lagrange); RMSE over every reference pixel and frame, in brackets the better "
             "of the two conventional variants at each draw (no smoothing, sigma 1 px); peak errors signed "
             "(estimate - truth); segment peak error: the mean over the six segments of its absolute value; coverage: "
