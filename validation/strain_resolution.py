@@ -130,7 +130,7 @@ def markdown(results: dict) -> str:
                                                   "segment_peak_error_Err_mean", "coverage_pct_Ecc", "coverage_pct_Err")}
         c = {q: _mean(conv[(case, snr, r["seed"], q)] for r in rs) for q in ("pixel_rmse_Ecc", "pixel_rmse_Err")}
         unsmoothed = _mean(raw[(case, snr, r["seed"])]["global_peak_error_Err"] for r in rs)
-        body.append([r0["subject"], f"{r0['matrix']} ({r0['pixel_mm']:.2f} mm; {r0['n_points']} pixels)",
+        body.append([r0["subject"].replace("_", " "), f"{r0['matrix']} ({r0['pixel_mm']:.2f} mm; {r0['n_points']} pixels)",
                      f"{fmt(r0.get('resolution_px_file'), '.2f')} / {fmt(r0.get('resolution_px_edges'), '.2f')}",
                      f"{snr:g}",
                      f"{fmt(m['pixel_rmse_Ecc'], '.2f')} / {fmt(m['pixel_rmse_Err'], '.2f')} "
