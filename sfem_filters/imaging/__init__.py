@@ -36,7 +36,7 @@ from .confidence import (bending_energy, goodness_uniqueness, local_phase_cohere
 from .conventional import ConventionalStrain, conventional_analysis, conventional_from_displacement
 from .dense import (DenseCase, LagrangianDisplacement, add_complex_noise, make_dense_case, phase_to_displacement,
                     read_dense_dicom, read_dense_sim, reference_points, tracks_on_pixel_grid, truth_at_points)
-from .dense_io import dense_masks, read_dense_dicom_folder
+from .dense_io import dense_masks, dense_sim_grid, read_dense_dicom_folder
 from .strain import (StrainEstimate, StrainField, curve_peak, global_curve, green_strain, mask_centre, segment_curves,
                      segment_labels,
                      strain_on_grid)
@@ -56,7 +56,7 @@ __all__ = ["bending_energy", "segment_bending_energy", "goodness_uniqueness", "m
            "synthetic_phase_contrast", "ImageSeries", "make_image_series", "read_images", "dice",
            "segment_sequence", "BoundaryTracks", "TrackingOptions", "track_borders", "track_masks",
            "DenseCase", "LagrangianDisplacement", "make_dense_case", "read_dense_sim", "read_dense_dicom",
-           "read_dense_dicom_folder", "dense_masks", "tracks_on_pixel_grid",
+           "read_dense_dicom_folder", "dense_masks", "dense_sim_grid", "tracks_on_pixel_grid",
            "add_complex_noise", "phase_to_displacement", "reference_points", "truth_at_points", "StrainField",
            "strain_on_grid", "green_strain", "mask_centre", "segment_labels", "global_curve", "segment_curves",
            "curve_peak", "ConventionalStrain", "conventional_analysis", "conventional_from_displacement",

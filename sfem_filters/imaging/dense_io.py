@@ -28,7 +28,7 @@ from .._validate import as_float_array, as_mask, integer, positive
 
 __all__ = ["DenseCase", "make_dense_case", "read_dense_sim", "read_dense_dicom", "read_dense_dicom_folder",
            "dense_masks", "dense_series_kind", "DICOM_SUBFOLDERS", "PHASE_TOLERANCE", "DEFAULT_RESOLUTION_PX",
-           "check_resolution_px", "dicom_resolution_px"]
+           "check_resolution_px", "dicom_resolution_px", "dense_sim_grid"]
 
 PHASE_TOLERANCE = 1e-4
 """rad: how far beyond +-pi a stored phase may lie (float rounding of a wrapped phase)."""
@@ -200,6 +200,66 @@ def _load(folder: str, name: str, required: bool = True):
     return np.load(p, allow_pickle=False)
 
 
+def _square_fov_mm(value, name: str) -> float:
+    fov = np.asarray(value, float).ravel()[:2]
+    if fov.size != 2 or not np.isclose(fov[0], fov[1]):
+        raise ValueError(f"{name}: expected a square field of view (mm), got {np.asarray(value).tolist()}")
+    return positive(name, fov[0], "mm")
+
+
+def dense_sim_grid(sim: dict, image_shape) -> tuple:
+    """``(pixel_size_mm, resolution_px)`` of a DENSE-Sim case's images, from its ``sim_params``.
+
+    The simulation runs over ``FOV`` (mm) on an ``N_im`` grid, the spins' signal gridded on an
+    ``N_im_pre_spiral`` matrix over that field of view (:func:`read_dense_sim`: the acquired pixel is
+    ``FOV / N_im_pre_spiral`` mm). Its ``output_dim`` (``sizes``, ``FOVs``) lists the grids a case may
+    be written on (DENSE-Sim's config: 128 over 224 mm or 90 over 200 mm). When the images come on
+    ``N_im`` pixels the pixel is ``FOV / N_im``; when they come on another of the ``output_dim`` sizes
+    the pixel is that size's ``FOV / size`` and the acquired pixel stays ``FOV / N_im_pre_spiral``
+    (the output grid resamples the simulated images; it acquires nothing new), so the acquired
+    resolution is ``(FOV / N_im_pre_spiral) / (FOV_out / size)`` of the output's pixels. Images on a
+    grid neither names are an error: their pixel size, and so every displacement in pixels, would be
+    a guess.
+
+    Parameters
+    ----------
+    sim : dict
+        ``config.yaml``'s ``sim_params`` (``FOV`` in mm, ``N_im``, optional ``N_im_pre_spiral`` and
+        ``output_dim``).
+    image_shape : tuple of int
+        (rows, columns) of the case's images.
+
+    >>> sim = {"FOV": [224, 224, 8], "N_im": 128, "N_im_pre_spiral": 60,
+    ...        "output_dim": {"sizes": [128, 90], "FOVs": [[224, 224, 8], [200, 200, 8]]}}
+    >>> dense_sim_grid(sim, (128, 128))
+    (1.75, 2.1333333333333333)
+    >>> [round(v, 4) for v in dense_sim_grid(sim, (90, 90))]
+    [2.2222, 1.68]
+    """
+    shape = tuple(int(v) for v in image_shape)
+    if len(shape) != 2 or shape[0] != shape[1]:
+        raise ValueError(f"image_shape: expected square images (rows, columns), got {shape}")
+    n_img = shape[0]
+    fov_sim = _square_fov_mm(sim["FOV"], "config.yaml FOV")
+    n_im = integer("config.yaml N_im", sim["N_im"], 1)
+    if n_img == n_im:
+        fov_out = fov_sim
+    else:
+        out = sim.get("output_dim") or {}
+        sizes, fovs = list(out.get("sizes") or []), list(out.get("FOVs") or [])
+        if n_img not in sizes or len(fovs) != len(sizes):
+            raise ValueError(f"config.yaml N_im: the images are {n_img} x {n_img} pixels, but N_im is {n_im} and "
+                             f"output_dim lists sizes {sizes} (with {len(fovs)} FOVs); expected the images' size in "
+                             "one of them, so that the pixel size is known")
+        fov_out = _square_fov_mm(fovs[sizes.index(n_img)], f"config.yaml output_dim FOVs[{sizes.index(n_img)}]")
+    px_mm = fov_out / n_img
+    res = DEFAULT_RESOLUTION_PX
+    if sim.get("N_im_pre_spiral") is not None:
+        n_acq = integer("config.yaml N_im_pre_spiral", sim["N_im_pre_spiral"], 1)
+        res = check_resolution_px((fov_sim / n_acq) / px_mm, "config.yaml N_im / N_im_pre_spiral")
+    return px_mm, res
+
+
 def read_dense_sim(path) -> DenseCase:
     """Read a DENSE-Sim case folder exactly as the simulator publishes it.
 
@@ -207,7 +267,8 @@ def read_dense_sim(path) -> DenseCase:
     y (row) encodings; ``magnitude.npy``; ``LV_mask_time_lowres.npy`` (F + 1, H, W), index 0 the
     reference; optional ``GT_Ecc.npy``, ``GT_Err.npy``; ``config.yaml`` (``sim_params``: ``FOV``
     in mm, first two entries; ``N_im``; ``ke`` in cycles/mm; ``tt`` in ms, frame f at
-    ``tt[f + 1]``; optional ``N_im_pre_spiral``). Pixel size = FOV / N_im.
+    ``tt[f + 1]``; optional ``N_im_pre_spiral`` and ``output_dim``). Pixel size = FOV / N_im, or, for
+    images on another of ``output_dim``'s grids, that grid's FOV over its size (:func:`dense_sim_grid`).
 
     Acquired resolution (:attr:`DenseCase.resolution_px`) = ``N_im / N_im_pre_spiral`` when the
     config gives ``N_im_pre_spiral``, else 1. Why that ratio: the simulator grids the spins' signal
@@ -236,21 +297,15 @@ def read_dense_sim(path) -> DenseCase:
     for key in ("FOV", "N_im", "ke", "tt"):
         if key not in sim:
             raise ValueError(f"config.yaml: expected the key sim_params.{key}, not found in {cfg_path!r}")
-    fov = np.asarray(sim["FOV"], float)[:2]
-    n_im = integer("config.yaml N_im", sim["N_im"], 1)
-    if not np.isclose(fov[0], fov[1]):
-        raise ValueError(f"config.yaml FOV: expected a square field of view (mm), got {fov.tolist()}")
-    px_mm = positive("config.yaml FOV", fov[0], "mm") / n_im
     if sim["ke"] is None:
         raise ValueError("config.yaml ke: expected the encoding frequency in cycles/mm, got None")
     px, py = _load(folder, "phase_x.npy"), _load(folder, "phase_y.npy")
     if px.shape != py.shape:
         raise ValueError(f"phase_y.npy: expected the shape of phase_x.npy {px.shape}, got {py.shape}")
+    if px.ndim != 3:
+        raise ValueError(f"phase_x.npy: expected (frames, rows, columns) phases, got shape {px.shape}")
     F = px.shape[0]
-    res = DEFAULT_RESOLUTION_PX
-    if sim.get("N_im_pre_spiral") is not None:
-        n_acq = integer("config.yaml N_im_pre_spiral", sim["N_im_pre_spiral"], 1)
-        res = check_resolution_px(n_im / n_acq, "config.yaml N_im / N_im_pre_spiral")
+    px_mm, res = dense_sim_grid(sim, px.shape[1:])
     tt = np.asarray(sim["tt"], float)
     if tt.size < F + 1:
         raise ValueError(f"config.yaml tt: expected at least F + 1 = {F + 1} times (ms), got {tt.size}")

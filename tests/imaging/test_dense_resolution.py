@@ -16,6 +16,7 @@ from sfem_filters.cardiac.strain_route import StrainRouteSettings
 from sfem_filters.imaging.dense import (DEFAULT_RESOLUTION_PX, FWHM_PER_SD, add_complex_noise, background_signal,
                                         dicom_resolution_px, edge_spread_resolution, make_dense_case, psf_samples,
                                         psf_sigma_px, read_dense_sim)
+from sfem_filters.imaging.dense_io import dense_sim_grid
 from test_dense import DENSE_SIM, needs_data, write_case_folder
 
 
@@ -32,6 +33,42 @@ def test_the_config_gives_the_acquired_resolution_and_noise_keeps_it(tmp_path):
     (folder / "config.yaml").write_text(yaml.safe_dump(cfg))
     with pytest.raises(ValueError, match="config.yaml N_im / N_im_pre_spiral: expected the acquired resolution"):
         read_dense_sim(folder)
+
+
+def test_images_on_another_output_grid_take_that_grids_pixel_and_keep_the_acquired_one(tmp_path):
+    # DENSE-Sim's config lists the grids a case may be written on (output_dim); a case on one that is not
+    # N_im must not be read with FOV / N_im: every displacement in pixels would be off by the ratio.
+    folder = write_case_folder(tmp_path / "c", n=24)                 # images 24 x 24
+    cfg = yaml.safe_load((folder / "config.yaml").read_text())
+    cfg["sim_params"].update({"FOV": [56.0, 56.0, 8], "N_im": 32, "N_im_pre_spiral": 16,
+                              "output_dim": {"sizes": [32, 24], "FOVs": [[56.0, 56.0, 8], [48.0, 48.0, 8]]}})
+    (folder / "config.yaml").write_text(yaml.safe_dump(cfg))
+    case = read_dense_sim(folder)
+    assert case.pixel_size_mm == pytest.approx(48.0 / 24)                    # the output grid's FOV over its size
+    assert case.resolution_px == pytest.approx((56.0 / 16) / (48.0 / 24))     # the acquired 3.5 mm in 2 mm pixels
+    cfg["sim_params"]["output_dim"]["sizes"] = [32, 90]                      # the images' size listed nowhere
+    (folder / "config.yaml").write_text(yaml.safe_dump(cfg))
+    with pytest.raises(ValueError, match=r"config.yaml N_im: the images are 24 x 24 pixels, but N_im is 32"):
+        read_dense_sim(folder)
+    del cfg["sim_params"]["output_dim"]
+    (folder / "config.yaml").write_text(yaml.safe_dump(cfg))
+    with pytest.raises(ValueError, match=r"output_dim lists sizes \[\]"):
+        read_dense_sim(folder)
+
+
+@given(n_out=st.integers(8, 160), fov_out=st.floats(50.0, 400.0), n_acq=st.integers(4, 64))
+def test_the_acquired_pixel_in_mm_does_not_depend_on_the_output_grid(n_out, fov_out, n_acq):
+    sim = {"FOV": [224.0, 224.0, 8], "N_im": 128, "N_im_pre_spiral": n_acq,
+           "output_dim": {"sizes": [128, n_out], "FOVs": [[224.0, 224.0, 8], [fov_out, fov_out, 8]]}}
+    try:
+        px_mm, res = dense_sim_grid(sim, (n_out, n_out))
+    except ValueError as err:                                                # acquired finer than the output pixel
+        assert 224.0 / n_acq < (fov_out if n_out != 128 else 224.0) / n_out
+        assert "N_im_pre_spiral" in str(err)
+        return
+    acquired_mm = 224.0 / n_acq
+    assert px_mm * res == pytest.approx(acquired_mm)
+    assert px_mm == pytest.approx((fov_out if n_out != 128 else 224.0) / n_out)
 
 
 @pytest.mark.parametrize("bad", [0.5, 0.0, -2.0, float("nan"), float("inf"), "wide", None])
