@@ -25,7 +25,7 @@ CLAIMS = {name: name for name in ("table1", "calibration", "calibration_annulus"
                                    "whole_runs", "whole_runs_smoother", "speed", "closing_loop", "rounds_synthetic",
                                    "search", "springs", "strain_dense_sim", "strain_contours", "border_views",
                                    "first_run", "strain_budget", "strain_variants", "strain_bands",
-                                   "strain_resolution")}
+                                   "strain_resolution", "strain_draws")}
 
 
 def claim(name: str):
