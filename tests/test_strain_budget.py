@@ -139,3 +139,19 @@ def test_the_fourier_resampling_keeps_the_case_at_zoom_one_and_refuses_an_unknow
     assert np.allclose(np.angle(np.exp(1j * (a.phases - b.phases))), 0.0, atol=1e-5)
     with pytest.raises(ValueError, match="method: expected 'linear' or 'fourier'"):
         write_resampled_case(src, tmp_path / "bad", 0.8, method="cubic")
+
+
+def test_a_resampled_case_leaves_the_simulators_output_grids_and_a_case_on_one_is_refused(tmp_path):
+    src = _write_case(tmp_path / "src")
+    cfg = yaml.safe_load((src / "config.yaml").read_text())
+    cfg["sim_params"]["output_dim"] = {"sizes": [N, 20], "FOVs": [FOV_MM, 40.0]}
+    (src / "config.yaml").write_text(yaml.safe_dump(cfg))
+    info = write_resampled_case(src, tmp_path / "dst", 0.75)
+    new = yaml.safe_load((tmp_path / "dst" / "config.yaml").read_text())["sim_params"]
+    assert new["N_im"] == info["n_im"] and "output_dim" not in new      # N_im over FOV, whatever output_dim said
+    # a case written on another of output_dim's grids: its pixel is not FOV / N_im, so the resampling refuses it
+    cfg["sim_params"]["N_im"] = 2 * N
+    cfg["sim_params"]["output_dim"] = {"sizes": [2 * N, N], "FOVs": [FOV_MM, FOV_MM / 2]}
+    (src / "config.yaml").write_text(yaml.safe_dump(cfg))
+    with pytest.raises(ValueError, match=r"src: expected a case on its config's N_im grid"):
+        write_resampled_case(src, tmp_path / "dst2", 0.75)

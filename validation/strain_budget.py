@@ -184,6 +184,9 @@ def write_resampled_case(src, dst, zoom: float, frames: int | None = None, metho
         about a pixel of the given grid), or the band-limited interpolant of each image
         (:func:`fourier_operator`: no blur of its own; content above the coarser grid's limit is
         cut). The masks and the truth are interpolated linearly either way.
+
+    The case must lie on its config's ``N_im`` grid (not another of ``output_dim``'s); the new
+    config keeps ``FOV``, gets the new ``N_im`` and drops ``output_dim``.
     """
     src, dst = Path(src), Path(dst)
     if not zoom > 0:
@@ -194,8 +197,12 @@ def write_resampled_case(src, dst, zoom: float, frames: int | None = None, metho
         cfg = yaml.safe_load(fh)
     sim = cfg["sim_params"]
     keep = slice(None) if frames is None else slice(0, int(frames))
-    dst.mkdir(parents=True, exist_ok=True)
     mag = np.load(src / "magnitude.npy")[keep].astype(float)
+    if mag.shape[-1] != int(sim["N_im"]):
+        raise ValueError(f"src: expected a case on its config's N_im grid ({sim['N_im']} pixels over FOV), got images "
+                         f"of {mag.shape[-1]} pixels (another of output_dim's grids); the resampling keeps FOV and "
+                         "rewrites N_im")
+    dst.mkdir(parents=True, exist_ok=True)
     factors = (1.0, zoom, zoom)
     new_mag = None
     for name in _COMPLEX:
@@ -223,6 +230,7 @@ def write_resampled_case(src, dst, zoom: float, frames: int | None = None, metho
     if new_mag.shape[-1] != n_new:
         raise RuntimeError(f"zoom {zoom}: the images came on {new_mag.shape[-1]} pixels, the masks on {n_new}")
     sim["N_im"] = n_new                     # the field of view stays: grid-mode zoom keeps the images' edges
+    sim.pop("output_dim", None)             # the new grid is N_im over FOV, not one of the simulator's outputs
     if frames is not None:
         sim["tt"] = list(sim["tt"])[:int(frames) + 1]
         sim["Nt"] = int(frames)

@@ -390,26 +390,38 @@ def draw_misses(r: dict, conv: dict) -> dict:
 
     ``conv``: :func:`_better_conventional` of the run. ``badness`` orders the misses of one goal over draws
     (the largest is the worst): the excess over the conventional RMSE, ``|peak error|``, the segment peak
-    error, the coverage's distance from the goal band's middle, the seconds.
+    error, the coverage's distance from the goal band's middle, the seconds. A metric that is not a
+    number (NaN) misses its goal (badness infinite): a draw without a figure has not met it.
     """
     lo, hi = GOALS["coverage"]
     out = {}
     for m in ("pixel_rmse_Ecc", "pixel_rmse_Err"):
-        over = r[m] - conv[(r["case"], r["snr"], r["seed"], m)]
-        if over >= 0:
-            out[f"RMSE {m[-3:]}"] = (over, f"RMSE {m[-3:]} {over:+.2f} above the better conventional")
+        over = _number(r[m]) - conv[(r["case"], r["snr"], r["seed"], m)]
+        if not over < 0:
+            out[f"RMSE {m[-3:]}"] = (_bad(over), f"RMSE {m[-3:]} {over:+.2f} above the better conventional")
     for m in ("global_peak_error_Ecc", "global_peak_error_Err"):
-        if abs(r[m]) > GOALS[m]:
-            out[f"global peak {m[-3:]}"] = (abs(r[m]), f"global peak {m[-3:]} {r[m]:+.2f}")
+        if not abs(_number(r[m])) <= GOALS[m]:
+            out[f"global peak {m[-3:]}"] = (_bad(abs(_number(r[m]))), f"global peak {m[-3:]} {_number(r[m]):+.2f}")
     for m in ("segment_peak_error_Ecc_mean", "segment_peak_error_Err_mean"):
-        if r[m] > GOALS[m]:
-            out[f"segment peak {m.split('_')[3]}"] = (r[m], f"segment peak {m.split('_')[3]} {r[m]:.2f}")
+        if not _number(r[m]) <= GOALS[m]:
+            out[f"segment peak {m.split('_')[3]}"] = (_bad(r[m]), f"segment peak {m.split('_')[3]} {_number(r[m]):.2f}")
     for m in ("coverage_pct_Ecc", "coverage_pct_Err"):
-        if not lo <= r[m] <= hi:
-            out[f"coverage {m[-3:]}"] = (abs(r[m] - (lo + hi) / 2), f"coverage {m[-3:]} {r[m]:.1f}%")
-    if r["seconds"] > GOALS["seconds"]:
-        out["time"] = (r["seconds"], f"time {r['seconds']:.0f} s")
+        if not lo <= _number(r[m]) <= hi:
+            out[f"coverage {m[-3:]}"] = (_bad(abs(_number(r[m]) - (lo + hi) / 2)), f"coverage {m[-3:]} {_number(r[m]):.1f}%")
+    if not _number(r["seconds"]) <= GOALS["seconds"]:
+        out["time"] = (_bad(r["seconds"]), f"time {_number(r['seconds']):.0f} s")
     return out
+
+
+def _number(v) -> float:
+    """A metric as a float, NaN for None."""
+    return float("nan") if v is None else float(v)
+
+
+def _bad(v) -> float:
+    """Badness for :func:`draw_misses`: infinite for NaN, so a draw without a figure is the worst."""
+    v = _number(v)
+    return v if np.isfinite(v) else float("inf")
 
 
 #: The order :func:`goals_missed` names the goals in.
@@ -440,7 +452,8 @@ def check(results: dict, tier: str) -> list:
     trade-off the spec describes)."""
     problems = []
     for r in results["rows"]:
-        for k in ("pixel_rmse_Ecc", "pixel_rmse_Err", "global_peak_error_Ecc", "global_peak_error_Err"):
+        for k in ("pixel_rmse_Ecc", "pixel_rmse_Err", "global_peak_error_Ecc", "global_peak_error_Err",
+                  "segment_peak_error_Ecc_mean", "segment_peak_error_Err_mean"):
             if r.get(k) is None or not np.isfinite(r[k]):
                 problems.append(f"{r['case']} SNR {r['snr']} seed {r['seed']} {r['method']}: {k} not finite")
     by = {}

@@ -37,7 +37,6 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 from sfem_filters.imaging import read_dense_sim
 from sfem_filters.imaging.dense import edge_spread_resolution
@@ -64,14 +63,9 @@ def _native_size(folder: Path) -> int:
     return int(np.load(folder / "LV_mask_time_lowres.npy", mmap_mode="r").shape[-1])
 
 
-def _fov_mm(folder: Path) -> float:
-    with open(folder / "config.yaml") as fh:
-        return float(yaml.safe_load(fh)["sim_params"]["FOV"][0])
-
-
 def case_rows(folder: Path, matrices, snrs, seeds, frames) -> list:
     """Every matrix, SNR and seed of one case: the strain page's rows, each with its ``matrix`` and pixel size."""
-    size, fov = _native_size(folder), _fov_mm(folder)
+    size = _native_size(folder)
     rows = []
     with tempfile.TemporaryDirectory(prefix=f"{NAME}-") as tmp:
         for n in matrices:
@@ -90,7 +84,7 @@ def case_rows(folder: Path, matrices, snrs, seeds, frames) -> list:
                 for seed in seeds:
                     for r in run_case(where, float(snr), int(seed), frames=frames):
                         rows.append({**r, "case": f"{folder.name}, {n} x {n}", "subject": folder.name, "matrix": n,
-                                     "pixel_mm": fov / n, **seen})
+                                     "pixel_mm": float(case.pixel_size_mm), **seen})
                     print(f"  {NAME}: {folder.name} at {n} x {n}, SNR {snr:g}, seed {seed}: {rows[-1]['seconds']:.0f} s",
                           flush=True)
     return rows

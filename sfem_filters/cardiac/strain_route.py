@@ -31,8 +31,9 @@ The DENSE route, as a library function, :func:`dense_strain`:
    normalisation (one complex level per region and frame, zero where it is no more than the
    region's incoherent floor: :func:`sfem_filters.imaging.dense.background_signal`) and a factor ``sin(theta) / theta`` of
    the datum's own phase (phasors add, phases do not). The width comes from the acquisition
-   (:attr:`sfem_filters.imaging.DenseCase.resolution_px`: DENSE-Sim's ``N_im / N_im_pre_spiral``,
-   a DICOM's matrix over its AcquisitionMatrix) or the user, never from a fit; the operator is one
+   (:attr:`sfem_filters.imaging.DenseCase.resolution_px`: DENSE-Sim's acquired pixel ``FOV /
+   N_im_pre_spiral`` over the images' pixel, a DICOM's matrix over its AcquisitionMatrix) or the
+   user, never from a fit; the operator is one
    matrix for every frame (the point spread taken in the reference configuration, see
    :func:`observation_operator`) and the frame's background rescales each datum (``n y = D U``,
    so :func:`nodal_fit` is unchanged). :class:`StrainRouteSettings` default 1 (tracks alone carry

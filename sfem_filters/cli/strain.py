@@ -79,8 +79,8 @@ def add_parser(sub) -> None:
                         "operator models each datum as the point-spread-weighted mean of the displacement over "
                         "the tissue around its pixel, with the signal the images show around the myocardium mixed in "
                         "at the borders (a Gaussian of FWHM W). "
-                        f"Default for images '{ACQUISITION}': from the images (DENSE-Sim config N_im / "
-                        "N_im_pre_spiral, a DICOM's Rows and Columns over its AcquisitionMatrix; 1 when they say "
+                        f"Default for images '{ACQUISITION}': from the images (DENSE-Sim config: the acquired "
+                        "pixel FOV / N_im_pre_spiral over the images' pixel; a DICOM's Rows and Columns over its AcquisitionMatrix; 1 when they say "
                         "nothing); for a sequence file 1. 1: point observation at the pixel centres (the docs' "
                         "validation page reports both)")
     fusion = s.add_mutually_exclusive_group()

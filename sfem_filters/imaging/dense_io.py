@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 import yaml
 
-from .._validate import as_float_array, as_mask, integer, positive
+from .._validate import as_float_array, as_mask, integer, positive, user_stacklevel
 
 __all__ = ["DenseCase", "make_dense_case", "read_dense_sim", "read_dense_dicom", "read_dense_dicom_folder",
            "dense_masks", "dense_series_kind", "DICOM_SUBFOLDERS", "PHASE_TOLERANCE", "DEFAULT_RESOLUTION_PX",
@@ -84,7 +84,7 @@ class DenseCase:
     resolution_px : float
         Acquired resolution in reconstructed pixels (>= 1; :func:`check_resolution_px`): the field
         of view over the acquired matrix, from the file when it says (DENSE-Sim's
-        ``N_im / N_im_pre_spiral``, a DICOM's Rows and Columns over its ``AcquisitionMatrix``), else
+        ``(FOV / N_im_pre_spiral)`` over the images' pixel, :func:`dense_sim_grid`; a DICOM's Rows and Columns over its ``AcquisitionMatrix``), else
         :data:`DEFAULT_RESOLUTION_PX`. The DENSE route's observation operator takes its point
         spread function from it (:func:`sfem_filters.imaging.dense.psf_sigma_px`).
     """
@@ -201,14 +201,36 @@ def _load(folder: str, name: str, required: bool = True):
 
 
 def _square_fov_mm(value, name: str) -> float:
-    fov = np.asarray(value, float).ravel()[:2]
+    """A square field of view (mm) from a config entry: ``[fx, fy, (fz)]`` with ``fx == fy``, or one number."""
+    try:
+        fov = np.atleast_1d(np.asarray(value, float)).ravel()
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}: expected a field of view in mm, [x, y, z] or one number, got {value!r}") from None
+    fov = fov[:2] if fov.size >= 2 else np.repeat(fov, 2)
     if fov.size != 2 or not np.isclose(fov[0], fov[1]):
         raise ValueError(f"{name}: expected a square field of view (mm), got {np.asarray(value).tolist()}")
     return positive(name, fov[0], "mm")
 
 
+def _output_grids(sim: dict) -> list:
+    """``[(size, fov_mm), ...]`` of a DENSE-Sim config's ``output_dim`` (``sizes``, ``FOVs``); [] without one."""
+    out = sim.get("output_dim")
+    if out is None:
+        return []
+    if not isinstance(out, dict):
+        raise ValueError(f"config.yaml output_dim: expected a mapping with sizes and FOVs, got {out!r}")
+    sizes, fovs = out.get("sizes", []), out.get("FOVs", [])
+    if not isinstance(sizes, (list, tuple)) or not isinstance(fovs, (list, tuple)):
+        raise ValueError(f"config.yaml output_dim: expected lists of sizes and FOVs, got sizes {sizes!r}, FOVs {fovs!r}")
+    if len(sizes) != len(fovs):
+        raise ValueError(f"config.yaml output_dim: expected one FOV per size, got {len(sizes)} sizes and "
+                         f"{len(fovs)} FOVs")
+    return [(integer(f"config.yaml output_dim sizes[{i}]", n, 1),
+             _square_fov_mm(f, f"config.yaml output_dim FOVs[{i}]")) for i, (n, f) in enumerate(zip(sizes, fovs))]
+
+
 def dense_sim_grid(sim: dict, image_shape) -> tuple:
-    """``(pixel_size_mm, resolution_px)`` of a DENSE-Sim case's images, from its ``sim_params``.
+    """Pixel size and acquired resolution of a DENSE-Sim case's images, from its ``sim_params``.
 
     The simulation runs over ``FOV`` (mm) on an ``N_im`` grid, the spins' signal gridded on an
     ``N_im_pre_spiral`` matrix over that field of view (:func:`read_dense_sim`: the acquired pixel is
@@ -217,17 +239,33 @@ def dense_sim_grid(sim: dict, image_shape) -> tuple:
     ``N_im`` pixels the pixel is ``FOV / N_im``; when they come on another of the ``output_dim`` sizes
     the pixel is that size's ``FOV / size`` and the acquired pixel stays ``FOV / N_im_pre_spiral``
     (the output grid resamples the simulated images; it acquires nothing new), so the acquired
-    resolution is ``(FOV / N_im_pre_spiral) / (FOV_out / size)`` of the output's pixels. Images on a
-    grid neither names are an error: their pixel size, and so every displacement in pixels, would be
-    a guess.
+    resolution is ``(FOV / N_im_pre_spiral) / pixel``, ``N_im / N_im_pre_spiral`` on the ``N_im``
+    grid. Images on a grid neither names are an error: their pixel size, and so every displacement
+    in pixels, would be a guess.
 
     Parameters
     ----------
     sim : dict
-        ``config.yaml``'s ``sim_params`` (``FOV`` in mm, ``N_im``, optional ``N_im_pre_spiral`` and
-        ``output_dim``).
+        ``config.yaml``'s ``sim_params``: ``FOV`` (mm, ``[x, y, z]`` or one number), ``N_im``, optional
+        ``N_im_pre_spiral`` and ``output_dim``.
     image_shape : tuple of int
         (rows, columns) of the case's images.
+
+    Returns
+    -------
+    pixel_size_mm : float
+        The images' pixel (mm).
+    resolution_px : float
+        The acquired resolution in the images' pixels (>= 1; :data:`DEFAULT_RESOLUTION_PX` when the
+        config gives no ``N_im_pre_spiral``).
+
+    Raises
+    ------
+    ValueError
+        A missing key, a field of view that is not square, images that are not square or on a grid
+        the config does not name, an ``output_dim`` that is not one FOV per size, an acquired pixel
+        finer than the images' pixel. (An ``output_dim`` that gives the ``N_im`` grid another field
+        of view than ``FOV`` is a warning: ``FOV / N_im`` is taken, as DENSE-Sim's README states it.)
 
     >>> sim = {"FOV": [224, 224, 8], "N_im": 128, "N_im_pre_spiral": 60,
     ...        "output_dim": {"sizes": [128, 90], "FOVs": [[224, 224, 8], [200, 200, 8]]}}
@@ -236,27 +274,39 @@ def dense_sim_grid(sim: dict, image_shape) -> tuple:
     >>> [round(v, 4) for v in dense_sim_grid(sim, (90, 90))]
     [2.2222, 1.68]
     """
+    for key in ("FOV", "N_im"):
+        if key not in sim:
+            raise ValueError(f"config.yaml: expected the key sim_params.{key}, not found")
     shape = tuple(int(v) for v in image_shape)
     if len(shape) != 2 or shape[0] != shape[1]:
         raise ValueError(f"image_shape: expected square images (rows, columns), got {shape}")
     n_img = shape[0]
     fov_sim = _square_fov_mm(sim["FOV"], "config.yaml FOV")
     n_im = integer("config.yaml N_im", sim["N_im"], 1)
+    grids = _output_grids(sim)
     if n_img == n_im:
-        fov_out = fov_sim
+        for n, f in grids:
+            if n == n_im and not np.isclose(f, fov_sim):
+                warnings.warn(f"config.yaml output_dim gives the N_im grid ({n_im} pixels) a field of view of {f:g} mm, "
+                              f"but FOV is {fov_sim:g} mm: the pixel is taken as FOV / N_im = {fov_sim / n_im:g} mm, "
+                              "as DENSE-Sim's README states it; check the case's config", UserWarning,
+                              stacklevel=user_stacklevel())
+        fov_out, label = fov_sim, "config.yaml N_im / N_im_pre_spiral"
     else:
-        out = sim.get("output_dim") or {}
-        sizes, fovs = list(out.get("sizes") or []), list(out.get("FOVs") or [])
-        if n_img not in sizes or len(fovs) != len(sizes):
+        match = [f for n, f in grids if n == n_img]
+        if not match:
             raise ValueError(f"config.yaml N_im: the images are {n_img} x {n_img} pixels, but N_im is {n_im} and "
-                             f"output_dim lists sizes {sizes} (with {len(fovs)} FOVs); expected the images' size in "
-                             "one of them, so that the pixel size is known")
-        fov_out = _square_fov_mm(fovs[sizes.index(n_img)], f"config.yaml output_dim FOVs[{sizes.index(n_img)}]")
+                             f"output_dim lists sizes {[n for n, _ in grids]}; expected the images' size in one of "
+                             "them, so that the pixel size is known")
+        if not np.allclose(match, match[0]):
+            raise ValueError(f"config.yaml output_dim: lists the size {n_img} with fields of view {match} mm; "
+                             "expected one")
+        fov_out, label = match[0], f"config.yaml (FOV / N_im_pre_spiral) / the {n_img}-pixel grid's pixel"
     px_mm = fov_out / n_img
     res = DEFAULT_RESOLUTION_PX
     if sim.get("N_im_pre_spiral") is not None:
         n_acq = integer("config.yaml N_im_pre_spiral", sim["N_im_pre_spiral"], 1)
-        res = check_resolution_px((fov_sim / n_acq) / px_mm, "config.yaml N_im / N_im_pre_spiral")
+        res = check_resolution_px((fov_sim / n_acq) / px_mm, label)
     return px_mm, res
 
 
@@ -270,7 +320,8 @@ def read_dense_sim(path) -> DenseCase:
     ``tt[f + 1]``; optional ``N_im_pre_spiral`` and ``output_dim``). Pixel size = FOV / N_im, or, for
     images on another of ``output_dim``'s grids, that grid's FOV over its size (:func:`dense_sim_grid`).
 
-    Acquired resolution (:attr:`DenseCase.resolution_px`) = ``N_im / N_im_pre_spiral`` when the
+    Acquired resolution (:attr:`DenseCase.resolution_px`) = the acquired pixel ``FOV /
+    N_im_pre_spiral`` over the images' pixel (``N_im / N_im_pre_spiral`` on the ``N_im`` grid) when the
     config gives ``N_im_pre_spiral``, else 1. Why that ratio: the simulator grids the spins' signal
     on an ``N_im_pre_spiral`` matrix over the field of view and rescales its spiral trajectory to
     span +-``N_im_pre_spiral / 2`` cycles per field of view (``generate_sampling`` in DENSE-Sim's
@@ -302,8 +353,8 @@ def read_dense_sim(path) -> DenseCase:
     px, py = _load(folder, "phase_x.npy"), _load(folder, "phase_y.npy")
     if px.shape != py.shape:
         raise ValueError(f"phase_y.npy: expected the shape of phase_x.npy {px.shape}, got {py.shape}")
-    if px.ndim != 3:
-        raise ValueError(f"phase_x.npy: expected (frames, rows, columns) phases, got shape {px.shape}")
+    if px.ndim != 3 or px.shape[1] != px.shape[2]:
+        raise ValueError(f"phase_x.npy: expected (frames, rows, columns) phases on a square grid, got shape {px.shape}")
     F = px.shape[0]
     px_mm, res = dense_sim_grid(sim, px.shape[1:])
     tt = np.asarray(sim["tt"], float)

@@ -56,6 +56,46 @@ def test_images_on_another_output_grid_take_that_grids_pixel_and_keep_the_acquir
         read_dense_sim(folder)
 
 
+SIM = {"FOV": [224, 224, 8], "N_im": 128, "N_im_pre_spiral": 60}
+
+
+@pytest.mark.parametrize("output_dim, match", [
+    ({"sizes": [128, 90], "FOVs": [[224, 224, 8]]}, r"output_dim: expected one FOV per size, got 2 sizes and 1 FOVs"),
+    ({"sizes": 90, "FOVs": [[200, 200, 8]]}, r"output_dim: expected lists of sizes and FOVs"),
+    ([128, 90], r"output_dim: expected a mapping with sizes and FOVs"),
+    ({"sizes": [128, 90], "FOVs": [224, [200, 190, 8]]}, r"output_dim FOVs\[1\]: expected a square field of view"),
+    ({"sizes": [128, "ninety"], "FOVs": [224, 200]}, r"output_dim sizes\[1\]"),
+])
+def test_a_malformed_output_dim_is_a_clear_error_naming_it(output_dim, match):
+    with pytest.raises(ValueError, match=match):
+        dense_sim_grid({**SIM, "output_dim": output_dim}, (90, 90))
+
+
+def test_the_config_grid_edge_cases():
+    # one number for a square FOV, as for the output grids
+    assert dense_sim_grid({**SIM, "output_dim": {"sizes": [128, 90], "FOVs": [224, 200]}}, (90, 90))[0] == \
+        pytest.approx(200 / 90)
+    with pytest.raises(ValueError, match=r"config.yaml: expected the key sim_params.FOV"):
+        dense_sim_grid({"N_im": 128}, (128, 128))
+    with pytest.raises(ValueError, match=r"image_shape: expected square images"):
+        dense_sim_grid(SIM, (128, 90))
+    # the other grid's resolution error names the ratio it computed, not N_im / N_im_pre_spiral
+    with pytest.raises(ValueError, match=r"\(FOV / N_im_pre_spiral\) / the 90-pixel grid's pixel"):
+        dense_sim_grid({**SIM, "N_im_pre_spiral": 120, "output_dim": {"sizes": [90], "FOVs": [200]}}, (90, 90))
+    # a config whose output_dim gives the N_im grid another FOV: FOV / N_im, as the dataset's README says, and a warning
+    with pytest.warns(UserWarning, match=r"output_dim gives the N_im grid \(128 pixels\) a field of view of 200 mm"):
+        px, _ = dense_sim_grid({**SIM, "output_dim": {"sizes": [128], "FOVs": [200]}}, (128, 128))
+    assert px == pytest.approx(224 / 128)
+
+
+def test_a_case_on_a_grid_that_is_not_square_is_an_error_naming_its_file(tmp_path):
+    folder = write_case_folder(tmp_path / "c", n=24)
+    np.save(folder / "phase_x.npy", np.zeros((3, 24, 20), np.float32))
+    np.save(folder / "phase_y.npy", np.zeros((3, 24, 20), np.float32))
+    with pytest.raises(ValueError, match=r"phase_x.npy: expected \(frames, rows, columns\) phases on a square grid"):
+        read_dense_sim(folder)
+
+
 @given(n_out=st.integers(8, 160), fov_out=st.floats(50.0, 400.0), n_acq=st.integers(4, 64))
 def test_the_acquired_pixel_in_mm_does_not_depend_on_the_output_grid(n_out, fov_out, n_acq):
     sim = {"FOV": [224.0, 224.0, 8], "N_im": 128, "N_im_pre_spiral": n_acq,
