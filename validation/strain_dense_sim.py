@@ -446,16 +446,22 @@ def goals_missed(results: dict) -> list:
     return out
 
 
+#: The metrics every row must hold as finite numbers (:func:`nonfinite_metrics`).
+FINITE = ("pixel_rmse_Ecc", "pixel_rmse_Err", "global_peak_error_Ecc", "global_peak_error_Err",
+          "segment_peak_error_Ecc_mean", "segment_peak_error_Err_mean")
+
+
+def nonfinite_metrics(rows) -> list:
+    """One problem (text) per row and metric of :data:`FINITE` that is missing or not finite."""
+    return [f"{r['case']} SNR {r['snr']:g} seed {r['seed']} {r['method']}: {k} not finite"
+            for r in rows for k in FINITE if r.get(k) is None or not np.isfinite(r[k])]
+
+
 def check(results: dict, tier: str) -> list:
     """Plausibility, not the goals: every metric finite, and for each case, SNR and seed the
     conventional analysis smoothed at sigma 1 px has a lower pixel RMSE of Ecc than unsmoothed (the
     trade-off the spec describes)."""
-    problems = []
-    for r in results["rows"]:
-        for k in ("pixel_rmse_Ecc", "pixel_rmse_Err", "global_peak_error_Ecc", "global_peak_error_Err",
-                  "segment_peak_error_Ecc_mean", "segment_peak_error_Err_mean"):
-            if r.get(k) is None or not np.isfinite(r[k]):
-                problems.append(f"{r['case']} SNR {r['snr']} seed {r['seed']} {r['method']}: {k} not finite")
+    problems = nonfinite_metrics(results["rows"])
     by = {}
     for r in results["rows"]:
         by.setdefault((r["case"], r["snr"], r["seed"]), {})[r["method"]] = r

@@ -19,10 +19,9 @@ Quick tier: the phantom, its first 8 frames, SNR 30, seed 3.
 """
 from __future__ import annotations
 
-import numpy as np
-
 from ._core import fmt, md_table
-from .strain_dense_sim import GOAL_ORDER, GOALS, OURS, _better_conventional, case_folders, draw_misses, run_case
+from .strain_dense_sim import (GOAL_ORDER, GOALS, OURS, _better_conventional, case_folders, draw_misses,
+                               nonfinite_metrics, run_case)
 
 NAME = "strain_draws"
 NEEDS_DATA = True
@@ -117,12 +116,7 @@ def markdown(results: dict) -> str:
 
 def check(results: dict, tier: str) -> list:
     """Plausibility, not the goals: every metric of every row finite, our route's row at every case, SNR and seed."""
-    problems = []
-    for r in results["rows"]:
-        for k in ("pixel_rmse_Ecc", "pixel_rmse_Err", "global_peak_error_Ecc", "global_peak_error_Err",
-                  "segment_peak_error_Ecc_mean", "segment_peak_error_Err_mean"):
-            if r.get(k) is None or not np.isfinite(r[k]):
-                problems.append(f"{r['case']} SNR {r['snr']:g} seed {r['seed']} {r['method']}: {k} not finite")
+    problems = nonfinite_metrics(results["rows"])
     runs = {(r["case"], r["snr"], r["seed"]) for r in results["rows"]}
     ours = {(r["case"], r["snr"], r["seed"]) for r in results["rows"] if r["method"] == OURS}
     problems += [f"{c} SNR {s:g} seed {d}: no row of our route" for c, s, d in sorted(runs - ours)]

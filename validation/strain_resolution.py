@@ -43,7 +43,7 @@ from sfem_filters.imaging.dense import edge_spread_resolution
 
 from ._core import fmt, md_table
 from .strain_budget import write_resampled_case
-from .strain_dense_sim import GOALS, OURS, _better_conventional, case_folders, goals_missed, run_case
+from .strain_dense_sim import GOALS, OURS, _better_conventional, case_folders, goals_missed, nonfinite_metrics, run_case
 
 NAME = "strain_resolution"
 NEEDS_DATA = True
@@ -159,11 +159,7 @@ def markdown(results: dict) -> str:
 def check(results: dict, tier: str) -> list:
     """Plausibility, not the goals: every metric of every row finite, and every case has its route's row
     at every matrix and SNR of the run."""
-    problems = []
-    for r in results["rows"]:
-        for k in ("pixel_rmse_Ecc", "pixel_rmse_Err", "global_peak_error_Ecc", "global_peak_error_Err"):
-            if r.get(k) is None or not np.isfinite(r[k]):
-                problems.append(f"{r['case']} SNR {r['snr']:g} {r['method']}: {k} not finite")
+    problems = nonfinite_metrics(results["rows"])
     runs = {(r["case"], r["snr"]) for r in results["rows"]}
     ours = {(r["case"], r["snr"]) for r in _ours(results)}
     problems += [f"{c} SNR {s:g}: no row of our route" for c, s in sorted(runs - ours)]
