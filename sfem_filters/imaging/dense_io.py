@@ -240,8 +240,11 @@ def dense_sim_grid(sim: dict, image_shape) -> tuple:
     the pixel is that size's ``FOV / size`` and the acquired pixel stays ``FOV / N_im_pre_spiral``
     (the output grid resamples the simulated images; it acquires nothing new), so the acquired
     resolution is ``(FOV / N_im_pre_spiral) / pixel``, ``N_im / N_im_pre_spiral`` on the ``N_im``
-    grid. Images on a grid neither names are an error: their pixel size, and so every displacement
-    in pixels, would be a guess.
+    grid. Images smaller than ``N_im`` on a side and on no ``output_dim`` grid are read as a crop of
+    the ``N_im`` grid (pixel ``FOV / N_im``), with a warning that says so: a case resampled to a grid
+    its config does not name would need that grid in ``output_dim``. Images larger than ``N_im`` on
+    a grid the config does not name are an error: their pixel size, and so every displacement in
+    pixels, would be a guess.
 
     Parameters
     ----------
@@ -262,10 +265,11 @@ def dense_sim_grid(sim: dict, image_shape) -> tuple:
     Raises
     ------
     ValueError
-        A missing key, a field of view that is not square, images that are not square or on a grid
-        the config does not name, an ``output_dim`` that is not one FOV per size, an acquired pixel
-        finer than the images' pixel. (An ``output_dim`` that gives the ``N_im`` grid another field
-        of view than ``FOV`` is a warning: ``FOV / N_im`` is taken, as DENSE-Sim's README states it.)
+        A missing key, a field of view that is not square, images larger than ``N_im`` on a grid the
+        config does not name, an ``output_dim`` that is not one FOV per size, an acquired pixel finer
+        than the images' pixel. (An ``output_dim`` that gives the ``N_im`` grid another field of view
+        than ``FOV``, and images read as a crop, are warnings: ``FOV / N_im`` is taken, as DENSE-Sim's
+        README states it.)
 
     >>> sim = {"FOV": [224, 224, 8], "N_im": 128, "N_im_pre_spiral": 60,
     ...        "output_dim": {"sizes": [128, 90], "FOVs": [[224, 224, 8], [200, 200, 8]]}}
@@ -278,9 +282,9 @@ def dense_sim_grid(sim: dict, image_shape) -> tuple:
         if key not in sim:
             raise ValueError(f"config.yaml: expected the key sim_params.{key}, not found")
     shape = tuple(int(v) for v in image_shape)
-    if len(shape) != 2 or shape[0] != shape[1]:
-        raise ValueError(f"image_shape: expected square images (rows, columns), got {shape}")
-    n_img = shape[0]
+    if len(shape) != 2 or min(shape) < 1:
+        raise ValueError(f"image_shape: expected the images' (rows, columns), got {shape}")
+    n_img = shape[0] if shape[0] == shape[1] else None
     fov_sim = _square_fov_mm(sim["FOV"], "config.yaml FOV")
     n_im = integer("config.yaml N_im", sim["N_im"], 1)
     grids = _output_grids(sim)
@@ -292,12 +296,18 @@ def dense_sim_grid(sim: dict, image_shape) -> tuple:
                               "as DENSE-Sim's README states it; check the case's config", UserWarning,
                               stacklevel=user_stacklevel())
         fov_out, label = fov_sim, "config.yaml N_im / N_im_pre_spiral"
+    elif not any(n == n_img for n, _ in grids):
+        if max(shape) > n_im:
+            raise ValueError(f"config.yaml N_im: the images are {shape[0]} x {shape[1]} pixels, but N_im is {n_im} and "
+                             f"output_dim lists sizes {[n for n, _ in grids]}; expected the images' size in one of "
+                             "them (or a crop of the N_im grid), so that the pixel size is known")
+        warnings.warn(f"config.yaml N_im: the images are {shape[0]} x {shape[1]} pixels, but N_im is {n_im} and no "
+                      f"output_dim grid has that size: read as a crop of the N_im grid, pixel FOV / N_im = "
+                      f"{fov_sim / n_im:g} mm; if they were resampled to another grid, give it in config.yaml "
+                      "output_dim (sizes, FOVs)", UserWarning, stacklevel=user_stacklevel())
+        fov_out, label, n_img = fov_sim, "config.yaml N_im / N_im_pre_spiral", n_im
     else:
         match = [f for n, f in grids if n == n_img]
-        if not match:
-            raise ValueError(f"config.yaml N_im: the images are {n_img} x {n_img} pixels, but N_im is {n_im} and "
-                             f"output_dim lists sizes {[n for n, _ in grids]}; expected the images' size in one of "
-                             "them, so that the pixel size is known")
         if not np.allclose(match, match[0]):
             raise ValueError(f"config.yaml output_dim: lists the size {n_img} with fields of view {match} mm; "
                              "expected one")
@@ -353,8 +363,8 @@ def read_dense_sim(path) -> DenseCase:
     px, py = _load(folder, "phase_x.npy"), _load(folder, "phase_y.npy")
     if px.shape != py.shape:
         raise ValueError(f"phase_y.npy: expected the shape of phase_x.npy {px.shape}, got {py.shape}")
-    if px.ndim != 3 or px.shape[1] != px.shape[2]:
-        raise ValueError(f"phase_x.npy: expected (frames, rows, columns) phases on a square grid, got shape {px.shape}")
+    if px.ndim != 3:
+        raise ValueError(f"phase_x.npy: expected (frames, rows, columns) phases, got shape {px.shape}")
     F = px.shape[0]
     px_mm, res = dense_sim_grid(sim, px.shape[1:])
     tt = np.asarray(sim["tt"], float)

@@ -46,13 +46,15 @@ def test_images_on_another_output_grid_take_that_grids_pixel_and_keep_the_acquir
     case = read_dense_sim(folder)
     assert case.pixel_size_mm == pytest.approx(48.0 / 24)                    # the output grid's FOV over its size
     assert case.resolution_px == pytest.approx((56.0 / 16) / (48.0 / 24))     # the acquired 3.5 mm in 2 mm pixels
-    cfg["sim_params"]["output_dim"]["sizes"] = [32, 90]                      # the images' size listed nowhere
-    (folder / "config.yaml").write_text(yaml.safe_dump(cfg))
-    with pytest.raises(ValueError, match=r"config.yaml N_im: the images are 24 x 24 pixels, but N_im is 32"):
-        read_dense_sim(folder)
+    cfg["sim_params"]["output_dim"]["sizes"] = [32, 90]                      # the images' size listed nowhere:
+    (folder / "config.yaml").write_text(yaml.safe_dump(cfg))                 # smaller than N_im, a crop of it
+    with pytest.warns(UserWarning, match=r"the images are 24 x 24 pixels, but N_im is 32 .* read as a crop"):
+        assert read_dense_sim(folder).pixel_size_mm == pytest.approx(56.0 / 32)
+    cfg["sim_params"].update({"N_im": 16, "FOV": [28.0, 28.0, 8], "N_im_pre_spiral": 8})   # larger than N_im
     del cfg["sim_params"]["output_dim"]
     (folder / "config.yaml").write_text(yaml.safe_dump(cfg))
-    with pytest.raises(ValueError, match=r"output_dim lists sizes \[\]"):
+    with pytest.raises(ValueError, match=r"config.yaml N_im: the images are 24 x 24 pixels, but N_im is 16 and "
+                                         r"output_dim lists sizes \[\]"):
         read_dense_sim(folder)
 
 
@@ -77,8 +79,10 @@ def test_the_config_grid_edge_cases():
         pytest.approx(200 / 90)
     with pytest.raises(ValueError, match=r"config.yaml: expected the key sim_params.FOV"):
         dense_sim_grid({"N_im": 128}, (128, 128))
-    with pytest.raises(ValueError, match=r"image_shape: expected square images"):
-        dense_sim_grid(SIM, (128, 90))
+    with pytest.raises(ValueError, match=r"the images are 130 x 128 pixels, but N_im is 128"):
+        dense_sim_grid(SIM, (130, 128))
+    with pytest.warns(UserWarning, match=r"read as a crop of the N_im grid, pixel FOV / N_im = 1.75 mm"):
+        assert dense_sim_grid(SIM, (128, 90)) == (1.75, pytest.approx(128 / 60))       # a crop keeps the pixel
     # the other grid's resolution error names the ratio it computed, not N_im / N_im_pre_spiral
     with pytest.raises(ValueError, match=r"\(FOV / N_im_pre_spiral\) / the 90-pixel grid's pixel"):
         dense_sim_grid({**SIM, "N_im_pre_spiral": 120, "output_dim": {"sizes": [90], "FOVs": [200]}}, (90, 90))
@@ -88,11 +92,11 @@ def test_the_config_grid_edge_cases():
     assert px == pytest.approx(224 / 128)
 
 
-def test_a_case_on_a_grid_that_is_not_square_is_an_error_naming_its_file(tmp_path):
+def test_phases_that_are_not_frames_of_images_are_an_error_naming_their_file(tmp_path):
     folder = write_case_folder(tmp_path / "c", n=24)
-    np.save(folder / "phase_x.npy", np.zeros((3, 24, 20), np.float32))
-    np.save(folder / "phase_y.npy", np.zeros((3, 24, 20), np.float32))
-    with pytest.raises(ValueError, match=r"phase_x.npy: expected \(frames, rows, columns\) phases on a square grid"):
+    np.save(folder / "phase_x.npy", np.zeros((24, 24), np.float32))
+    np.save(folder / "phase_y.npy", np.zeros((24, 24), np.float32))
+    with pytest.raises(ValueError, match=r"phase_x.npy: expected \(frames, rows, columns\) phases"):
         read_dense_sim(folder)
 
 
