@@ -31,7 +31,7 @@ def _cells(text: str) -> list:
 
 def test_a_missed_goal_is_counted_over_the_draws_and_named_with_its_worst_draw():
     rows = (_rows(3, coverage_pct_Ecc=83.0, global_peak_error_Err=-3.2, segment_peak_error_Err_mean=4.4)
-            + _rows(4, global_peak_error_Err=+3.5, segment_peak_error_Err_mean=2.0)
+            + _rows(4, global_peak_error_Err=+3.5, segment_peak_error_Err_mean=2.0, seconds=9.6)
             + _rows(5, coverage_pct_Ecc=80.5, coverage_pct_Err=85.0, pixel_rmse_Err=8.5))
     text = markdown({"rows": rows, "seeds": [3, 4, 5]})
     cells = _cells(text)
@@ -41,6 +41,7 @@ def test_a_missed_goal_is_counted_over_the_draws_and_named_with_its_worst_draw()
     assert cells[5] == "0.50 / 4.40"                          # the largest mean segment peak error
     assert cells[6] == "80.5 to 95.0" and cells[7] == "85.0 to 95.0"
     assert cells[8] == "82.8 to 95.0"                         # seed 5 pooled: (80.5 + 85.0) / 2
+    assert cells[9] == "10"                                   # the longest run's seconds
     assert ("heart SNR 8: RMSE Err in 1 of 3 (worst: RMSE Err +0.50 above the better conventional); "
             "global peak Err in 2 of 3 (worst: global peak Err +3.50); segment peak Err in 1 of 3 (worst: segment "
             "peak Err 4.40); coverage Ecc in 2 of 3 (worst: coverage Ecc 80.5%); pooled coverage outside 85-99% in "

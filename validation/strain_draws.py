@@ -75,7 +75,7 @@ def markdown(results: dict) -> str:
     lo, hi = GOALS["coverage"]
     cols = ["case", "SNR", "draws meeting every goal", "RMSE Ecc / Err minus the better conventional, worst",
             "global peak error Ecc / Err, worst", "segment peak error Ecc / Err, worst", "coverage Ecc [%]",
-            "coverage Err [%]", "coverage pooled [%]"]
+            "coverage Err [%]", "coverage pooled [%]", "s a run, worst"]
     body, missed = [], []
     for (case, snr), rs in groups(results).items():
         misses = [draw_misses(r, conv) for r in rs]
@@ -87,7 +87,7 @@ def markdown(results: dict) -> str:
                      f"{fmt(worst['global_peak_error_Ecc'], '+.2f')} / {fmt(worst['global_peak_error_Err'], '+.2f')}",
                      f"{fmt(seg['segment_peak_error_Ecc_mean'], '.2f')} / {fmt(seg['segment_peak_error_Err_mean'], '.2f')}",
                      _span([r["coverage_pct_Ecc"] for r in rs], ".1f"), _span([r["coverage_pct_Err"] for r in rs], ".1f"),
-                     _span([pooled_coverage(r) for r in rs], ".1f")])
+                     _span([pooled_coverage(r) for r in rs], ".1f"), fmt(max(r["seconds"] for r in rs), ".0f")])
         counts = [f"{g} in {sum(g in m for m in misses)} of {len(rs)} (worst: "
                   f"{max((m[g] for m in misses if g in m), key=lambda v: v[0])[1]})"
                   for g in GOAL_ORDER if any(g in m for m in misses)]
@@ -103,7 +103,8 @@ def markdown(results: dict) -> str:
             "with the strain page's metrics and goals. Strain in percentage points; each cell is the worst draw "
             "(the largest excess of the pixel RMSE over the better of the two conventional variants at that draw, "
             "negative when ours is lower at every draw; the peak error furthest from zero; the largest mean segment "
-            "peak error) or the range over the draws. Goals at every draw: pixel RMSE below the better "
+            "peak error; the longest run's seconds, phase to strain, on this machine) or the range over the draws "
+            "(each run's seconds and peak memory are in the JSON). Goals at every draw: pixel RMSE below the better "
             f"conventional; |global peak error| at most {GOALS['global_peak_error_Ecc']:g} (Ecc) and "
             f"{GOALS['global_peak_error_Err']:g} (Err); mean segment peak error at most "
             f"{GOALS['segment_peak_error_Ecc_mean']:g} (Ecc) and {GOALS['segment_peak_error_Err_mean']:g} (Err); band "
