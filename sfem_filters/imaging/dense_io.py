@@ -259,17 +259,19 @@ def dense_sim_grid(sim: dict, image_shape) -> tuple:
     pixel_size_mm : float
         The images' pixel (mm).
     resolution_px : float
-        The acquired resolution in the images' pixels (>= 1; :data:`DEFAULT_RESOLUTION_PX` when the
-        config gives no ``N_im_pre_spiral``).
+        The acquired resolution in the images' pixels, at least :data:`DEFAULT_RESOLUTION_PX` (1):
+        that, with a warning, when the config gives no ``N_im_pre_spiral`` or when the acquired pixel
+        is finer than the images' (images resampled to a coarser grid than their data, as a DICOM's
+        :func:`dicom_resolution_px` also reads it: the images' own pixel is then their blur).
 
     Raises
     ------
     ValueError
         A missing key, a field of view that is not square, images larger than ``N_im`` on a grid the
-        config does not name, an ``output_dim`` that is not one FOV per size, an acquired pixel finer
-        than the images' pixel. (An ``output_dim`` that gives the ``N_im`` grid another field of view
-        than ``FOV``, and images read as a crop, are warnings: ``FOV / N_im`` is taken, as DENSE-Sim's
-        README states it.)
+        config does not name, an ``output_dim`` that is not one FOV per size. (An ``output_dim`` that
+        gives the ``N_im`` grid another field of view than ``FOV``, and images read as a crop, are
+        warnings: ``FOV / N_im`` is taken, as DENSE-Sim's README states it; so are a missing
+        ``N_im_pre_spiral`` and an acquired pixel finer than the images', read as resolution 1.)
 
     >>> sim = {"FOV": [224, 224, 8], "N_im": 128, "N_im_pre_spiral": 60,
     ...        "output_dim": {"sizes": [128, 90], "FOVs": [[224, 224, 8], [200, 200, 8]]}}
@@ -313,11 +315,21 @@ def dense_sim_grid(sim: dict, image_shape) -> tuple:
                              "expected one")
         fov_out, label = match[0], f"config.yaml (FOV / N_im_pre_spiral) / the {n_img}-pixel grid's pixel"
     px_mm = fov_out / n_img
-    res = DEFAULT_RESOLUTION_PX
-    if sim.get("N_im_pre_spiral") is not None:
-        n_acq = integer("config.yaml N_im_pre_spiral", sim["N_im_pre_spiral"], 1)
-        res = check_resolution_px((fov_sim / n_acq) / px_mm, label)
-    return px_mm, res
+    if sim.get("N_im_pre_spiral") is None:
+        warnings.warn("config.yaml: no sim_params.N_im_pre_spiral, so the acquired resolution is not known: taken as "
+                      f"{DEFAULT_RESOLUTION_PX:g} pixel (no blur beyond the images' own pixel); give it with "
+                      "--resolution-px (StrainRouteSettings.resolution_px) if you know it", UserWarning,
+                      stacklevel=user_stacklevel())
+        return px_mm, DEFAULT_RESOLUTION_PX
+    n_acq = integer("config.yaml N_im_pre_spiral", sim["N_im_pre_spiral"], 1)
+    ratio = (fov_sim / n_acq) / px_mm
+    if np.isfinite(ratio) and ratio < DEFAULT_RESOLUTION_PX:
+        warnings.warn(f"{label}: the acquired pixel ({fov_sim / n_acq:g} mm) is finer than the images' pixel "
+                      f"({px_mm:g} mm), so the images were resampled to a coarser grid than their data: the images' "
+                      f"own pixel is their resolution ({DEFAULT_RESOLUTION_PX:g} pixel)", UserWarning,
+                      stacklevel=user_stacklevel())
+        return px_mm, DEFAULT_RESOLUTION_PX
+    return px_mm, check_resolution_px(ratio, label)
 
 
 def read_dense_sim(path) -> DenseCase:
@@ -530,7 +542,7 @@ def dicom_resolution_px(ds) -> float:
     columns), two of them zero; the acquired samples along the image's rows and columns are the
     non-zero entries. The resolution is the larger of ``Columns / n_columns`` and ``Rows / n_rows``
     (a zero-filled reconstruction gives above 1), at least 1. Without the tag, or with an
-    unusable one, :data:`DEFAULT_RESOLUTION_PX` (1: no blur beyond the pixel).
+    unusable one, :data:`DEFAULT_RESOLUTION_PX` (1: no blur beyond the pixel), with a warning.
     """
     am = getattr(ds, "AcquisitionMatrix", None)
     rows, cols = getattr(ds, "Rows", None), getattr(ds, "Columns", None)
@@ -539,8 +551,14 @@ def dicom_resolution_px(ds) -> float:
         n_rows, n_cols = max(f_r, p_r), max(f_c, p_c)
         ratio = max(float(rows) / n_rows if n_rows > 0 else 1.0, float(cols) / n_cols if n_cols > 0 else 1.0)
     except (TypeError, ValueError):
+        ratio = float("nan")
+    if not np.isfinite(ratio):
+        warnings.warn(f"DICOM AcquisitionMatrix: expected four integers (and Rows, Columns) to give the acquired "
+                      f"resolution, got {am!r}: taken as {DEFAULT_RESOLUTION_PX:g} pixel (no blur beyond the images' "
+                      "own pixel); give it with --resolution-px (StrainRouteSettings.resolution_px) if you know it",
+                      UserWarning, stacklevel=user_stacklevel())
         return DEFAULT_RESOLUTION_PX
-    return max(DEFAULT_RESOLUTION_PX, ratio) if np.isfinite(ratio) else DEFAULT_RESOLUTION_PX
+    return max(DEFAULT_RESOLUTION_PX, ratio)
 
 
 def read_dense_dicom(phase_dirs, magnitude_dir, masks, ke_cycles_per_mm, directions=((1.0, 0.0), (0.0, 1.0)),

@@ -86,7 +86,7 @@ def write_case_folder(folder: pathlib.Path, F=3, n=24, ke=0.1, **override):
     for name, arr in arrays.items():
         if arr is not None:
             np.save(folder / name, arr)
-    cfg = {"sim_params": {"FOV": [n * 1.75, n * 1.75, 8], "N_im": n, "ke": ke,
+    cfg = {"sim_params": {"FOV": [n * 1.75, n * 1.75, 8], "N_im": n, "N_im_pre_spiral": n, "ke": ke,
                           "tt": [0.0] + [22.5 + 15 * f for f in range(F + 2)]}}
     (folder / "config.yaml").write_text(yaml.safe_dump(cfg))
     return folder

@@ -4,6 +4,8 @@ its point spread, its cross-check by the magnitude's edge spread, and the static
 Ground truth from data we did not write: the DENSE-Sim cases' config (their simulator's acquisition matrix)
 against their magnitude images' edge spread.
 """
+import warnings
+
 import numpy as np
 import pytest
 import yaml
@@ -22,7 +24,11 @@ from test_dense import DENSE_SIM, needs_data, write_case_folder
 
 def test_the_config_gives_the_acquired_resolution_and_noise_keeps_it(tmp_path):
     folder = write_case_folder(tmp_path / "c")
-    assert read_dense_sim(folder).resolution_px == DEFAULT_RESOLUTION_PX          # nothing said: 1
+    cfg = yaml.safe_load((folder / "config.yaml").read_text())
+    del cfg["sim_params"]["N_im_pre_spiral"]
+    (folder / "config.yaml").write_text(yaml.safe_dump(cfg))
+    with pytest.warns(UserWarning, match="no sim_params.N_im_pre_spiral"):
+        assert read_dense_sim(folder).resolution_px == DEFAULT_RESOLUTION_PX      # nothing said: 1, a warning
     cfg = yaml.safe_load((folder / "config.yaml").read_text())
     cfg["sim_params"]["N_im_pre_spiral"] = 16                                    # N_im 24
     (folder / "config.yaml").write_text(yaml.safe_dump(cfg))
@@ -31,8 +37,8 @@ def test_the_config_gives_the_acquired_resolution_and_noise_keeps_it(tmp_path):
     assert add_complex_noise(case, 10.0, 0).resolution_px == pytest.approx(1.5)
     cfg["sim_params"]["N_im_pre_spiral"] = 48                                    # coarser image than its data
     (folder / "config.yaml").write_text(yaml.safe_dump(cfg))
-    with pytest.raises(ValueError, match="config.yaml N_im / N_im_pre_spiral: expected the acquired resolution"):
-        read_dense_sim(folder)
+    with pytest.warns(UserWarning, match="config.yaml N_im / N_im_pre_spiral: the acquired pixel .* is finer"):
+        assert read_dense_sim(folder).resolution_px == DEFAULT_RESOLUTION_PX
 
 
 def test_images_on_another_output_grid_take_that_grids_pixel_and_keep_the_acquired_one(tmp_path):
@@ -83,9 +89,16 @@ def test_the_config_grid_edge_cases():
         dense_sim_grid(SIM, (130, 128))
     with pytest.warns(UserWarning, match=r"read as a crop of the N_im grid, pixel FOV / N_im = 1.75 mm"):
         assert dense_sim_grid(SIM, (128, 90)) == (1.75, pytest.approx(128 / 60))       # a crop keeps the pixel
-    # the other grid's resolution error names the ratio it computed, not N_im / N_im_pre_spiral
-    with pytest.raises(ValueError, match=r"\(FOV / N_im_pre_spiral\) / the 90-pixel grid's pixel"):
-        dense_sim_grid({**SIM, "N_im_pre_spiral": 120, "output_dim": {"sizes": [90], "FOVs": [200]}}, (90, 90))
+    # an acquired pixel finer than the images' (a coarser output grid than the data): resolution 1, a warning
+    # naming the ratio it computed, not N_im / N_im_pre_spiral (as a DICOM's AcquisitionMatrix is read, below)
+    with pytest.warns(UserWarning, match=r"\(FOV / N_im_pre_spiral\) / the 90-pixel grid's pixel: the acquired "
+                                         r"pixel \(1.86667 mm\) is finer than the images' pixel \(2.22222 mm\)"):
+        assert dense_sim_grid({**SIM, "N_im_pre_spiral": 120, "output_dim": {"sizes": [90], "FOVs": [200]}},
+                              (90, 90)) == (pytest.approx(200 / 90), DEFAULT_RESOLUTION_PX)
+    # no N_im_pre_spiral: resolution 1, and a warning that says how to give it
+    sim = {k: v for k, v in SIM.items() if k != "N_im_pre_spiral"}
+    with pytest.warns(UserWarning, match=r"no sim_params.N_im_pre_spiral.*--resolution-px"):
+        assert dense_sim_grid(sim, (128, 128)) == (1.75, DEFAULT_RESOLUTION_PX)
     # a config whose output_dim gives the N_im grid another FOV: FOV / N_im, as the dataset's README says, and a warning
     with pytest.warns(UserWarning, match=r"output_dim gives the N_im grid \(128 pixels\) a field of view of 200 mm"):
         px, _ = dense_sim_grid({**SIM, "output_dim": {"sizes": [128], "FOVs": [200]}}, (128, 128))
@@ -104,15 +117,17 @@ def test_phases_that_are_not_frames_of_images_are_an_error_naming_their_file(tmp
 def test_the_acquired_pixel_in_mm_does_not_depend_on_the_output_grid(n_out, fov_out, n_acq):
     sim = {"FOV": [224.0, 224.0, 8], "N_im": 128, "N_im_pre_spiral": n_acq,
            "output_dim": {"sizes": [128, n_out], "FOVs": [[224.0, 224.0, 8], [fov_out, fov_out, 8]]}}
-    try:
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
         px_mm, res = dense_sim_grid(sim, (n_out, n_out))
-    except ValueError as err:                                                # acquired finer than the output pixel
-        assert 224.0 / n_acq < (fov_out if n_out != 128 else 224.0) / n_out
-        assert "N_im_pre_spiral" in str(err)
-        return
     acquired_mm = 224.0 / n_acq
-    assert px_mm * res == pytest.approx(acquired_mm)
     assert px_mm == pytest.approx((fov_out if n_out != 128 else 224.0) / n_out)
+    finer = acquired_mm < px_mm * (1 - 1e-12)
+    if finer:                                   # images resampled coarser than their data: their own pixel
+        assert res == DEFAULT_RESOLUTION_PX
+    else:
+        assert px_mm * res == pytest.approx(acquired_mm)
+    assert any("is finer than the images' pixel" in str(w.message) for w in caught) == finer
 
 
 @pytest.mark.parametrize("bad", [0.5, 0.0, -2.0, float("nan"), float("inf"), "wide", None])
@@ -140,7 +155,10 @@ def test_dicom_resolution_is_the_image_matrix_over_the_acquisition_matrix(matrix
     ds.Rows, ds.Columns = rows, cols
     if matrix is not None:
         ds.AcquisitionMatrix = list(matrix)
-    assert dicom_resolution_px(ds) == pytest.approx(expected)
+        assert dicom_resolution_px(ds) == pytest.approx(expected)
+    else:
+        with pytest.warns(UserWarning, match="DICOM AcquisitionMatrix: expected four integers.*--resolution-px"):
+            assert dicom_resolution_px(ds) == pytest.approx(expected)
 
 
 @settings(max_examples=30, deadline=None)
