@@ -407,10 +407,12 @@ def _with_masks(short_case, tmp_path, edit):
     return dst, masks
 
 
-def test_masks_with_small_defects_are_mended_and_a_broken_frame_leaves_the_phase_alone(short_case, folder_report,
-                                                                                       tmp_path, capsys):
+def test_masks_with_small_defects_are_mended_and_a_broken_frame_leaves_its_own_border_data_out(short_case,
+                                                                                                 folder_report,
+                                                                                                 tmp_path, capsys):
     """Cases we are not given may carry coarse masks: a pinhole or a stray pixel is mended (with a warning) and
-    the run goes on as before; a frame whose mask is no ring at all leaves the default on the phase alone."""
+    the run goes on as before; a frame whose mask is no ring at all observes the phase alone (its border data left
+    out, the other frames' fused); when no frame's mask is a ring the default uses the phase alone."""
     def small(m):
         r, c = np.argwhere(binary_erosion(m[2]))[0]
         m[2, r, c] = False                                  # a pinhole in one frame's wall
@@ -431,14 +433,22 @@ def test_masks_with_small_defects_are_mended_and_a_broken_frame_leaves_the_phase
         m[3] = m[3] & (np.arange(m.shape[-1])[None, :] < m.shape[-1] // 2)    # half a ring: no cavity
     folder, _ = _with_masks(short_case, tmp_path / "b", broken)
     out = tmp_path / "broken.json"
-    with pytest.warns(RuntimeWarning, match=r"index \[3\].*phase alone"):
+    with pytest.warns(RuntimeWarning, match=r"frame\(s\) \[2\] cannot be made one ring.*masks\[3\].*left out"):
+        assert main(["strain", str(folder), "--json", str(out), "--quiet"]) == 0
+    report = json.loads(out.read_text())
+    assert report["settings"]["border_masks"] is True and np.all(np.isfinite(_a(report["strain"]["Err"])))
+
+    def all_broken(m):
+        m[1:] = m[1:] & (np.arange(m.shape[-1])[None, None, :] < m.shape[-1] // 2)
+    folder, _ = _with_masks(short_case, tmp_path / "a", all_broken)
+    with pytest.warns(RuntimeWarning, match=r"index \[1, 2, .*no frame's mask readable.*phase alone"):
         assert main(["strain", str(folder), "--json", str(out), "--quiet"]) == 0
     assert json.loads(out.read_text())["settings"]["border_masks"] is False
-    # asked for explicitly, the masks' defect is an error naming the mask
+    # asked for explicitly, the masks' defect is an error naming the masks
     capsys.readouterr()
     assert main(["strain", str(folder), "--json", str(out), "--quiet", "--with-masks"]) == 2
     err = capsys.readouterr().err
-    assert "masks[3]" in err and "Traceback" not in err
+    assert "masks: expected at least one frame's mask" in err and "Traceback" not in err
 
 
 def test_a_case_folder_missing_a_file_is_told_which(tmp_path, capsys):

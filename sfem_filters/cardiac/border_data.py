@@ -27,15 +27,16 @@ quantisation or the data's own noise. Units: pixels at the interface, metres in 
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
 
-from .._validate import positive
+from .._validate import positive, user_stacklevel
 from ..fem.mesh import TriMesh
 from ..fem.observation import point_observation_matrix
-from ..imaging.contours import closest_on_polyline, mask_borders
+from ..imaging.contours import closest_on_polyline, mask_borders, mended_masks_summarised
 from ..imaging.tracking import BoundaryTracks, TrackingOptions, track_masks
 from .dense_model import observation_points, temporal_noise_floor
 from .myocardium import lv_geometry
@@ -199,7 +200,7 @@ class BorderData:
     y : (F, m) array
         The data (m): each node's motion across (and along) the border, the hat-weighted mean of its
         landmarks' (:func:`mask_border_data`) or the border's offset at the point a guide names
-        (:func:`guided_border_data`).
+        (:func:`guided_border_data`); NaN (missing) in a frame whose mask could not be read.
     R : (F, m, m) array
         Their diagonal covariance (m^2).
     nodes : (k,) int array
@@ -353,7 +354,10 @@ def guided_border_data(mesh: TriMesh, masks, guide_px, pixel_size_m: float,
     Returns
     -------
     BorderData
-        One row per border node (``tracks`` None, ``sd_tangent_px`` None).
+        One row per border node (``tracks`` None, ``sd_tangent_px`` None); a frame whose mask cannot
+        be made one ring (:func:`sfem_filters.imaging.repair_myocardium_mask`) has NaN data (missing:
+        it observes the phase alone), with a warning naming it; every frame's is an error, and so is
+        the reference's.
     """
     s = positive("pixel_size_m", pixel_size_m, "m")
     sd0 = positive("normal_sd_px", normal_sd_px, "pixels")
@@ -386,11 +390,21 @@ def guided_border_data(mesh: TriMesh, masks, guide_px, pixel_size_m: float,
     for e in samples:                                   # the hat weights of each sample on its edge's two nodes
         for end, w in ((0, 1.0 - t), (1, t)):
             np.add.at(weight, np.repeat(where[e[:, end]], len(t)), np.tile(w, len(e)))
-    ref = mask_borders(m[0], curves[0], curves[1], name="masks[0]")
+    with mended_masks_summarised():                     # one warning for every mended mask, not one each
+        ref = mask_borders(m[0], curves[0], curves[1], name="masks[0]")
+        frames, skipped = [], []
+        for f in range(F):
+            try:
+                frames.append(mask_borders(m[f + 1], curves[0], curves[1], name=f"masks[{f + 1}]"))
+            except ValueError as exc:                   # not a ring even once mended: this frame says nothing
+                skipped.append((f, str(exc)))
+                frames.append(None)
     on_ref = [_closest(curve, (X[e[:, 0], None] * (1.0 - t)[:, None] + X[e[:, 1], None] * t[:, None]).reshape(-1, 2))
               for e, curve in zip(samples, (ref.endo, ref.epi))]                # q_0 of every sample
-    for f in range(F):
-        b = mask_borders(m[f + 1], curves[0], curves[1], name=f"masks[{f + 1}]")
+    for f, b in enumerate(frames):
+        if b is None:
+            d[f] = np.nan
+            continue
         for e, curve, q0 in zip(samples, (b.endo, b.epi), on_ref):
             gs = (g[f, e[:, 0], None] * (1.0 - t)[:, None] + g[f, e[:, 1], None] * t[:, None]).reshape(-1, 2)
             off = _closest(curve, q0 + gs) - q0                               # the border's motion at each sample
@@ -398,7 +412,17 @@ def guided_border_data(mesh: TriMesh, masks, guide_px, pixel_size_m: float,
                 k = np.repeat(where[e[:, end]], len(t))
                 np.add.at(d[f], k, np.tile(w, len(e)) * np.sum(n[k] * off, axis=1))
     d /= weight
-    floor = temporal_noise_floor(d[..., None]) if F >= 3 else 0.0
+    if skipped:
+        if len(skipped) == F:
+            raise ValueError(f"masks: expected at least one frame's mask that can be made one ring around one cavity, "
+                             f"got none ({skipped[0][1]})")
+        warnings.warn(f"masks: the mask(s) of frame(s) {[f for f, _ in skipped]} cannot be made one ring around one "
+                      f"cavity ({skipped[0][1]}): their border data are left out (those frames observe the phase "
+                      "alone)", RuntimeWarning, stacklevel=user_stacklevel())
+    try:
+        floor = temporal_noise_floor(d[..., None]) if F >= 3 else 0.0
+    except ValueError:                                  # no three consecutive frames with data: no floor to read
+        floor = 0.0
     sd = np.full(d.shape, max(sd0, floor))
     k = len(nodes)
     R = np.zeros((F, k, k))

@@ -7,13 +7,14 @@ in metres; pixels for the tracks.
 from __future__ import annotations
 
 import hashlib
+import warnings
 from dataclasses import dataclass, replace
 
 import numpy as np
 import scipy.sparse as sp
 from scipy import ndimage
 
-from .._validate import as_float_array, positive
+from .._validate import as_float_array, positive, user_stacklevel
 from ..fem.elasticity import stiffness_matrix
 from ..fem.loads import penalty_stiffness
 from ..fem.material import Material
@@ -615,8 +616,8 @@ def _stack_border(H, y, R, border, mesh: TriMesh, pixel_size_m: float) -> tuple:
     if yb.shape != (F, m) or Rb.shape != (F, m, m):
         raise ValueError(f"border: expected the data of F = {F} frames, got y {yb.shape} and R {Rb.shape} for "
                          f"{m} rows")
-    if not (np.all(np.isfinite(yb)) and np.all(np.isfinite(Rb))):
-        raise ValueError("border: expected finite data and covariances")
+    if not (np.all(np.isfinite(yb) | np.isnan(yb)) and np.all(np.isfinite(Rb))):
+        raise ValueError("border: expected finite covariances and data finite or NaN (missing), got infinity")
     Rs = np.zeros((F, n + m, n + m))
     Rs[:, :n, :n] = R
     Rs[:, n:, n:] = Rb
@@ -750,6 +751,8 @@ def mask_noise_level_ml(mesh: TriMesh, tracks: LagrangianDisplacement, pixel_siz
     -------
     (factor, table)
         The chosen factor on ``R_b`` and ``{candidate: [log-evidence, c]}`` of the candidates evaluated.
+        When the evidence is largest at the largest candidate (the masks disagree with the phase data
+        more than any level tried), a ``RuntimeWarning`` says so.
     """
     say = progress if progress is not None else (lambda msg: None)
     fs = sorted(float(positive("candidates", v)) for v in candidates)
@@ -782,6 +785,12 @@ def mask_noise_level_ml(mesh: TriMesh, tracks: LagrangianDisplacement, pixel_siz
             hi += 1
         else:
             break
+    if len(fs) > 1 and k == len(ev) - 1 and hi == len(fs) - 1:
+        warnings.warn(f"masks: their evidence still rises at the largest factor on their variance tried (x {fs[-1]:g}): "
+                      "the masks' borders disagree with the phase data's motion more than any level allows, so they "
+                      "get the least weight offered, which may still be too much; check that the masks belong to "
+                      "these images (the reference mask at the encoding, then each frame's), or run without them "
+                      "(--no-masks; border_masks=False)", RuntimeWarning, stacklevel=user_stacklevel())
     return _best_on_log_grid(np.array(fs[lo:hi + 1]), np.array(ev)), table
 
 

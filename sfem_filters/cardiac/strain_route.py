@@ -249,7 +249,7 @@ __all__ = ["StrainRouteSettings", "DenseStrain", "NodalFitModel", "reference_mes
            "ObservationScaling", "border_masks_data", "phase_noise_level", "PHASE_NOISE_LEVELS",
            "BORDER_CORRESPONDENCES", "PROCESS_PROFILES",
            "process_profile_from_data", "image_settings", "route_settings", "dense_case_strain",
-           "masks_move", "masks_can_be_fused"]
+           "masks_move", "masks_can_be_fused", "unusable_mask_frames"]
 
 
 #: How the phase data's noise level is set beside the masks (``StrainRouteSettings.phase_noise_level``).
@@ -836,20 +836,29 @@ def masks_move(masks) -> bool:
     return bool(np.any(m[1:] != m[:1]))
 
 
-def masks_can_be_fused(masks) -> bool:
-    """Whether every frame's mask is one ring around one cavity, up to a defect of a pixel or two.
-
-    The masks' data come from their borders, tracked frame to frame
-    (:mod:`sfem_filters.cardiac.border_data`), which needs a ring in every frame;
-    :func:`sfem_filters.imaging.repair_myocardium_mask` mends small defects. When a frame's mask cannot be mended, this warns (naming the frames) and returns
-    False, so that a default that would fuse the masks uses the phase alone instead of stopping.
+def unusable_mask_frames(masks) -> tuple:
+    """The frames whose myocardium mask cannot be made one ring around one cavity, and the first reason.
 
     Parameters
     ----------
     masks : (F + 1, H, W) bool array
         The reference mask (index 0) then each frame's.
+
+    Returns
+    -------
+    (bad, reason) : (list of int, str or None)
+        ``bad``: indices in the (F + 1, H, W) stack (frame index + 1) of the masks that
+        :func:`sfem_filters.imaging.repair_myocardium_mask` cannot mend; ``reason``: its error for
+        the first of them (None when there is none).
+
+    Raises
+    ------
+    ValueError
+        When the reference mask (index 0) itself cannot be mended (naming ``reference_mask``): every
+        route meshes it, so no choice of data can go on without it.
     """
     m = as_mask("masks", masks, ndim=3)
+    repair_myocardium_mask(m[0], "reference_mask")
     bad, first = [], None
     for f in range(1, len(m)):
         try:
@@ -857,12 +866,45 @@ def masks_can_be_fused(masks) -> bool:
         except ValueError as exc:
             bad.append(f)
             first = first or str(exc)
-    if bad:
-        warnings.warn(f"masks: the mask(s) of index {bad} in the (F + 1, H, W) stack (frame index + 1) cannot be "
-                      f"made one ring around one cavity ({first}), so their borders cannot be tracked; the DENSE "
-                      f"route uses the phase alone (border_masks=False; on the command line --with-masks makes "
-                      f"this an error)", RuntimeWarning, stacklevel=2)
-    return not bad
+    return bad, first
+
+
+def masks_can_be_fused(masks, every_frame: bool = False) -> bool:
+    """Whether the frames' masks can join the DENSE route's data: a ring around one cavity where they are used.
+
+    The masks' data come from their borders (:mod:`sfem_filters.cardiac.border_data`), which need
+    a ring; :func:`sfem_filters.imaging.repair_myocardium_mask` mends small defects. Guided border
+    data (the default, ``border_correspondence="phase"``) read each frame's mask on its own, so a
+    frame whose mask cannot be mended only leaves its border rows out (that frame observes the
+    phase alone; :func:`sfem_filters.cardiac.border_data.guided_border_data` warns, naming it); the
+    masks are fused while at least one frame's can be read. Landmarks tracked from frame to frame
+    (``every_frame=True``, ``border_correspondence="landmarks"``) need every frame's. When the masks
+    cannot be fused this warns (naming the frames) and returns False, so that a default that would
+    fuse them uses the phase alone instead of stopping.
+
+    Parameters
+    ----------
+    masks : (F + 1, H, W) bool array
+        The reference mask (index 0) then each frame's.
+    every_frame : bool
+        Whether every frame's mask must be a ring (landmark tracking), not only one.
+
+    Raises
+    ------
+    ValueError
+        A reference mask that cannot be mended (:func:`unusable_mask_frames`).
+    """
+    bad, first = unusable_mask_frames(masks)
+    n = len(masks) - 1
+    if not bad or (not every_frame and len(bad) < n):
+        return True
+    which = "some frames' masks" if every_frame else "no frame's mask"
+    warnings.warn(f"masks: the mask(s) of index {bad} in the (F + 1, H, W) stack (frame index + 1) cannot be "
+                  f"made one ring around one cavity ({first}); with {which} readable their borders cannot be "
+                  f"{'tracked' if every_frame else 'read'}, so the DENSE route uses the phase alone "
+                  f"(border_masks=False; on the command line --with-masks makes this an error)", RuntimeWarning,
+                  stacklevel=2)
+    return False
 
 
 def image_settings(case, **overrides) -> StrainRouteSettings:
@@ -878,7 +920,8 @@ def image_settings(case, **overrides) -> StrainRouteSettings:
     * ``border_masks``: True when the frames' masks move (:func:`masks_move`): their borders'
       motion across the border joins the phase data, which the point spread biases at the
       endocardium; with one mask for every frame there is nothing to fuse; False, with a warning,
-      when a frame's mask is not a ring that can be mended (:func:`masks_can_be_fused`);
+      when no frame's mask is a ring that can be mended (:func:`masks_can_be_fused`; a frame whose
+      mask cannot be only leaves its border rows out);
     * ``phase_noise_level`` and ``mask_noise_level``: ``"evidence"`` with the masks (each source
       weighed by the noise it shows: the phase data's level from a pass of their own, the masks'
       beside it from the fused model's evidence);
@@ -899,7 +942,8 @@ def image_settings(case, **overrides) -> StrainRouteSettings:
     """
     _check_case(case)
     resolution = overrides.pop("resolution_px", case.resolution_px)
-    fuse = masks_move(case.masks) and ("border_masks" in overrides or masks_can_be_fused(case.masks))
+    every = overrides.get("border_correspondence", StrainRouteSettings.border_correspondence) == "landmarks"
+    fuse = masks_move(case.masks) and ("border_masks" in overrides or masks_can_be_fused(case.masks, every))
     return route_settings(resolution, fuse, **overrides)
 
 

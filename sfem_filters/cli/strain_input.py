@@ -109,14 +109,15 @@ def _dense_settings(args, src: dict) -> StrainRouteSettings:
         else:
             got = "masks that do not move (every frame's is the reference's): their borders carry no motion"
         raise ValueError(f"--with-masks: expected the myocardium mask of every frame, moving with the wall, got {got}")
-    fuse = (moving and masks_can_be_fused(masks)) if fuse is None else fuse
     level = getattr(args, "phase_noise_level", None)
     starts = getattr(args, "border_starts", None)
     starts = None if starts == 1 else starts                 # the default: nothing to average, fused or not
-    why = ("(--no-masks)" if getattr(args, "masks_fusion", None) is False
-           else "(a frame's mask cannot be made one ring; the warning above names it)" if moving
-           else "(no mask of every frame that moves)")
     correspondence = getattr(args, "border_correspondence", None)
+    tracked = correspondence == "landmarks" or (correspondence is None and starts is not None)
+    fuse = (moving and masks_can_be_fused(masks, every_frame=tracked)) if fuse is None else fuse
+    why = ("(--no-masks)" if getattr(args, "masks_fusion", None) is False
+           else "(the frames' masks cannot be made rings; the warning above names them)" if moving
+           else "(no mask of every frame that moves)")
     mask_level = getattr(args, "mask_noise_level", None)
     for flag, given_value, what in (("--phase-noise-level", level, "weighs the phase data against the masks"),
                                     ("--mask-noise-level", mask_level, "weighs the masks against the phase data"),

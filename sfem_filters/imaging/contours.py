@@ -9,14 +9,16 @@ centre, so that index k of two frames' contours points roughly the same way.
 """
 from __future__ import annotations
 
+import re
 import warnings
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
 from scipy.ndimage import binary_closing, distance_transform_edt, gaussian_filter1d
 from skimage.measure import find_contours, label
 
-from .._validate import as_float_array, as_mask
+from .._validate import as_float_array, as_mask, user_stacklevel
 from ..geometry import polygon_centroid, signed_area
 
 
@@ -217,6 +219,59 @@ def _orient_and_start(xy, centre, start_rad: float = 0.0):
     d = xy - centre
     k = int(np.argmin(np.abs(np.angle(np.exp(1j * (np.arctan2(d[:, 1], d[:, 0]) - start_rad))))))
     return np.roll(xy, -k, axis=0)
+
+
+_MENDED = ": not one ring around one cavity; mended before its borders are taken: "
+
+
+@contextmanager
+def mended_masks_summarised():
+    """Within this context the mending warnings of :func:`mask_borders` (one per mask) are collected and given
+    as one at its end, naming every mended mask with what was changed; other warnings pass as they were.
+
+    A sequence of coarse masks may carry the same defect in every frame (a stray pixel, a pinhole): one
+    line, not one per frame. A single mended mask keeps :func:`mask_borders`'s own message.
+    """
+    caught = []
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            yield
+    finally:                                            # given even when the masks then fail
+        _summarise_mended(caught)
+
+
+def _summarise_mended(caught) -> None:
+    groups = {}
+    for w in caught:
+        text = str(w.message)
+        if issubclass(w.category, RuntimeWarning) and _MENDED in text:
+            name, changes = text.split(_MENDED, 1)
+            groups.setdefault(changes, []).append(name)
+        else:
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno, source=w.source)
+    names = [n for group in groups.values() for n in group]
+    if len(names) == 1:
+        warnings.warn(names[0] + _MENDED + next(iter(groups)), RuntimeWarning, stacklevel=user_stacklevel())
+    elif names:
+        what = "; ".join(f"{changes} ({_mask_names(group)})" if len(groups) > 1 else changes
+                         for changes, group in groups.items())
+        warnings.warn(f"{len(names)} masks ({_mask_names(names)}): not one ring around one cavity; mended before "
+                      f"their borders are taken: {what}", RuntimeWarning, stacklevel=user_stacklevel())
+
+
+def _mask_names(names) -> str:
+    """``masks[0-5, 7]`` for names ``masks[i]`` (runs of indices joined), else the names joined by commas."""
+    found = [re.fullmatch(r"masks\[(\d+)\]", n) for n in names]
+    if not all(found):
+        return ", ".join(names)
+    idx = sorted(int(f.group(1)) for f in found)
+    runs, start = [], idx[0]
+    for a, b in zip(idx, idx[1:] + [None]):
+        if b != a + 1:
+            runs.append(str(start) if start == a else f"{start}-{a}")
+            start = b
+    return f"masks[{', '.join(runs)}]"
 
 
 def mask_borders(mask, n_endo: int = 64, n_epi: int = 96, smooth: float = 0.0, name: str = "mask",

@@ -20,7 +20,7 @@ import scipy.sparse.linalg as spla
 
 from .._validate import non_negative, positive
 from .confidence import goodness_uniqueness, match_confidence, segment_bending_energy, weighted_std
-from .contours import closest_on_polyline, curvature, mask_borders, smooth_closed
+from .contours import closest_on_polyline, curvature, mask_borders, mended_masks_summarised, smooth_closed
 
 
 @dataclass(frozen=True)
@@ -260,7 +260,7 @@ def track_masks(masks, options: TrackingOptions | None = None) -> BoundaryTracks
         raise ValueError(f"masks: expected an (F, H, W) mask sequence, got shape {m.shape}")
     if len(m) < 2:
         raise ValueError(f"masks: expected at least 2 frames, got {len(m)}")
-    borders = []
-    for t in range(len(m)):
-        borders.append(mask_borders(m[t], opts.n_endo, opts.n_epi, name=f"masks[{t}]", start_deg=opts.start_deg))
+    with mended_masks_summarised():                     # one warning for every mended mask, not one each
+        borders = [mask_borders(m[t], opts.n_endo, opts.n_epi, name=f"masks[{t}]", start_deg=opts.start_deg)
+                   for t in range(len(m))]
     return track_borders(borders, opts)

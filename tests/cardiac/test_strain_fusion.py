@@ -7,6 +7,7 @@ the pixels whose reference radius lies in the wall. The phase tracks are made to
 cavity's signal leaking into the first layers' phase, as in DENSE-Sim): the masks are not.
 """
 import json
+import warnings
 from dataclasses import asdict, replace
 
 import numpy as np
@@ -400,3 +401,67 @@ def test_guided_border_data_are_zero_when_nothing_moves_on_either_mesh(ring, kin
     mesh = reference_mesh(ref, PX, kind, 2.0)
     g = guided_border_data(mesh, np.repeat(ref[None], 4, axis=0), np.zeros((3, mesh.n_nodes, 2)), PX)
     assert g.y.shape[1] == len(g.nodes) > 20 and np.max(np.abs(g.y)) / PX < 1e-9
+
+
+def _cut(mask, width_px=3.0):
+    """``mask`` with a radial gap of ``width_px`` rows through its wall on the +x side: no cavity, not mendable."""
+    yy, xx = np.mgrid[0:mask.shape[0], 0:mask.shape[1]]
+    return mask & ~((np.abs(yy - CENTRE[1]) <= width_px / 2) & (xx > CENTRE[0]))
+
+
+def test_a_frame_whose_mask_cannot_be_read_leaves_only_its_own_border_rows_out(ring):
+    """Guided border data read each frame's mask on their own: a frame whose mask is cut through (no cavity) has
+    missing data (NaN), with a warning naming it, and every other frame's are those of the intact masks; the route
+    then fuses the other frames' borders, and its radial strain stays near the intact masks' estimate, nearer than
+    the phase alone (which leaving every frame out, as before, gave)."""
+    from sfem_filters.cardiac.border_data import guided_border_data
+    ref, tracks, masks, err = ring
+    mesh = reference_mesh(ref, PX, "gmsh", 2.0)
+    guide = _true_node_motion(mesh)
+    whole = guided_border_data(mesh, masks, guide, PX)
+    cut = masks.copy()
+    cut[4] = _cut(cut[4])
+    with pytest.warns(RuntimeWarning, match=r"masks: the mask\(s\) of frame\(s\) \[3\] cannot be made one ring.*"
+                                            r"left out \(those frames observe the phase alone\)"):
+        part = guided_border_data(mesh, cut, guide, PX)
+    assert np.all(np.isnan(part.y[3])) and np.all(np.isfinite(np.delete(part.y, 3, axis=0)))
+    assert np.allclose(np.delete(part.y, 3, axis=0), np.delete(whole.y, 3, axis=0))
+    assert np.all(np.isfinite(part.R))
+    every = masks.copy()
+    every[1:] = [_cut(m) for m in masks[1:]]
+    with pytest.raises(ValueError, match="masks: expected at least one frame's mask that can be made one ring"):
+        guided_border_data(mesh, every, guide, PX)
+    with pytest.raises(ValueError, match=r"masks\[0\]: expected a ring"):
+        guided_border_data(mesh, np.concatenate([_cut(masks[0])[None], masks[1:]]), guide, PX)
+    # through the route: the other frames' borders still pull the lagging endocardium back
+    cfg = StrainRouteSettings(element_px=2.0, border_masks=True, phase_noise_level="evidence",
+                              process_profile="constant")           # the phase data at their own level: masks count
+    fused = dense_strain(tracks, ref, PX, cfg, masks=masks)
+    with pytest.warns(RuntimeWarning, match=r"frame\(s\) \[3\]"):
+        gapped = dense_strain(tracks, ref, PX, cfg, masks=cut)
+    alone = dense_strain(tracks, ref, PX, replace(cfg, border_masks=False, phase_noise_level="stated"))
+    rmse = {k: float(np.sqrt(np.mean((r.Err - err) ** 2))) for k, r in (("fused", fused), ("gapped", gapped),
+                                                                         ("alone", alone))}
+    assert np.all(np.isfinite(gapped.Err)) and np.all(np.isfinite(gapped.Err_sd)), rmse
+    assert rmse["gapped"] < 0.75 * rmse["alone"] and rmse["gapped"] < 1.25 * rmse["fused"]
+
+
+def test_masks_that_disagree_with_the_phase_beyond_every_level_are_named():
+    """Border data with 6 px of noise (twenty times a binary border's quantisation, far beyond the largest
+    factor on their variance): the evidence rises to the grid's end, the least weight offered is taken, and a
+    warning says that the masks may not belong to these images; masks as drawn give no such warning."""
+    from sfem_filters.cardiac.dense_model import MASK_LEVELS, mask_noise_level_ml, phase_only_pass
+    ref, tracks, masks, _ = _ring(lag=0.0)
+    mesh = reference_mesh(ref, PX, "gmsh", 2.0)
+    cfg = StrainRouteSettings(element_px=2.0, border_masks=True, phase_noise_level="evidence",
+                              mask_noise_level="evidence")
+    c, guide = phase_only_pass(mesh, tracks, PX, cfg, smooth=True)
+    border = border_masks_data(masks, ref, len(AREAS), mesh, PX, guide_px=guide)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        mask_noise_level_ml(mesh, tracks, PX, cfg, border, c)
+    rng = np.random.default_rng(2)
+    wild = replace(border, y=border.y + 6.0 * PX * rng.standard_normal(border.y.shape))
+    with pytest.warns(RuntimeWarning, match=r"masks: their evidence still rises at the largest factor .*--no-masks"):
+        f, table = mask_noise_level_ml(mesh, tracks, PX, cfg, wild, c)
+    assert max(table) == max(MASK_LEVELS) and f == pytest.approx(max(MASK_LEVELS))

@@ -14,9 +14,9 @@ import pytest
 from hypothesis import given, settings, strategies as st
 from scipy.ndimage import binary_erosion
 
-from sfem_filters.cardiac.strain_route import image_settings, masks_can_be_fused
+from sfem_filters.cardiac.strain_route import image_settings, masks_can_be_fused, unusable_mask_frames
 from sfem_filters.imaging import check_myocardium_mask, mask_borders, read_dense_sim, repair_myocardium_mask
-from sfem_filters.imaging.contours import MAX_REPAIR_FRACTION
+from sfem_filters.imaging.contours import MAX_REPAIR_FRACTION, mended_masks_summarised
 
 DATA = Path(os.environ.get("SFEM_FILTERS_DATA", Path(__file__).resolve().parents[3] / "shared" / "data"))
 CASE = DATA / "dense_sim" / "phantom_subject_1"
@@ -146,15 +146,26 @@ def test_the_borders_of_a_mended_mask_warn_and_name_it():
     assert np.allclose(b.endo, clean.endo) and np.allclose(b.epi, clean.epi)
 
 
-def test_a_frame_mask_that_cannot_be_mended_leaves_the_dense_route_on_the_phase_alone():
+def test_a_frame_mask_that_cannot_be_mended_is_left_out_and_none_readable_leaves_the_phase_alone():
     ring = annulus()
     moved = annulus(outer=14.0)
     good = np.stack([ring, moved, moved])
-    assert masks_can_be_fused(good)
+    assert masks_can_be_fused(good) and unusable_mask_frames(good) == ([], None)
+    half = moved & (np.mgrid[0:48, 0:48][1] < 24)              # half a ring: no cavity, a wide cut
     bad = good.copy()
-    bad[2] = moved & (np.mgrid[0:48, 0:48][1] < 24)            # half a ring: no cavity, a wide cut
-    with pytest.warns(RuntimeWarning, match=r"index \[2\].*phase alone"):
+    bad[2] = half
+    found, reason = unusable_mask_frames(bad)
+    assert found == [2] and reason.startswith("masks[2]: expected a ring")
+    with warnings.catch_warnings():                            # guided border data read each frame on its own
+        warnings.simplefilter("error")
+        assert masks_can_be_fused(bad)
+    with pytest.warns(RuntimeWarning, match=r"index \[2\].*some frames' masks readable.*tracked.*phase alone"):
+        assert not masks_can_be_fused(bad, every_frame=True)  # landmarks tracked from frame to frame need each
+    bad[1] = half
+    with pytest.warns(RuntimeWarning, match=r"index \[1, 2\].*no frame's mask readable.*phase alone"):
         assert not masks_can_be_fused(bad)
+    with pytest.raises(ValueError, match="reference_mask: expected a ring"):    # the reference is meshed: an error
+        masks_can_be_fused(np.stack([half, moved, moved]))
 
 
 @pytest.mark.skipif(not (CASE / "config.yaml").is_file(), reason="the DENSE-Sim case is not here")
@@ -167,10 +178,45 @@ def test_image_settings_fuse_mended_masks_and_fall_back_from_broken_ones():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         assert image_settings(replace(case, masks=masks)).border_masks
-    masks[5] = False                                           # no myocardium in one frame: the phase alone
-    with pytest.warns(RuntimeWarning, match=r"index \[5\]"):
+    masks = case.masks.copy()
+    r, c = np.nonzero(masks[0])
+    gap = (np.abs(np.arange(masks.shape[1])[:, None] - r.mean()) <= 1.5) & (np.arange(masks.shape[2]) > c.mean())
+    masks[5] &= ~gap                                           # a cut of 3 px in one frame: that frame left out
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert image_settings(replace(case, masks=masks)).border_masks
+    with pytest.warns(RuntimeWarning, match=r"index \[5\].*tracked"):       # but landmarks need every frame
+        assert not image_settings(replace(case, masks=masks), border_correspondence="landmarks").border_masks
+    masks[1:] &= ~gap                                          # no frame's: the phase alone
+    with pytest.warns(RuntimeWarning, match=r"index \[1, 2, .*no frame's mask"):
         assert not image_settings(replace(case, masks=masks)).border_masks
     # asked for explicitly, no check and no warning: the route then says what is wrong
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         assert image_settings(replace(case, masks=masks), border_masks=True).border_masks
+
+
+def test_the_mending_of_many_masks_is_one_warning_naming_each_and_what_changed():
+    stray = annulus()
+    stray[0, 0] = True
+    hole = annulus()
+    hole[23, 23 + 10] = False                                  # a pinhole in the wall (radius 10 of 8-13)
+    with warnings.catch_warnings(record=True) as rec:
+        warnings.simplefilter("always")
+        with mended_masks_summarised():
+            for t, m in enumerate([stray, stray, annulus(), hole]):
+                mask_borders(m, name=f"masks[{t}]")
+            warnings.warn("something else", UserWarning)       # passes as it was
+    said = [str(w.message) for w in rec if issubclass(w.category, RuntimeWarning)]
+    assert len(said) == 1 and said[0].startswith("3 masks (masks[0-1, 3]): not one ring")
+    assert "removed 1 stray piece(s) of 1 px (masks[0-1])" in said[0]
+    assert "filled 1 hole(s) of 1 px in the wall (masks[3])" in said[0]
+    assert [str(w.message) for w in rec if issubclass(w.category, UserWarning)] == ["something else"]
+    with pytest.warns(RuntimeWarning, match=r"^masks\[1\]: not one ring around one cavity; mended"):   # one: as is
+        with mended_masks_summarised():
+            mask_borders(stray, name="masks[1]")
+    with pytest.warns(RuntimeWarning, match=r"^masks\[0\]: not one ring") as rec:     # given before an error too
+        with pytest.raises(ValueError, match=r"masks\[1\]: expected"):
+            with mended_masks_summarised():
+                mask_borders(stray, name="masks[0]")
+                mask_borders(annulus() & (np.mgrid[0:48, 0:48][1] < 24), name="masks[1]")
