@@ -9,7 +9,8 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from sfem_filters.imaging import read_dense_sim, truth_at_points  # noqa: E402
-from validation.strain_variants import every_other_frame, mirrored, transposed  # noqa: E402
+from sfem_filters.cardiac.strain_route import unusable_mask_frames  # noqa: E402
+from validation.strain_variants import CUT_EVERY, CUT_FIRST, every_other_frame, masks_cut, mirrored, transposed  # noqa: E402,E501
 
 DATA = Path(os.environ.get("SFEM_FILTERS_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
 CASE = DATA / "dense_sim" / "phantom_subject_1"
@@ -55,3 +56,16 @@ def test_half_the_frame_rate_keeps_every_second_frame(case):
     assert np.array_equal(h.phases, case.phases[:, keep])
     assert np.array_equal(h.masks[0], case.masks[0]) and np.array_equal(h.masks[1:], case.masks[1:][keep])
     assert np.array_equal(h.truth_err, case.truth_err[keep], equal_nan=True)
+
+
+def test_the_cut_masks_are_no_rings_where_cut_and_nothing_else_changes(case):
+    c = masks_cut(case)
+    frames = np.arange(CUT_FIRST, case.n_frames, CUT_EVERY)
+    assert unusable_mask_frames(c.masks)[0] == list(frames + 1)        # no mending bridges the cut
+    assert unusable_mask_frames(case.masks)[0] == []
+    others = np.setdiff1d(np.arange(case.n_frames + 1), frames + 1)
+    assert np.array_equal(c.masks[others], case.masks[others])
+    assert np.all(c.masks[frames + 1] <= case.masks[frames + 1])        # only tissue taken away
+    assert (case.masks[frames + 1] & ~c.masks[frames + 1]).sum(axis=(1, 2)).min() >= 3 * 3
+    for name in ("phases", "magnitude", "truth_ecc", "truth_err"):
+        assert np.array_equal(getattr(c, name), getattr(case, name), equal_nan=True)

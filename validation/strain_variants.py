@@ -1,7 +1,9 @@
-"""The same heart mirrored, transposed or sampled at half the frame rate: what the DENSE route depends on.
+"""The same heart mirrored, transposed, sampled at half the frame rate or with broken masks: what the DENSE route
+depends on.
 
 The checks of issue 42 also run on DENSE-Sim cases we are not given, which may lie in another
-orientation on the image grid or come at another frame rate. This claim takes each given case,
+orientation on the image grid, come at another frame rate or carry a frame's mask that is no ring.
+This claim takes each given case,
 adds the spec's noise once (SNR 30, seed 0, :func:`sfem_filters.imaging.add_complex_noise`), and
 runs the DENSE route's default for images (:func:`sfem_filters.cardiac.dense_case_strain` with
 :func:`sfem_filters.cardiac.image_settings`, what ``sfem-filters strain`` runs) on:
@@ -15,6 +17,12 @@ runs the DENSE route's default for images (:func:`sfem_filters.cardiac.dense_cas
   have no contour start);
 * **every second frame** of the noisy case (half the frame rate, the frame times kept), scored
   beside the case as given scored on the same frames;
+* the case as given with the masks of every :data:`CUT_EVERY`-th frame (frames 2, 8, 14, ...) cut
+  through on one side (:func:`masks_cut`: a radial gap of 3 pixels that no mending bridges), the
+  route's default, which leaves those frames' border data out and fuses the others' (row "masks of
+  every 6th frame cut"), beside the same case on the phase alone, what the route fell back to
+  before for any frame whose mask it could not read (row "..., the phase alone (the fallback
+  before)");
 * as given, mirrored and transposed again with the masks' border data from landmarks tracked by
   bending-energy matching (``border_correspondence="landmarks"``, the route's default before the
   phase placed the border), averaged over :data:`STARTS` contour start angles (``border_starts``,
@@ -25,7 +33,7 @@ Each run is scored against its own truth with the strain page's metrics
 (:func:`sfem_filters.benchmark.score_strain`; segments from 0 degrees in each variant's own image,
 so the segment rows of a mirrored case cover other tissue than the unmirrored's: compare their
 means, the global curve and the pixels, which cover the same tissue). Quick tier: the phantom, its
-first 6 frames, as given, mirrored and as given over the contour starts.
+first 6 frames, as given, mirrored, with frame 2's mask cut and as given over the contour starts.
 """
 from __future__ import annotations
 
@@ -43,14 +51,19 @@ from .strain_dense_sim import METRICS, _truncated, case_folders
 
 NAME = "strain_variants"
 NEEDS_DATA = True
-TITLE = "The same heart mirrored, transposed or at half the frame rate: the DENSE route's strain"
-FULL_COST = "about 10 min"
+TITLE = "The same heart mirrored, transposed, at half the frame rate or with broken masks: the DENSE route's strain"
+FULL_COST = "about 15 min"
 #: Contour start angles of the averaged rows (:class:`sfem_filters.cardiac.StrainRouteSettings` ``border_starts``).
 STARTS = 8
 AVERAGED = f", landmarks over {STARTS} contour starts"
-VARIANTS = ("as given", "mirrored", "transposed", "every 2nd frame", "as given" + AVERAGED, "mirrored" + AVERAGED,
-            "transposed" + AVERAGED)
-TIERS = {"quick": {"cases": ["phantom_subject_1"], "frames": 6, "variants": ["as given", "mirrored", "as given" + AVERAGED],
+#: Every this-many-th frame's mask is cut (:func:`masks_cut`), from frame :data:`CUT_FIRST` on.
+CUT_EVERY, CUT_FIRST = 6, 2
+CUT = f"masks of every {CUT_EVERY}th frame cut"
+CUT_ALONE = CUT + ", the phase alone (the fallback before)"
+VARIANTS = ("as given", "mirrored", "transposed", "every 2nd frame", CUT, CUT_ALONE, "as given" + AVERAGED,
+            "mirrored" + AVERAGED, "transposed" + AVERAGED)
+TIERS = {"quick": {"cases": ["phantom_subject_1"], "frames": 6, "variants": ["as given", "mirrored", CUT,
+                                                                             "as given" + AVERAGED],
                    "snr": 30.0, "seed": 0},
          "full": {"cases": [], "frames": None, "variants": list(VARIANTS), "snr": 30.0, "seed": 0}}
 TOLERANCES = {"*": (1e-6, 1e-9), "seconds": None}
@@ -93,6 +106,23 @@ def every_other_frame(case):
                    truth_ecc=pick(case.truth_ecc), truth_err=pick(case.truth_err))
 
 
+def masks_cut(case, every: int = CUT_EVERY, first: int = CUT_FIRST, width_px: float = 3.0):
+    """``case`` with the masks of frames ``first``, ``first + every``, ... cut through the wall on the +x side.
+
+    The gap is the rows within ``width_px / 2`` of the reference mask's centre row, right of its
+    centre column: a cut of 3 pixels, wider than the two that
+    :func:`sfem_filters.imaging.repair_myocardium_mask` bridges, so those masks have no cavity. The
+    reference mask, the phases, the magnitude and the truth are unchanged.
+    """
+    rows, cols = np.nonzero(case.reference_mask)
+    yy, xx = np.mgrid[0:case.shape[0], 0:case.shape[1]]
+    gap = (np.abs(yy - rows.mean()) <= width_px / 2) & (xx > cols.mean())
+    masks = case.masks.copy()
+    frames = np.arange(first, case.n_frames, every)
+    masks[frames + 1] &= ~gap
+    return replace(case, masks=masks)
+
+
 def _score(r, truth, frames=None):
     f = slice(None) if frames is None else frames
     seg = {q: tuple(b[:, f] for b in r.band(q)) for q in ("Ecc", "Err")}
@@ -114,12 +144,14 @@ def case_rows(folder, settings) -> list:
                        settings["frames"])
     rows, base = [], None
     make = {"as given": lambda c: c, "mirrored": mirrored, "transposed": transposed,
-            "every 2nd frame": every_other_frame}
+            "every 2nd frame": every_other_frame, CUT: masks_cut, CUT_ALONE: masks_cut}
     for variant in settings["variants"]:
         turn = variant.removesuffix(AVERAGED)
         case = make[turn](noisy)
+        extra = ({"border_starts": STARTS, "border_correspondence": "landmarks"} if turn != variant
+                 else {"border_masks": False} if variant == CUT_ALONE else {})
         t0 = time.perf_counter()
-        r = dense_case_strain(case, image_settings(case, **({"border_starts": STARTS, "border_correspondence": "landmarks"} if turn != variant else {})))
+        r = dense_case_strain(case, image_settings(case, **extra))
         seconds = time.perf_counter() - t0
         truth = truth_at_points(case)
         if variant == "as given":
