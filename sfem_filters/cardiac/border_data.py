@@ -416,9 +416,9 @@ def guided_border_data(mesh: TriMesh, masks, guide_px, pixel_size_m: float,
         if len(skipped) == F:
             raise ValueError(f"masks: expected at least one frame's mask that can be made one ring around one cavity, "
                              f"got none ({skipped[0][1]})")
-        warnings.warn(f"masks: the mask(s) of frame(s) {[f for f, _ in skipped]} cannot be made one ring around one "
-                      f"cavity ({skipped[0][1]}): their border data are left out (those frames observe the phase "
-                      "alone)", RuntimeWarning, stacklevel=user_stacklevel())
+        warnings.warn(f"masks: the mask(s) of frame(s) {[f for f, _ in skipped]} (masks{[f + 1 for f, _ in skipped]}) "
+                      f"cannot be made one ring around one cavity ({skipped[0][1]}): their border data are left out "
+                      "(those frames observe the phase alone)", RuntimeWarning, stacklevel=user_stacklevel())
     try:
         floor = temporal_noise_floor(d[..., None]) if F >= 3 else 0.0
     except ValueError:                                  # no three consecutive frames with data: no floor to read

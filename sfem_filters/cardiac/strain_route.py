@@ -560,9 +560,8 @@ def _fusion_masks(masks, reference_mask, n_frames: int) -> np.ndarray:
                          "points), got a different mask")
     if m.shape[0] == F:
         m = np.concatenate([ref[None], m])
-    empty = np.flatnonzero(~m.any(axis=(1, 2)))
-    if empty.size:
-        raise ValueError(f"masks: expected myocardium in every frame's mask, got none in mask(s) {empty.tolist()}")
+    if not m[1:].any():                 # a frame without myocardium is one whose mask cannot be read (left out)
+        raise ValueError("masks: expected myocardium in the frames' masks, got none in any")
     return m
 
 
@@ -837,7 +836,7 @@ def masks_move(masks) -> bool:
 
 
 def unusable_mask_frames(masks) -> tuple:
-    """The frames whose myocardium mask cannot be made one ring around one cavity, and the first reason.
+    """The masks that cannot be made one ring around one cavity, and the first reason.
 
     Parameters
     ----------
@@ -847,22 +846,15 @@ def unusable_mask_frames(masks) -> tuple:
     Returns
     -------
     (bad, reason) : (list of int, str or None)
-        ``bad``: indices in the (F + 1, H, W) stack (frame index + 1) of the masks that
-        :func:`sfem_filters.imaging.repair_myocardium_mask` cannot mend; ``reason``: its error for
-        the first of them (None when there is none).
-
-    Raises
-    ------
-    ValueError
-        When the reference mask (index 0) itself cannot be mended (naming ``reference_mask``): every
-        route meshes it, so no choice of data can go on without it.
+        ``bad``: indices in the (F + 1, H, W) stack (0 the reference, frame index + 1 a frame) of the
+        masks that :func:`sfem_filters.imaging.repair_myocardium_mask` cannot mend (an empty one
+        included); ``reason``: its error for the first of them (None when there is none).
     """
     m = as_mask("masks", masks, ndim=3)
-    repair_myocardium_mask(m[0], "reference_mask")
     bad, first = [], None
-    for f in range(1, len(m)):
+    for f in range(len(m)):
         try:
-            repair_myocardium_mask(m[f], f"masks[{f}]")
+            repair_myocardium_mask(m[f], "reference_mask" if f == 0 else f"masks[{f}]")
         except ValueError as exc:
             bad.append(f)
             first = first or str(exc)
@@ -872,15 +864,16 @@ def unusable_mask_frames(masks) -> tuple:
 def masks_can_be_fused(masks, every_frame: bool = False) -> bool:
     """Whether the frames' masks can join the DENSE route's data: a ring around one cavity where they are used.
 
-    The masks' data come from their borders (:mod:`sfem_filters.cardiac.border_data`), which need
-    a ring; :func:`sfem_filters.imaging.repair_myocardium_mask` mends small defects. Guided border
-    data (the default, ``border_correspondence="phase"``) read each frame's mask on its own, so a
-    frame whose mask cannot be mended only leaves its border rows out (that frame observes the
-    phase alone; :func:`sfem_filters.cardiac.border_data.guided_border_data` warns, naming it); the
-    masks are fused while at least one frame's can be read. Landmarks tracked from frame to frame
-    (``every_frame=True``, ``border_correspondence="landmarks"``) need every frame's. When the masks
-    cannot be fused this warns (naming the frames) and returns False, so that a default that would
-    fuse them uses the phase alone instead of stopping.
+    The masks' data come from their borders (:mod:`sfem_filters.cardiac.border_data`), read
+    against the reference mask's, which needs a ring in the reference and in the frames used;
+    :func:`sfem_filters.imaging.repair_myocardium_mask` mends small defects. Guided border data (the
+    default, ``border_correspondence="phase"``) read each frame's mask on its own, so a frame whose
+    mask cannot be mended only leaves its border rows out (that frame observes the phase alone;
+    :func:`sfem_filters.cardiac.border_data.guided_border_data` warns, naming it); the masks are
+    fused while the reference's and at least one frame's can be read. Landmarks tracked from frame to
+    frame (``every_frame=True``, ``border_correspondence="landmarks"``) need every frame's. When the
+    masks cannot be fused this warns (naming the masks) and returns False, so that a default that
+    would fuse them does without them instead of stopping.
 
     Parameters
     ----------
@@ -888,22 +881,20 @@ def masks_can_be_fused(masks, every_frame: bool = False) -> bool:
         The reference mask (index 0) then each frame's.
     every_frame : bool
         Whether every frame's mask must be a ring (landmark tracking), not only one.
-
-    Raises
-    ------
-    ValueError
-        A reference mask that cannot be mended (:func:`unusable_mask_frames`).
     """
     bad, first = unusable_mask_frames(masks)
+    frames = [f for f in bad if f > 0]
     n = len(masks) - 1
-    if not bad or (not every_frame and len(bad) < n):
+    if 0 in bad:
+        why = "the reference mask cannot be made one ring around one cavity, so no border can be read against it"
+    elif frames and (every_frame or len(frames) == n):
+        need = "landmarks tracked from frame to frame need every frame's" if every_frame else "no frame's is left"
+        why = (f"the mask(s) of frame(s) {[f - 1 for f in frames]} (index {frames} in the (F + 1, H, W) stack) "
+               f"cannot be made one ring around one cavity, and {need}")
+    else:
         return True
-    which = "some frames' masks" if every_frame else "no frame's mask"
-    warnings.warn(f"masks: the mask(s) of index {bad} in the (F + 1, H, W) stack (frame index + 1) cannot be "
-                  f"made one ring around one cavity ({first}); with {which} readable their borders cannot be "
-                  f"{'tracked' if every_frame else 'read'}, so the DENSE route uses the phase alone "
-                  f"(border_masks=False; on the command line --with-masks makes this an error)", RuntimeWarning,
-                  stacklevel=2)
+    warnings.warn(f"masks: {why} ({first}); the DENSE route does without the masks (border_masks=False; on the "
+                  f"command line --with-masks makes this an error)", RuntimeWarning, stacklevel=user_stacklevel())
     return False
 
 
@@ -920,8 +911,10 @@ def image_settings(case, **overrides) -> StrainRouteSettings:
     * ``border_masks``: True when the frames' masks move (:func:`masks_move`): their borders'
       motion across the border joins the phase data, which the point spread biases at the
       endocardium; with one mask for every frame there is nothing to fuse; False, with a warning,
-      when no frame's mask is a ring that can be mended (:func:`masks_can_be_fused`; a frame whose
-      mask cannot be only leaves its border rows out);
+      when the reference's or no frame's mask is a ring that can be mended, or, with
+      ``border_correspondence="landmarks"`` (tracked from frame to frame), any frame's
+      (:func:`masks_can_be_fused`; with the default, a frame whose mask cannot be only leaves its
+      border rows out);
     * ``phase_noise_level`` and ``mask_noise_level``: ``"evidence"`` with the masks (each source
       weighed by the noise it shows: the phase data's level from a pass of their own, the masks'
       beside it from the fused model's evidence);

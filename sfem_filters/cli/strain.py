@@ -80,7 +80,8 @@ def add_parser(sub) -> None:
                         "the tissue around its pixel, with the signal the images show around the myocardium mixed in "
                         "at the borders (a Gaussian of FWHM W). "
                         f"Default for images '{ACQUISITION}': from the images (DENSE-Sim config: the acquired "
-                        "pixel FOV / N_im_pre_spiral over the images' pixel; a DICOM's Rows and Columns over its AcquisitionMatrix; 1 when they say "
+                        "pixel FOV / N_im_pre_spiral over the images' pixel; a DICOM's Rows and Columns over its "
+                        "AcquisitionMatrix; at least 1, the images' own pixel, and 1 with a warning when they say "
                         "nothing); for a sequence file 1. 1: point observation at the pixel centres (the docs' "
                         "validation page reports both)")
     fusion = s.add_mutually_exclusive_group()

@@ -116,7 +116,7 @@ def _dense_settings(args, src: dict) -> StrainRouteSettings:
     tracked = correspondence == "landmarks" or (correspondence is None and starts is not None)
     fuse = (moving and masks_can_be_fused(masks, every_frame=tracked)) if fuse is None else fuse
     why = ("(--no-masks)" if getattr(args, "masks_fusion", None) is False
-           else "(the frames' masks cannot be made rings; the warning above names them)" if moving
+           else "(the masks it needs cannot be made rings; the warning above names them)" if moving
            else "(no mask of every frame that moves)")
     mask_level = getattr(args, "mask_noise_level", None)
     for flag, given_value, what in (("--phase-noise-level", level, "weighs the phase data against the masks"),

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import re
 import warnings
-from contextlib import contextmanager
+from contextvars import ContextVar
 from dataclasses import dataclass
 
 import numpy as np
@@ -224,32 +224,40 @@ def _orient_and_start(xy, centre, start_rad: float = 0.0):
 _MENDED = ": not one ring around one cavity; mended before its borders are taken: "
 
 
-@contextmanager
-def mended_masks_summarised():
-    """Within this context the mending warnings of :func:`mask_borders` (one per mask) are collected and given
-    as one at its end, naming every mended mask with what was changed; other warnings pass as they were.
+#: The mendings collected by an open :class:`mended_masks_summarised` (None: none open, each mending warns).
+_COLLECTING: ContextVar = ContextVar("sfem_filters_mended_masks", default=None)
+
+
+class mended_masks_summarised:
+    """Within this context the mendings of :func:`mask_borders` (one warning per mask) are collected and given
+    as one warning when it closes, naming every mended mask with what was changed.
 
     A sequence of coarse masks may carry the same defect in every frame (a stray pixel, a pinhole): one
-    line, not one per frame. A single mended mask keeps :func:`mask_borders`'s own message.
+    line, not one per frame. A single mended mask keeps :func:`mask_borders`'s own message. Nothing
+    else is caught: other warnings pass as they are, the warning filters are not touched, and the
+    warning points at the code that opened the context (its caller outside sfem_filters). When an
+    error leaves the context, the summary is still given, but never in place of that error.
     """
-    caught = []
-    try:
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
-            yield
-    finally:                                            # given even when the masks then fail
-        _summarise_mended(caught)
+
+    def __enter__(self):
+        self._token = _COLLECTING.set([])
+        return self
+
+    def __exit__(self, exc_type, exc, tb):
+        mended = _COLLECTING.get()
+        _COLLECTING.reset(self._token)
+        try:
+            _summarise_mended(mended)
+        except Exception:                               # a warning made an error: the error leaving wins
+            if exc_type is None:
+                raise
+        return False
 
 
-def _summarise_mended(caught) -> None:
+def _summarise_mended(mended) -> None:
     groups = {}
-    for w in caught:
-        text = str(w.message)
-        if issubclass(w.category, RuntimeWarning) and _MENDED in text:
-            name, changes = text.split(_MENDED, 1)
-            groups.setdefault(changes, []).append(name)
-        else:
-            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno, source=w.source)
+    for name, changes in mended:
+        groups.setdefault(changes, []).append(name)
     names = [n for group in groups.values() for n in group]
     if len(names) == 1:
         warnings.warn(names[0] + _MENDED + next(iter(groups)), RuntimeWarning, stacklevel=user_stacklevel())
@@ -303,9 +311,11 @@ def mask_borders(mask, n_endo: int = 64, n_epi: int = 96, smooth: float = 0.0, n
         Contours in pixels (x = column, y = row), oriented and started as the module says.
     """
     arr, changes = repair_myocardium_mask(mask, name)
-    if changes:
-        warnings.warn(f"{name}: not one ring around one cavity; mended before its borders are taken: {changes}",
-                      RuntimeWarning, stacklevel=2)
+    collecting = _COLLECTING.get()
+    if changes and collecting is not None:              # one warning for them all (mended_masks_summarised)
+        collecting.append((name, changes))
+    elif changes:
+        warnings.warn(name + _MENDED + changes, RuntimeWarning, stacklevel=2)
     raw = find_contours(np.pad(arr, 1).astype(float), 0.5)
     loops = [np.column_stack([c[:, 1], c[:, 0]]) - 1.0 for c in raw]      # (x, y), undo the padding
     loops = [c[:-1] if np.allclose(c[0], c[-1]) else c for c in loops]

@@ -44,7 +44,9 @@ def check_resolution_px(resolution_px, name: str = "resolution_px") -> float:
     The acquired resolution is the width of the acquisition's own pixel (field of view over the
     acquired matrix) in pixels of the reconstructed image: 1 when the image is reconstructed at
     the acquired matrix, above 1 when it is interpolated (zero-filled) to a finer grid. Below 1
-    would be an image coarser than its data, which no reconstruction makes.
+    would be a blur narrower than the image's own pixel, which no image has: an image resampled to
+    a grid coarser than its data is read as 1 by the readers (:func:`dense_sim_grid`,
+    :func:`dicom_resolution_px`), and a user's value below 1 is an error.
     """
     try:
         w = float(resolution_px)
@@ -549,11 +551,13 @@ def dicom_resolution_px(ds) -> float:
     try:
         f_r, f_c, p_r, p_c = (int(v) for v in am)
         n_rows, n_cols = max(f_r, p_r), max(f_c, p_c)
-        ratio = max(float(rows) / n_rows if n_rows > 0 else 1.0, float(cols) / n_cols if n_cols > 0 else 1.0)
+        ratio = (float("nan") if n_rows <= 0 and n_cols <= 0 else       # no acquired size stated
+                 max(float(rows) / n_rows if n_rows > 0 else 1.0, float(cols) / n_cols if n_cols > 0 else 1.0))
     except (TypeError, ValueError):
         ratio = float("nan")
     if not np.isfinite(ratio):
-        warnings.warn(f"DICOM AcquisitionMatrix: expected four integers (and Rows, Columns) to give the acquired "
+        warnings.warn(f"DICOM AcquisitionMatrix: expected four integers, the acquired rows and columns among them "
+                      f"(and Rows, Columns), to give the acquired "
                       f"resolution, got {am!r}: taken as {DEFAULT_RESOLUTION_PX:g} pixel (no blur beyond the images' "
                       "own pixel); give it with --resolution-px (StrainRouteSettings.resolution_px) if you know it",
                       UserWarning, stacklevel=user_stacklevel())

@@ -129,8 +129,13 @@ def test_bad_masks_are_named(ring):
     with pytest.raises(ValueError, match="masks: expected masks\\[0\\] to be the reference mask"):
         dense_strain(tracks, ref, PX, fused, masks=np.concatenate([masks[1:2], masks[1:]]))
     empty = masks.copy()
-    empty[4] = False
-    with pytest.raises(ValueError, match=r"masks: expected myocardium in every frame's mask, got none in mask\(s\) \["):
+    empty[4] = False                       # one frame without myocardium: left out by the default, named
+    with pytest.warns(RuntimeWarning, match=r"frame\(s\) \[3\] \(masks\[4\]\).*masks\[4\]: expected some tissue"):
+        assert np.all(np.isfinite(dense_strain(tracks, ref, PX, fused, masks=empty).Err))
+    with pytest.raises(ValueError, match=r"masks\[4\]: expected some tissue"):   # landmarks need every frame's
+        dense_strain(tracks, ref, PX, replace(fused, border_correspondence="landmarks"), masks=empty)
+    empty[1:] = False
+    with pytest.raises(ValueError, match=r"masks: expected myocardium in the frames' masks, got none in any"):
         dense_strain(tracks, ref, PX, fused, masks=empty)
     with pytest.raises(ValueError, match="masks: expected a boolean mask"):
         dense_strain(tracks, ref, PX, fused, masks=masks * 2)
@@ -421,7 +426,7 @@ def test_a_frame_whose_mask_cannot_be_read_leaves_only_its_own_border_rows_out(r
     whole = guided_border_data(mesh, masks, guide, PX)
     cut = masks.copy()
     cut[4] = _cut(cut[4])
-    with pytest.warns(RuntimeWarning, match=r"masks: the mask\(s\) of frame\(s\) \[3\] cannot be made one ring.*"
+    with pytest.warns(RuntimeWarning, match=r"masks: the mask\(s\) of frame\(s\) \[3\] \(masks\[4\]\) cannot be made one ring.*"
                                             r"left out \(those frames observe the phase alone\)"):
         part = guided_border_data(mesh, cut, guide, PX)
     assert np.all(np.isnan(part.y[3])) and np.all(np.isfinite(np.delete(part.y, 3, axis=0)))

@@ -149,13 +149,17 @@ def test_a_bad_resolution_is_a_clear_error_naming_it(bad):
     ((0, 96, 80, 0), 160, 192, 2.0),               # frequency along columns: 96 columns, 80 rows acquired
     ((256, 0, 0, 256), 256, 256, 1.0),
     ((256, 0, 0, 256), 128, 128, 1.0),             # a reconstruction coarser than the acquisition: no blur beyond it
-    (None, 128, 128, DEFAULT_RESOLUTION_PX)])
+    (None, 128, 128, DEFAULT_RESOLUTION_PX),
+    ((0, 0, 0, 0), 128, 128, DEFAULT_RESOLUTION_PX)])          # no acquired size stated: 1, a warning
 def test_dicom_resolution_is_the_image_matrix_over_the_acquisition_matrix(matrix, rows, cols, expected):
     ds = Dataset()
     ds.Rows, ds.Columns = rows, cols
     if matrix is not None:
         ds.AcquisitionMatrix = list(matrix)
-        assert dicom_resolution_px(ds) == pytest.approx(expected)
+    if matrix is not None and any(matrix):
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            assert dicom_resolution_px(ds) == pytest.approx(expected)
     else:
         with pytest.warns(UserWarning, match="DICOM AcquisitionMatrix: expected four integers.*--resolution-px"):
             assert dicom_resolution_px(ds) == pytest.approx(expected)

@@ -159,13 +159,15 @@ def test_a_frame_mask_that_cannot_be_mended_is_left_out_and_none_readable_leaves
     with warnings.catch_warnings():                            # guided border data read each frame on its own
         warnings.simplefilter("error")
         assert masks_can_be_fused(bad)
-    with pytest.warns(RuntimeWarning, match=r"index \[2\].*some frames' masks readable.*tracked.*phase alone"):
+    with pytest.warns(RuntimeWarning, match=r"index \[2\].*landmarks tracked from frame to frame need every.*"
+                                            r"does without the masks"):
         assert not masks_can_be_fused(bad, every_frame=True)  # landmarks tracked from frame to frame need each
     bad[1] = half
-    with pytest.warns(RuntimeWarning, match=r"index \[1, 2\].*no frame's mask readable.*phase alone"):
+    with pytest.warns(RuntimeWarning, match=r"frame\(s\) \[0, 1\] \(index \[1, 2\].*no frame's is left"):
         assert not masks_can_be_fused(bad)
-    with pytest.raises(ValueError, match="reference_mask: expected a ring"):    # the reference is meshed: an error
-        masks_can_be_fused(np.stack([half, moved, moved]))
+    with pytest.warns(RuntimeWarning, match=r"the reference mask cannot be made one ring.*reference_mask: expected"):
+        assert not masks_can_be_fused(np.stack([half, moved, moved]))      # no border can be read against it
+    assert unusable_mask_frames(np.stack([half, moved, moved]))[0] == [0]
 
 
 @pytest.mark.skipif(not (CASE / "config.yaml").is_file(), reason="the DENSE-Sim case is not here")
@@ -188,7 +190,7 @@ def test_image_settings_fuse_mended_masks_and_fall_back_from_broken_ones():
     with pytest.warns(RuntimeWarning, match=r"index \[5\].*tracked"):       # but landmarks need every frame
         assert not image_settings(replace(case, masks=masks), border_correspondence="landmarks").border_masks
     masks[1:] &= ~gap                                          # no frame's: the phase alone
-    with pytest.warns(RuntimeWarning, match=r"index \[1, 2, .*no frame's mask"):
+    with pytest.warns(RuntimeWarning, match=r"index \[1, 2, .*no frame's is left"):
         assert not image_settings(replace(case, masks=masks)).border_masks
     # asked for explicitly, no check and no warning: the route then says what is wrong
     with warnings.catch_warnings():
@@ -208,6 +210,7 @@ def test_the_mending_of_many_masks_is_one_warning_naming_each_and_what_changed()
                 mask_borders(m, name=f"masks[{t}]")
             warnings.warn("something else", UserWarning)       # passes as it was
     said = [str(w.message) for w in rec if issubclass(w.category, RuntimeWarning)]
+    assert [w.filename for w in rec if issubclass(w.category, RuntimeWarning)] == [__file__]   # the caller's line
     assert len(said) == 1 and said[0].startswith("3 masks (masks[0-1, 3]): not one ring")
     assert "removed 1 stray piece(s) of 1 px (masks[0-1])" in said[0]
     assert "filled 1 hole(s) of 1 px in the wall (masks[3])" in said[0]
@@ -220,3 +223,24 @@ def test_the_mending_of_many_masks_is_one_warning_naming_each_and_what_changed()
             with mended_masks_summarised():
                 mask_borders(stray, name="masks[0]")
                 mask_borders(annulus() & (np.mgrid[0:48, 0:48][1] < 24), name="masks[1]")
+
+
+def test_the_summary_of_mended_masks_never_takes_the_place_of_an_error_and_touches_no_filter():
+    stray = annulus()
+    stray[0, 0] = True
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)       # a user who makes warnings errors
+        with pytest.raises(ValueError, match=r"masks\[1\]: expected"):
+            with mended_masks_summarised():
+                mask_borders(stray, name="masks[0]")
+                mask_borders(annulus() & (np.mgrid[0:48, 0:48][1] < 24), name="masks[1]")
+        with pytest.raises(RuntimeWarning, match=r"masks\[0\]: not one ring"):   # no error leaving: the warning's
+            with mended_masks_summarised():
+                mask_borders(stray, name="masks[0]")
+    before = list(warnings.filters)
+    with warnings.catch_warnings(record=True) as rec:
+        warnings.simplefilter("always")
+        with mended_masks_summarised():
+            assert warnings.filters[0][0] == "always"        # the filters are the caller's inside, as outside
+            mask_borders(stray, name="masks[0]")
+    assert warnings.filters == before and len(rec) == 1
