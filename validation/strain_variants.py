@@ -192,12 +192,23 @@ def markdown(results: dict) -> str:
                 spread.append(f"{case}{label}: "
                               f"global peak error of Err from {min(g):+.2f} to {max(g):+.2f} over "
                               f"{', '.join(r['variant'].removesuffix(suffix) for r in same)}")
+    cut = []
+    for case in dict.fromkeys(r["case"] for r in results["rows"]):
+        pair = {r["variant"]: r for r in results["rows"] if r["case"] == case and r["variant"] in (CUT, CUT_ALONE)}
+        if len(pair) == 2:
+            a, b = pair[CUT], pair[CUT_ALONE]
+            cut.append(f"{case}: pixel RMSE of Err {a['pixel_rmse_Err']:.2f} against {b['pixel_rmse_Err']:.2f}, "
+                       f"global peak error of Err {a['global_peak_error_Err']:+.2f} against "
+                       f"{b['global_peak_error_Err']:+.2f}, band coverage of Err {a['coverage_pct_Err']:.1f}% against "
+                       f"{b['coverage_pct_Err']:.1f}%")
     return (md_table(cols, body) + f"\n\nOne noise draw (SNR {results['snr']:g}, seed {results['seed']}) added to each "
             "case as given; every variant transforms those noisy images, so the rows of a case see the same noise. "
             "Strain in percentage points (Green-Lagrange), peak errors signed (estimate - truth), band coverage of the "
             "segment curves by their 95% bands; segments from 0 degrees in each variant's own image. Seconds: the "
             "route's wall time."
-            + ("\n\nThe same tissue in another orientation (" + "; ".join(spread) + ")." if spread else ""))
+            + ("\n\nThe same tissue in another orientation (" + "; ".join(spread) + ")." if spread else "")
+            + (f"\n\nWith the masks of every {CUT_EVERY}th frame cut, the route leaving only those frames' border "
+               "data out against the phase alone, its fallback before (" + "; ".join(cut) + ")." if cut else ""))
 
 
 def check(results: dict, tier: str) -> list:
