@@ -172,11 +172,11 @@ def compute(settings: dict, out_dir) -> dict:
 
 
 def markdown(results: dict) -> str:
-    cols = ["case", "variant", "frames", "RMSE Ecc", "RMSE Err", "global peak err Ecc", "global peak err Err",
+    cols = ["case", "variant", "frames", "RMSE Ecc / Err", "global peak err Ecc / Err",
             "segment peak err Ecc mean / max", "segment peak err Err mean / max", "band coverage Ecc / Err [%]",
             "seconds"]
-    body = [[r["case"], r["variant"], r["frames"], fmt(r["pixel_rmse_Ecc"], ".2f"), fmt(r["pixel_rmse_Err"], ".2f"),
-             fmt(r["global_peak_error_Ecc"], "+.2f"), fmt(r["global_peak_error_Err"], "+.2f"),
+    body = [[r["case"], r["variant"], r["frames"], f"{fmt(r['pixel_rmse_Ecc'], '.2f')} / {fmt(r['pixel_rmse_Err'], '.2f')}",
+             f"{fmt(r['global_peak_error_Ecc'], '+.2f')} / {fmt(r['global_peak_error_Err'], '+.2f')}",
              f"{fmt(r['segment_peak_error_Ecc_mean'], '.2f')} / {fmt(r['segment_peak_error_Ecc_max'], '.2f')}",
              f"{fmt(r['segment_peak_error_Err_mean'], '.2f')} / {fmt(r['segment_peak_error_Err_max'], '.2f')}",
              f"{fmt(r['coverage_pct_Ecc'], '.1f')} / {fmt(r['coverage_pct_Err'], '.1f')}",
