@@ -350,17 +350,24 @@ def test_the_route_places_the_border_by_the_phase_by_default_and_names_a_bad_cho
         StrainRouteSettings(border_masks=True, border_correspondence="bending")
 
 
-def test_the_masks_level_by_evidence_gives_masks_drawn_worse_less_weight():
-    """Tracks without bias, exact masks: the same masks' data with 0.5 px of independent noise added to every
-    border datum (about four times the variance of a binary border's quantisation) get a variance factor several
-    times larger from the evidence of the fused model than the masks as drawn (variance components)."""
-    from sfem_filters.cardiac.dense_model import MASK_LEVELS, mask_noise_level_ml, phase_only_pass
+def _unbiased_fusion():
+    """Tracks without bias and exact masks on the ring: the reference, tracks, masks, mesh, fused settings with
+    both levels by evidence, the phase data's own level and the masks' guided border data."""
+    from sfem_filters.cardiac.dense_model import phase_only_pass
     ref, tracks, masks, _ = _ring(lag=0.0)
     mesh = reference_mesh(ref, PX, "gmsh", 2.0)
     cfg = StrainRouteSettings(element_px=2.0, border_masks=True, phase_noise_level="evidence",
                               mask_noise_level="evidence")
     c, guide = phase_only_pass(mesh, tracks, PX, cfg, smooth=True)
-    border = border_masks_data(masks, ref, len(AREAS), mesh, PX, guide_px=guide)
+    return ref, tracks, masks, mesh, cfg, c, border_masks_data(masks, ref, len(AREAS), mesh, PX, guide_px=guide)
+
+
+def test_the_masks_level_by_evidence_gives_masks_drawn_worse_less_weight():
+    """Tracks without bias, exact masks: the same masks' data with 0.5 px of independent noise added to every
+    border datum (about four times the variance of a binary border's quantisation) get a variance factor several
+    times larger from the evidence of the fused model than the masks as drawn (variance components)."""
+    from sfem_filters.cardiac.dense_model import MASK_LEVELS, mask_noise_level_ml
+    ref, tracks, masks, mesh, cfg, c, border = _unbiased_fusion()
     clean, table = mask_noise_level_ml(mesh, tracks, PX, cfg, border, c)
     rng = np.random.default_rng(1)
     noisy = replace(border, y=border.y + 0.5 * PX * rng.standard_normal(border.y.shape))
@@ -455,13 +462,8 @@ def test_masks_that_disagree_with_the_phase_beyond_every_level_are_named():
     """Border data with 6 px of noise (twenty times a binary border's quantisation, far beyond the largest
     factor on their variance): the evidence rises to the grid's end, the least weight offered is taken, and a
     warning says that the masks may not belong to these images; masks as drawn give no such warning."""
-    from sfem_filters.cardiac.dense_model import MASK_LEVELS, mask_noise_level_ml, phase_only_pass
-    ref, tracks, masks, _ = _ring(lag=0.0)
-    mesh = reference_mesh(ref, PX, "gmsh", 2.0)
-    cfg = StrainRouteSettings(element_px=2.0, border_masks=True, phase_noise_level="evidence",
-                              mask_noise_level="evidence")
-    c, guide = phase_only_pass(mesh, tracks, PX, cfg, smooth=True)
-    border = border_masks_data(masks, ref, len(AREAS), mesh, PX, guide_px=guide)
+    from sfem_filters.cardiac.dense_model import MASK_LEVELS, mask_noise_level_ml
+    ref, tracks, masks, mesh, cfg, c, border = _unbiased_fusion()
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         mask_noise_level_ml(mesh, tracks, PX, cfg, border, c)
