@@ -287,7 +287,8 @@ def mask_borders(mask, n_endo: int = 64, n_epi: int = 96, smooth: float = 0.0, n
     """Endo- and epicardial contours of a myocardium mask (marching squares at level 1/2).
 
     A mask with a defect of a pixel or two (a stray piece, a pinhole, a one-pixel cut) is mended
-    first by :func:`repair_myocardium_mask`, with a ``RuntimeWarning`` saying what changed.
+    first by :func:`repair_myocardium_mask`, with a ``RuntimeWarning`` saying what changed (one for
+    every mask mended within a :class:`mended_masks_summarised` context).
 
     Parameters
     ----------
