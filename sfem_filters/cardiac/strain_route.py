@@ -532,7 +532,7 @@ def border_masks_data(masks, reference_mask, n_frames: int, mesh: TriMesh, pixel
         The route's mesh of ``reference_mask`` (m).
     pixel_size_m : float
     """
-    m = _fusion_masks(masks, reference_mask, n_frames)
+    m = _fusion_masks(masks, reference_mask, n_frames, every_frame=guide_px is None)
     k = integer("starts", starts, 1)
     if guide_px is not None:
         if k > 1:
@@ -546,8 +546,13 @@ def border_masks_data(masks, reference_mask, n_frames: int, mesh: TriMesh, pixel
     return data[0] if k == 1 else mean_border_data(data)
 
 
-def _fusion_masks(masks, reference_mask, n_frames: int) -> np.ndarray:
-    """The masks to fuse as (F + 1, H, W), the reference first, checked (each error names ``masks``)."""
+def _fusion_masks(masks, reference_mask, n_frames: int, every_frame: bool = False) -> np.ndarray:
+    """The masks to fuse as (F + 1, H, W), the reference first, checked (each error names ``masks``).
+
+    The reference's and at least one frame's mask (``every_frame``: every frame's, for landmarks tracked
+    from frame to frame) must be rings that can be mended (:func:`unusable_mask_frames`); checked here,
+    before any costly pass.
+    """
     ref = as_mask("reference_mask", reference_mask, 2, nonempty=True)
     F = int(n_frames)
     m = as_mask("masks", masks, 3)
@@ -562,6 +567,14 @@ def _fusion_masks(masks, reference_mask, n_frames: int) -> np.ndarray:
         m = np.concatenate([ref[None], m])
     if not m[1:].any():                 # a frame without myocardium is one whose mask cannot be read (left out)
         raise ValueError("masks: expected myocardium in the frames' masks, got none in any")
+    bad, why = unusable_mask_frames(m)
+    frames = [f for f in bad if f > 0]
+    if 0 in bad:
+        raise ValueError(f"masks: expected the reference mask (masks[0]) to be one ring around one cavity ({why})")
+    if len(frames) == F or (every_frame and frames):
+        raise ValueError(f"masks: expected {'every' if every_frame else 'at least one'} frame's mask that can be made "
+                         f"one ring around one cavity, got {'none' if len(frames) == F else f'masks{frames} not'} "
+                         f"({why})")
     return m
 
 
@@ -623,7 +636,8 @@ def dense_strain(tracks: LagrangianDisplacement, reference_mask, pixel_size_m: f
     mesh = reference_mesh(mask, s, cfg.mesh, cfg.element_px)
     border, guide, c_phase = None, None, None
     if cfg.border_masks:
-        masks = _fusion_masks(masks, mask, tracks.displacement.shape[0])     # checked before any costly pass
+        masks = _fusion_masks(masks, mask, tracks.displacement.shape[0],      # checked before any costly pass
+                              every_frame=cfg.border_correspondence == "landmarks")
     if cfg.border_masks and cfg.border_correspondence == "phase":
         say("the phase data alone (one filter and smoother pass): where each border node is along the masks' "
             "border")
