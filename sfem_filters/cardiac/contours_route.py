@@ -93,6 +93,7 @@ only error is the masks' pixel quantisation and the tracking.
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import asdict, dataclass, field
 from typing import ClassVar
 
@@ -100,7 +101,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from .._validate import as_float_array, integer, positive
+from .._validate import as_float_array, integer, positive, user_stacklevel
 from ..fem.elasticity import stiffness_matrix
 from ..fem.loads import penalty_stiffness
 from ..fem.material import Material
@@ -109,7 +110,7 @@ from ..fem.observation import point_observation_matrix
 from ..filtering.iterated import IteratedSmoother, check_noise_range
 from ..filtering.linearised import linearise
 from ..filtering.smoother import smooth
-from ..imaging.contours import repair_myocardium_mask
+from ..imaging.contours import reference_mask_mismatch, repair_myocardium_mask
 from ..imaging.spline_strain import SplineStrain, spline_strain
 from ..imaging.strain import N_SEGMENTS, mask_centre, segment_labels
 from ..imaging.tracking import BoundaryTracks
@@ -268,6 +269,9 @@ def _check_inputs(masks, pixel_size_m, frame_times_s) -> tuple:
         raise ValueError("masks: expected boolean (or 0/1) myocardium masks")
     m = m.astype(bool)
     repair_myocardium_mask(m[0], "masks[0]")          # an error unless a ring, up to a defect of a pixel or two
+    mismatch = reference_mask_mismatch(m)              # the wall's zero of radial strain is read from masks[0]
+    if mismatch:
+        warnings.warn(mismatch, RuntimeWarning, stacklevel=user_stacklevel())
     s = positive("pixel_size_m", pixel_size_m, "m")
     t = as_float_array("frame_times_s", frame_times_s, shape=(None,))
     if len(t) != len(m) - 1:

@@ -214,7 +214,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from .._validate import as_float_array, as_mask, integer, positive, user_stacklevel
-from ..imaging.contours import repair_myocardium_mask
+from ..imaging.contours import reference_mask_mismatch, repair_myocardium_mask
 from ..imaging.dense import check_resolution_px
 from ..fem.mesh import TriMesh
 from ..fem.observation import point_observation_matrix
@@ -638,6 +638,10 @@ def dense_strain(tracks: LagrangianDisplacement, reference_mask, pixel_size_m: f
     if cfg.border_masks:
         masks = _fusion_masks(masks, mask, tracks.displacement.shape[0],      # checked before any costly pass
                               every_frame=cfg.border_correspondence == "landmarks")
+        mismatch = reference_mask_mismatch(masks)     # the masks' zero of the wall's thickness against the phase's
+        if mismatch:
+            warnings.warn(f"{mismatch}; the masks' borders join the phase data", RuntimeWarning,
+                          stacklevel=user_stacklevel())
     if cfg.border_masks and cfg.border_correspondence == "phase":
         say("the phase data alone (one filter and smoother pass): where each border node is along the masks' "
             "border")

@@ -43,7 +43,7 @@ from .strain import (StrainEstimate, StrainField, curve_peak, global_curve, gree
 from .spline_strain import SplineStrain, spline_strain, tps_gradient_operators
 from .strain_report import peaks, spline_block, strain_csv, truth_block, with_peaks
 from .contours import Borders, check_myocardium_mask, curvature, mask_borders, midwall_pixels, pixel_depth, \
-    repair_myocardium_mask, resample_closed
+    reference_mask_mismatch, repair_myocardium_mask, resample_closed
 from .phase_contrast import VelocityData, sample_bilinear, sample_velocity, synthetic_phase_contrast
 from .readers import ImageSeries, make_image_series, read_images
 from .segmentation import dice, segment_sequence
@@ -51,7 +51,8 @@ from .tracking import BoundaryTracks, TrackingOptions, track_borders, track_mask
 
 __all__ = ["bending_energy", "segment_bending_energy", "goodness_uniqueness", "match_confidence",
            "local_phase_coherence", "velocity_coherence", "weighted_std", "Borders", "check_myocardium_mask",
-           "repair_myocardium_mask", "curvature", "mask_borders", "resample_closed", "pixel_depth", "midwall_pixels",
+           "repair_myocardium_mask", "reference_mask_mismatch", "curvature", "mask_borders", "resample_closed",
+           "pixel_depth", "midwall_pixels",
            "VelocityData", "sample_bilinear", "sample_velocity",
            "synthetic_phase_contrast", "ImageSeries", "make_image_series", "read_images", "dice",
            "segment_sequence", "BoundaryTracks", "TrackingOptions", "track_borders", "track_masks",

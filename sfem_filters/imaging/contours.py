@@ -380,3 +380,48 @@ def midwall_pixels(mask, depth_range=(0.25, 0.75)) -> np.ndarray:
     d = pixel_depth(m)
     rows, cols = np.nonzero(m & (d >= depth_range[0]) & (d <= depth_range[1]))
     return np.column_stack([cols, rows]).astype(float)
+
+
+def border_length(mask) -> float:
+    """Length (pixels) of every border of a mask: its marching-squares contours at level 0.5, summed."""
+    m = np.pad(as_mask("mask", mask, 2).astype(float), 1)
+    return float(sum(np.sum(np.linalg.norm(np.diff(c, axis=0), axis=1)) for c in find_contours(m, 0.5)))
+
+
+def reference_mask_mismatch(masks, name: str = "masks") -> str | None:
+    """Why the reference mask (index 0) may not be the frames' own, or None when nothing says so.
+
+    The reference configuration comes just before the first frame (DENSE encodes there), so the
+    reference mask's area should differ from the first frame's by less than the frames' areas vary
+    over the whole sequence, and by less than half a pixel of every border (the pixels' own
+    quantisation). A reference mask drawn on another image, by another segmentation, or dilated or
+    eroded by a pixel breaks both: its area departs by about a pixel of border. Routes that read the
+    wall's thickness from the masks take it as the zero of radial strain, so every radial strain
+    would be off by about a pixel over the wall's thickness, without the data saying so.
+
+    Parameters
+    ----------
+    masks : (F + 1, H, W) bool array
+        Myocardium masks of the reference (index 0) and of each frame (index f + 1).
+    name : str
+        The argument's name in the message.
+
+    Returns
+    -------
+    str or None
+        A sentence naming the areas (pixels) and the two scales, or None.
+    """
+    m = as_mask(name, masks, 3)
+    if len(m) < 2:
+        return None
+    areas = m.reshape(len(m), -1).sum(axis=1).astype(float)
+    jump = abs(areas[0] - areas[1])
+    spread = float(np.ptp(areas[1:]))
+    quantum = 0.5 * border_length(m[0])
+    if jump <= max(spread, quantum):
+        return None
+    return (f"{name}[0] (the reference) holds {areas[0]:.0f} pixels and {name}[1] (the first frame) {areas[1]:.0f}: "
+            f"they differ by {jump:.0f}, more than the frames' areas vary over the sequence ({spread:.0f}) and more "
+            f"than half a pixel of the reference's borders ({quantum:.0f}); the reference mask may not be these "
+            f"frames' (another image's or another segmentation's, or dilated or eroded), which shifts the zero of "
+            f"radial strain")

@@ -3,6 +3,7 @@ import json
 
 import numpy as np
 import pytest
+from scipy.ndimage import binary_dilation
 
 from helpers import write_case_frames
 from sfem_filters import datasets
@@ -238,3 +239,12 @@ def test_the_cli_runs_the_contours_route_on_a_shipped_case(tmp_path, capsys):
     assert "sfem-filters strain: note: the contours route's 95% bands hold how well" in err
     assert "sfem-filters strain: note: --snr: the noise goes into the phase, which only the conventional" in err
     assert d["settings"]["noise_snr"] == 30.0
+
+
+def test_a_reference_mask_a_pixel_thicker_than_the_frames_is_warned_of():
+    """The route reads the zero of the wall's thickness from masks[0]: one that is not the frames' is named."""
+    masks, times, _, _ = ring_sequence(frames=4)
+    masks = masks.copy()
+    masks[0] = binary_dilation(masks[0])
+    with pytest.warns(RuntimeWarning, match=r"^masks\[0\] \(the reference\) holds \d+ pixels and masks\[1\]"):
+        contour_strain(masks, 1e-3, times)

@@ -12,6 +12,7 @@ from dataclasses import asdict, replace
 
 import numpy as np
 import pytest
+from scipy.ndimage import binary_erosion
 
 pytest.importorskip("gmsh", reason="gmsh (the optional mesher, GPL-2.0-or-later) is not installed")
 
@@ -24,6 +25,7 @@ from sfem_filters.cardiac.strain_route import (StrainRouteSettings, border_masks
 from sfem_filters.filtering.iterated import IteratedSmoother  # noqa: E402
 from sfem_filters.filtering.linearised import linearise  # noqa: E402
 from sfem_filters.filtering.smoother import kalman_forward  # noqa: E402
+from sfem_filters.imaging import reference_mask_mismatch  # noqa: E402
 from sfem_filters.imaging.dense import LagrangianDisplacement, reference_points  # noqa: E402
 
 PX = 1.75e-3                                          # m
@@ -472,3 +474,17 @@ def test_masks_that_disagree_with_the_phase_beyond_every_level_are_named():
     with pytest.warns(RuntimeWarning, match=r"masks: their evidence still rises at the largest factor .*--no-masks"):
         f, table = mask_noise_level_ml(mesh, tracks, PX, cfg, wild, c)
     assert max(table) == max(MASK_LEVELS) and f == pytest.approx(max(MASK_LEVELS))
+
+
+def test_a_reference_mask_thicker_than_every_frames_is_named_before_the_masks_join_the_phase(ring):
+    """Frames' masks a pixel thinner than the reference (drawn by another hand): the route warns, naming both
+    areas, before any pass; the ring's own masks (their areas vary by the pixels' quantisation) do not."""
+    ref, tracks, masks, err = ring
+    assert reference_mask_mismatch(masks) is None
+    thin = masks.copy()
+    thin[1:] = [binary_erosion(m) for m in masks[1:]]
+    cfg = StrainRouteSettings(element_px=2.0, border_masks=True, phase_noise_level="evidence",
+                              process_profile="constant")
+    with pytest.warns(RuntimeWarning, match=rf"^masks\[0\] \(the reference\) holds {ref.sum()} pixels and masks\[1\] "
+                                            rf"\(the first frame\) {thin[1].sum()}.*the masks' borders join the phase"):
+        dense_strain(tracks, ref, PX, cfg, masks=thin)

@@ -12,10 +12,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
-from scipy.ndimage import binary_erosion
+from scipy.ndimage import binary_dilation, binary_erosion
 
 from sfem_filters.cardiac.strain_route import image_settings, masks_can_be_fused, unusable_mask_frames
-from sfem_filters.imaging import check_myocardium_mask, mask_borders, read_dense_sim, repair_myocardium_mask
+from sfem_filters.imaging import (check_myocardium_mask, mask_borders, read_dense_sim, reference_mask_mismatch,
+                                  repair_myocardium_mask)
 from sfem_filters.imaging.contours import MAX_REPAIR_FRACTION, mended_masks_summarised
 
 DATA = Path(os.environ.get("SFEM_FILTERS_DATA", Path(__file__).resolve().parents[3] / "shared" / "data"))
@@ -244,3 +245,29 @@ def test_the_summary_of_mended_masks_never_takes_the_place_of_an_error_and_touch
             assert warnings.filters[0][0] == "always"        # the filters are the caller's inside, as outside
             mask_borders(stray, name="masks[0]")
     assert warnings.filters == before and len(rec) == 1
+
+
+# ---------------------------------------------------------------------- a reference mask not the frames'
+@settings(max_examples=30, deadline=None)
+@given(ring=rings, grow=st.sampled_from([-1.0, 1.0]), shift=st.floats(-1.5, 1.5))
+def test_a_reference_mask_a_pixel_thicker_or_thinner_than_the_frames_is_named(ring, grow, shift):
+    """Frames of the same ring moved about (areas unchanged): no message; a reference one pixel out: one."""
+    frames = np.stack([np.roll(ring, k, axis=1) for k in (0, 1, 2, 1)])
+    assert reference_mask_mismatch(np.concatenate([ring[None], frames])) is None
+    moved = annulus(cx=23.5 + shift, inner=8.0, outer=13.0)                    # the same ring, elsewhere
+    assert reference_mask_mismatch(np.stack([moved, annulus(), annulus()])) is None
+    other = binary_dilation(ring) if grow > 0 else binary_erosion(ring)        # a pixel out at both borders
+    message = reference_mask_mismatch(np.concatenate([other[None], frames]))
+    assert message is not None and message.startswith("masks[0] (the reference) holds")
+    assert f"holds {other.sum()} pixels and masks[1] (the first frame) {ring.sum()}" in message
+
+
+def test_a_reference_mask_is_not_named_when_the_frames_vary_as_much():
+    """The frames' own area changes over the cycle bound what the reference may differ by."""
+    wide = annulus(inner=7.0, outer=14.0)
+    frames = np.stack([annulus(), annulus(inner=7.5, outer=13.5), wide])
+    assert reference_mask_mismatch(np.concatenate([wide[None], frames])) is None
+    assert reference_mask_mismatch(np.concatenate([annulus()[None], frames])) is None
+    assert reference_mask_mismatch(annulus()[None]) is None                     # nothing to compare with
+    with pytest.raises(ValueError, match="masks"):
+        reference_mask_mismatch(annulus())
