@@ -33,6 +33,18 @@ def pytest_configure(config):
                                        "(sfem_filters.datasets); skipped without them, an error in CI")
 
 
+#: The test files that take minutes (every claim's quick tier, the documentation build, the examples), collected
+#: first: scripts/test.sh hands whole files to its two workers in collection order (pytest-xdist
+#: ``--dist loadfile``), so these start at once and the short files fill in around them, rather than one of them
+#: starting last and running alone while the other worker idles (longest first).
+LONG_FILES = ("test_validation_suite.py", "test_docs.py", "test_examples.py")
+
+
+def pytest_collection_modifyitems(session, config, items):
+    rank = {name: k for k, name in enumerate(LONG_FILES)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(LONG_FILES)))     # stable: the rest keep their order
+
+
 def pytest_runtest_setup(item):
     for marker in item.iter_markers("needs_data"):
         for name in marker.args:

@@ -20,7 +20,7 @@ NAME = "strain_contours"
 NEEDS_DATA = True
 TITLE = "Strain from the masks alone (contours route) against DENSE-Sim's ground truth"
 FULL_COST = "about 3 min on 2 cores"
-TIERS = {"quick": {"cases": ["phantom_subject_1"], "frames": 6},
+TIERS = {"quick": {"cases": ["phantom_subject_1"], "frames": 4},
          "full": {"cases": [], "frames": None}}
 #: Label of the route's row without its guided pass (appended to the route's method name).
 UNGUIDED = ", landmarks alone (no guided pass)"

@@ -33,7 +33,7 @@ Each run is scored against its own truth with the strain page's metrics
 (:func:`sfem_filters.benchmark.score_strain`; segments from 0 degrees in each variant's own image,
 so the segment rows of a mirrored case cover other tissue than the unmirrored's: compare their
 means, the global curve and the pixels, which cover the same tissue). Quick tier: the phantom, its
-first 6 frames, as given, mirrored, with frame 2's mask cut and as given over the contour starts.
+first 4 frames, as given, mirrored, with frame 2's mask cut and as given over the contour starts.
 """
 from __future__ import annotations
 
@@ -62,7 +62,7 @@ CUT = f"masks of every {CUT_EVERY}th frame cut"
 CUT_ALONE = CUT + ", the phase alone (the fallback before)"
 VARIANTS = ("as given", "mirrored", "transposed", "every 2nd frame", CUT, CUT_ALONE, "as given" + AVERAGED,
             "mirrored" + AVERAGED, "transposed" + AVERAGED)
-TIERS = {"quick": {"cases": ["phantom_subject_1"], "frames": 6, "variants": ["as given", "mirrored", CUT,
+TIERS = {"quick": {"cases": ["phantom_subject_1"], "frames": 4, "variants": ["as given", "mirrored", CUT,
                                                                              "as given" + AVERAGED],
                    "snr": 30.0, "seed": 0},
          "full": {"cases": [], "frames": None, "variants": list(VARIANTS), "snr": 30.0, "seed": 0}}
