@@ -35,7 +35,8 @@ def pytest_configure(config):
 
 #: The test files that take minutes (every claim's quick tier, the documentation build, the examples), collected
 #: first: scripts/test.sh hands whole files to its two workers in collection order (pytest-xdist
-#: ``--dist loadfile``), so these start at once and the short files fill in around them, rather than one of them
+#: ``--dist loadfile --no-loadscope-reorder``; by default xdist orders files by their number of tests), so these
+#: start at once and the short files fill in around them, rather than one of them
 #: starting last and running alone while the other worker idles (longest first).
 LONG_FILES = ("test_validation_suite.py", "test_docs.py", "test_examples.py")
 
