@@ -1,7 +1,7 @@
 """Close the loop on measured DENSE data: residual, missing effect, error before and after.
 
 Run:  python examples/dense_closing_the_loop.py [--quick] [--download]    (a few minutes on 2 cores;
---quick: the first 8 frames, two Gauss-Newton iterations per run, one candidate fitted per round,
+--quick: the first 6 frames, two Gauss-Newton iterations per run, one candidate fitted per round,
 no backward steps and 2-fold cross-validation, a smoke test of the workflow, not the README's numbers)
 
 Uses the measured DENSE slice subject_a, which is not shipped with the package (its source has no
@@ -26,7 +26,7 @@ from sfem_filters.cardiac import (
 )
 
 ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-ap.add_argument("--quick", action="store_true", help="8 frames, two iterations per run, one candidate "
+ap.add_argument("--quick", action="store_true", help="6 frames, two iterations per run, one candidate "
                                                      "fitted per round, no backward steps, 2-fold cross-validation "
                                                      "(smoke test)")
 ap.add_argument("--download", action="store_true", help="download subject_a from its original repository "
@@ -42,9 +42,9 @@ try:
 except FileNotFoundError as exc:        # not in the data directory nor the cache: the message says how to get it
     raise SystemExit(str(exc)) from None
 if quick:
-    seq = make_sequence(seq.points, seq.displacement[:8], reference_mask=seq.reference_mask,
-                        frame_masks=None if seq.frame_masks is None else seq.frame_masks[:8],
-                        provenance=f"{seq.provenance} (first 8 frames)")
+    seq = make_sequence(seq.points, seq.displacement[:6], reference_mask=seq.reference_mask,
+                        frame_masks=None if seq.frame_masks is None else seq.frame_masks[:6],
+                        provenance=f"{seq.provenance} (first 6 frames)")
 
 # 1. Sparse landmarks (8 per contour) drive the elastic model and are observed; every other
 #    point is held out. The baseline's residual is scored against candidate missing effects,

@@ -394,7 +394,7 @@ def reference_mask_mismatch(masks, name: str = "masks") -> str | None:
     The reference configuration comes just before the first frame (DENSE encodes there), so the
     reference mask's area should differ from the first frame's by less than the frames' areas vary
     over the whole sequence, and by less than half a pixel of every border (the pixels' own
-    quantisation). A reference mask drawn on another image, by another segmentation, or dilated or
+    quantisation). Frames whose mask is empty are passed over. A reference mask drawn on another image, by another segmentation, or dilated or
     eroded by a pixel breaks both: its area departs by about a pixel of border. Routes that read the
     wall's thickness from the masks take it as the zero of radial strain, so every radial strain
     would be off by about a pixel over the wall's thickness, without the data saying so.
@@ -412,15 +412,18 @@ def reference_mask_mismatch(masks, name: str = "masks") -> str | None:
         A sentence naming the areas (pixels) and the two scales, or None.
     """
     m = as_mask(name, masks, 3)
-    if len(m) < 2:
-        return None
     areas = m.reshape(len(m), -1).sum(axis=1).astype(float)
-    jump = abs(areas[0] - areas[1])
-    spread = float(np.ptp(areas[1:]))
+    frames = np.flatnonzero(areas[1:] > 0) + 1          # an empty frame mask says nothing about the reference
+    if len(frames) == 0 or areas[0] == 0:
+        return None
+    k = int(frames[0])
+    jump = abs(areas[0] - areas[k])
+    spread = float(np.ptp(areas[frames]))
     quantum = 0.5 * border_length(m[0])
     if jump <= max(spread, quantum):
         return None
-    return (f"{name}[0] (the reference) holds {areas[0]:.0f} pixels and {name}[1] (the first frame) {areas[1]:.0f}: "
+    first = "the first frame" if k == 1 else "the first frame with tissue"
+    return (f"{name}[0] (the reference) holds {areas[0]:.0f} pixels and {name}[{k}] ({first}) {areas[k]:.0f}: "
             f"they differ by {jump:.0f}, more than the frames' areas vary over the sequence ({spread:.0f}) and more "
             f"than half a pixel of the reference's borders ({quantum:.0f}); the reference mask may not be these "
             f"frames' (another image's or another segmentation's, or dilated or eroded), which shifts the zero of "

@@ -269,5 +269,9 @@ def test_a_reference_mask_is_not_named_when_the_frames_vary_as_much():
     assert reference_mask_mismatch(np.concatenate([wide[None], frames])) is None
     assert reference_mask_mismatch(np.concatenate([annulus()[None], frames])) is None
     assert reference_mask_mismatch(annulus()[None]) is None                     # nothing to compare with
+    empty = np.zeros_like(wide)
+    assert reference_mask_mismatch(np.stack([annulus(), empty, annulus(), annulus()])) is None   # passed over
+    thick = binary_dilation(annulus())
+    assert "masks[2] (the first frame with tissue)" in reference_mask_mismatch(np.stack([thick, empty, annulus()]))
     with pytest.raises(ValueError, match="masks"):
         reference_mask_mismatch(annulus())
