@@ -269,9 +269,6 @@ def _check_inputs(masks, pixel_size_m, frame_times_s) -> tuple:
         raise ValueError("masks: expected boolean (or 0/1) myocardium masks")
     m = m.astype(bool)
     repair_myocardium_mask(m[0], "masks[0]")          # an error unless a ring, up to a defect of a pixel or two
-    mismatch = reference_mask_mismatch(m)              # the wall's zero of radial strain is read from masks[0]
-    if mismatch:
-        warnings.warn(mismatch, RuntimeWarning, stacklevel=user_stacklevel())
     s = positive("pixel_size_m", pixel_size_m, "m")
     t = as_float_array("frame_times_s", frame_times_s, shape=(None,))
     if len(t) != len(m) - 1:
@@ -355,6 +352,9 @@ def contour_strain(masks, pixel_size_m: float, frame_times_s, settings: ContourR
         raise TypeError(f"settings: expected a ContourRouteSettings, got {type(cfg).__name__}")
     say = (lambda msg: print(msg, flush=True)) if progress is True else (progress or (lambda msg: None))
     m, s, times = _check_inputs(masks, pixel_size_m, frame_times_s)
+    mismatch = reference_mask_mismatch(m)              # the wall's zero of radial strain is read from masks[0]
+    if mismatch:
+        warnings.warn(mismatch, RuntimeWarning, stacklevel=user_stacklevel())
     mask = m[0]
     rows, cols = np.nonzero(mask)
     X = np.column_stack([cols, rows]).astype(float)
@@ -446,6 +446,7 @@ def contour_strain(masks, pixel_size_m: float, frame_times_s, settings: ContourR
             "alpha_per_s": alpha, "wall_thickness_px": wall / s, "n_nodes": mesh.n_nodes,
             "n_elements": mesh.n_elements, "n_border_dofs": int(len(bdofs)), "dim_state": int(model.dim_state),
             "mean_match_confidence": float(np.mean(tracks.step_confidence[1:])),
+            "reference_mask_mismatch": mismatch,
             "process_noise_scale": float(result.process_noise_scale), "passes": passes,
             "nu_plane_strain_elements": cfg.nu_plane_strain,
             "data": "myocardium masks only (no phase): noise-free in phase terms",

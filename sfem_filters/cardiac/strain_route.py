@@ -634,7 +634,7 @@ def dense_strain(tracks: LagrangianDisplacement, reference_mask, pixel_size_m: f
             "tissue's")
     say(f"meshing the reference myocardium ({cfg.mesh}, {cfg.element_px:g} px)")
     mesh = reference_mesh(mask, s, cfg.mesh, cfg.element_px)
-    border, guide, c_phase = None, None, None
+    border, guide, c_phase, mismatch = None, None, None, None
     if cfg.border_masks:
         masks = _fusion_masks(masks, mask, tracks.displacement.shape[0],      # checked before any costly pass
                               every_frame=cfg.border_correspondence == "landmarks")
@@ -784,6 +784,7 @@ def dense_strain(tracks: LagrangianDisplacement, reference_mask, pixel_size_m: f
                              "finite-difference strain, less its noise variance" if cfg.discrepancy else ""),
                     "noise_scale_ml": c_ml,
                     "reference_pixels_not_observed": int(n_stray),
+                    "reference_mask_mismatch": mismatch,
                     "nis_per_row": (np.asarray(sm.nis, float) / np.maximum(np.asarray(sm.n_obs, float), 1)).tolist(),
                     "nis_excess_frames": [[int(a), int(b)] for a, b in excess],
                     "process_fraction_evidence": ({f"{k:g}": v for k, v in q_table.items()} if q_table

@@ -145,7 +145,7 @@ def test_the_result_has_the_issue_json_names_and_finite_bands(ring):
     masks, times, ecc, err, r = ring
     d = json.loads(json.dumps(r.to_dict()))
     F, P = len(times), int(masks[0].sum())
-    assert d["route"] == "contours"
+    assert d["route"] == "contours" and d["settings"]["reference_mask_mismatch"] is None    # the ring's own masks
     assert np.array(d["points"]).shape == (P, 2) and np.array(d["frame_times_s"]).shape == (F,)
     for k in ("Ecc", "Err", "Ecr", "Ecc_sd", "Err_sd"):
         assert np.array(d["strain"][k], float).shape == (F, P)
@@ -247,4 +247,5 @@ def test_a_reference_mask_a_pixel_thicker_than_the_frames_is_warned_of():
     masks = masks.copy()
     masks[0] = binary_dilation(masks[0])
     with pytest.warns(RuntimeWarning, match=r"^masks\[0\] \(the reference\) holds \d+ pixels and masks\[1\]"):
-        contour_strain(masks, 1e-3, times)
+        r = contour_strain(masks, 1e-3, times)
+    assert r.settings["reference_mask_mismatch"].startswith("masks[0] (the reference) holds")   # kept in the JSON

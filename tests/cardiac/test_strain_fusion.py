@@ -487,4 +487,5 @@ def test_a_reference_mask_thicker_than_every_frames_is_named_before_the_masks_jo
                               process_profile="constant")
     with pytest.warns(RuntimeWarning, match=rf"^masks\[0\] \(the reference\) holds {ref.sum()} pixels and masks\[1\] "
                                             rf"\(the first frame\) {thin[1].sum()}.*the masks' borders join the phase"):
-        dense_strain(tracks, ref, PX, cfg, masks=thin)
+        r = dense_strain(tracks, ref, PX, cfg, masks=thin)
+    assert r.settings["reference_mask_mismatch"].startswith("masks[0] (the reference) holds")   # kept in the JSON
