@@ -193,12 +193,14 @@ The DENSE route, as a library function, :func:`dense_strain`:
    already miss.
 
    (c) *where the data outrun the model*: after (a), frames whose normalised innovations stay
-   above their 99.9% chi-square bound for 4 frames or more in a row, even at the fitted level
-   (:func:`sfem_filters.filtering.diagnostics.nis_excess_runs`), are frames where the data move
+   above their 99.9% chi-square bound for :data:`NIS_EXCESS_MIN_S` (60 ms) or more in a row, even at the
+   fitted level (:func:`sfem_filters.filtering.diagnostics.nis_excess_runs`, the run's length in frames from
+   the frame interval: :func:`nis_excess_min_frames`), are frames where the data move
    faster than the model's process noise lets the estimate follow, so the strain there may lag
    the data by more than the bands hold. One warning names them (frames and ms) and
    ``settings["nis_excess_frames"]`` keeps them, beside ``settings["nis_per_row"]`` (each frame's
-   NIS per observed row as the pass gives it, not divided by ``c``).
+   NIS per observed row as the pass gives it, not divided by ``c``) and ``settings["nis_excess_min_frames"]``
+   (the run's length in frames).
 
 Units: pixels for points and displacements at the interface (x = column, y = row), SI inside
 (the mesh in metres, from the case's pixel size); strain is a fraction; times in s.
@@ -249,7 +251,23 @@ __all__ = ["StrainRouteSettings", "DenseStrain", "NodalFitModel", "reference_mes
            "ObservationScaling", "border_masks_data", "phase_noise_level", "PHASE_NOISE_LEVELS",
            "BORDER_CORRESPONDENCES", "PROCESS_PROFILES",
            "process_profile_from_data", "image_settings", "route_settings", "dense_case_strain",
-           "masks_move", "masks_can_be_fused", "unusable_mask_frames"]
+           "masks_move", "masks_can_be_fused", "unusable_mask_frames", "NIS_EXCESS_MIN_S", "nis_excess_min_frames"]
+
+
+#: Shortest time (s) the innovations stay above their 99.9% bound, even at the fitted noise level, for the route
+#: to name the frames a lag of the model behind the data (step 6 c): about an isovolumic contraction (50-60 ms),
+#: the shortest phase of the cycle whose motion a lagging estimate misreads; 4 frames at DENSE-Sim's 15 ms.
+NIS_EXCESS_MIN_S = 0.06
+
+
+def nis_excess_min_frames(frame_interval_s: float) -> int:
+    """Frames in a row that make :data:`NIS_EXCESS_MIN_S` at this frame interval (s), never fewer than 2.
+
+    One frame above its 99.9% bound happens by chance once in a thousand frames; two in a row, once in a
+    million. So a sparse sequence (45 ms frames: 2) is checked over the same time as a dense one (15 ms: 4).
+    """
+    T = positive("frame_interval_s", frame_interval_s, "s")
+    return max(2, int(np.ceil(NIS_EXCESS_MIN_S / T - 1e-9)))
 
 
 #: How the phase data's noise level is set beside the masks (``StrainRouteSettings.phase_noise_level``).
@@ -717,14 +735,16 @@ def dense_strain(tracks: LagrangianDisplacement, reference_mask, pixel_size_m: f
     outputs = {"gradient": on_state(_component_rows(ops)), "curves": on_state(curve_rows)}
     sm = smooth_backward(lin, fwd, outputs=outputs, covariance=True)
     c_ml = noise_scale(sm.nis, sm.n_obs) if cfg.noise_scale else 1.0         # step 6 (a)
-    excess = nis_excess_runs(sm.nis, sm.n_obs, scale=c_ml)
     times = np.asarray(tracks.frame_times_s, float)
+    interval = float(np.median(np.diff(times))) if len(times) > 1 else float(times[0])
+    run = nis_excess_min_frames(interval)
+    excess = nis_excess_runs(sm.nis, sm.n_obs, scale=c_ml, min_frames=run)
     if excess:
         spans = ", ".join(f"{a}-{b} ({1e3 * times[a]:.0f}-{1e3 * times[b]:.0f} ms)" for a, b in excess)
         warnings.warn(f"dense_strain: the data move faster than the model's motion allows at frames {spans} after "
-                      f"the encoding (their innovations stay above the 99.9% bound for 4 frames or more in a row, "
-                      f"even at the fitted noise level): the strain there may lag the data, its peaks flattened, by "
-                      f"more than the 95% bands hold; read those frames with care (JSON: "
+                      f"the encoding (their innovations stay above the 99.9% bound for {run} frames or more in a row, "
+                      f"{1e3 * run * interval:.0f} ms, even at the fitted noise level): the strain there may lag the "
+                      f"data, its peaks flattened, by more than the 95% bands hold; read those frames with care (JSON: "
                       f"settings.nis_excess_frames)", RuntimeWarning, stacklevel=user_stacklevel())
     C = c_ml * _covariance_from_blocks(sm.variances["gradient"], ops[0].shape[0])       # (F, m, 4, 4)
     E = green_strain(grad)
@@ -786,7 +806,7 @@ def dense_strain(tracks: LagrangianDisplacement, reference_mask, pixel_size_m: f
                     "reference_pixels_not_observed": int(n_stray),
                     "reference_mask_mismatch": mismatch,
                     "nis_per_row": (np.asarray(sm.nis, float) / np.maximum(np.asarray(sm.n_obs, float), 1)).tolist(),
-                    "nis_excess_frames": [[int(a), int(b)] for a, b in excess],
+                    "nis_excess_frames": [[int(a), int(b)] for a, b in excess], "nis_excess_min_frames": run,
                     "process_fraction_evidence": ({f"{k:g}": v for k, v in q_table.items()} if q_table
                                                   else "fixed by the settings"),
                     "mask_noise_scale": f_mask,

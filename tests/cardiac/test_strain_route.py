@@ -8,13 +8,18 @@ import pytest
 
 pytest.importorskip("gmsh", reason="gmsh (the optional mesher, GPL-2.0-or-later) is not installed")
 
+from hypothesis import given  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
 from sfem_filters.cardiac.strain_route import (  # noqa: E402
+    NIS_EXCESS_MIN_S,
     StrainRouteSettings,
     _curve_rows,
     _element_of,
     dense_strain,
     element_gradient_operator,
     linearised_rows,
+    nis_excess_min_frames,
     reference_mesh,
     strain_and_sd,
 )
@@ -221,14 +226,31 @@ def test_frames_where_the_data_outrun_the_model_are_named_once_and_kept_in_the_s
         warnings.simplefilter("always")
         r = dense_strain(shaken, mask, PX, cfg)
     runs = r.settings["nis_excess_frames"]
+    assert r.settings["nis_excess_min_frames"] == 4                   # 60 ms at these 15 ms frames
     assert len(runs) == 1 and 4 <= runs[0][0] <= 6 and runs[0][1] == 11
     hits = [w for w in seen if "faster than the model's motion" in str(w.message)]
     msgs = [str(w.message) for w in hits]
     assert len(msgs) == 1 and f"frames {runs[0][0]}-11 (" in msgs[0]
-    assert f"-{1e3 * r.frame_times_s[11]:.0f} ms)" in msgs[0]
+    assert f"-{1e3 * r.frame_times_s[11]:.0f} ms)" in msgs[0] and "4 frames or more in a row, 60 ms" in msgs[0]
     assert hits[0].filename == __file__                       # it points at the caller's line, not the library's
     nis = np.array(r.settings["nis_per_row"]) / r.settings["noise_scale_ml"]
     assert np.all(nis[runs[0][0]:12] > 1.0) and np.all(nis[12:] < 1.0)
+
+
+@given(st.floats(0.002, 0.2))
+def test_a_lag_is_named_over_the_same_time_at_any_frame_rate(interval):
+    """The run that names a lag spans at least NIS_EXCESS_MIN_S and is the shortest that does, never below 2 frames
+    (one frame above a 99.9% bound is chance); 4 frames at DENSE-Sim's 15 ms, 2 at 45 ms."""
+    k = nis_excess_min_frames(interval)
+    assert k >= 2 and (k * interval >= NIS_EXCESS_MIN_S - 1e-12 or k == 2)
+    assert k == 2 or (k - 1) * interval < NIS_EXCESS_MIN_S
+    assert nis_excess_min_frames(0.015) == 4 and nis_excess_min_frames(0.045) == 2
+
+
+@pytest.mark.parametrize("bad", [0.0, -0.015, float("nan")])
+def test_the_lag_run_wants_a_positive_frame_interval(bad):
+    with pytest.raises(ValueError, match="frame_interval_s"):
+        nis_excess_min_frames(bad)
 
 
 def test_a_stray_reference_pixel_is_not_observed_but_is_reported():
