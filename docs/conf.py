@@ -82,9 +82,11 @@ html_theme_options = {
     "show_toc_level": 2,
     "navigation_with_keys": False,
     "header_links_before_dropdown": 7,
-    # the tutorials (exact names: two wildcards matching one page are a warning) get the room for code
+    # the tutorials get the room for code and the validation pages for their wide tables (exact names: two
+    # wildcards matching one page are a warning)
     "secondary_sidebar_items": {"**": ["page-toc"], "tutorials/index": [],
-                                **{f"tutorials/{p.stem}": [] for p in (HERE / "tutorials_src").glob("*.py")}},
+                                **{f"tutorials/{p.stem}": [] for p in (HERE / "tutorials_src").glob("*.py")},
+                                **{f"validation/{p.stem}": [] for p in (HERE / "validation").glob("*.md")}},
     "footer_start": ["copyright"],
     "footer_end": ["sphinx-version", "theme-version"],
 }

@@ -473,3 +473,18 @@ def test_the_segment_start_is_taken_modulo_360():
     for bad in ("nan", "inf", "north"):
         with pytest.raises(argparse.ArgumentTypeError, match="a finite number"):
             _angle_deg(bad)
+
+
+def test_without_gmsh_the_command_says_how_to_install_it_before_reading_anything(tmp_path, capsys, monkeypatch):
+    """Both routes mesh with Gmsh, an optional dependency: without it the command stops at once (exit 2, nothing
+    read or written) and names the package and the project's extra."""
+    import importlib.util
+    from sfem_filters.cli import strain as strain_cli
+    real = importlib.util.find_spec
+    monkeypatch.setattr(strain_cli.importlib.util, "find_spec",
+                        lambda name, *a: None if name == "gmsh" else real(name, *a))
+    for route in ("dense", "contours"):
+        out = tmp_path / f"{route}.json"
+        assert main(["strain", str(tmp_path / "no_such_case"), "--json", str(out), "--route", route]) == 2
+        err = capsys.readouterr().err
+        assert "Gmsh" in err and "pip install 'gmsh>=4.11'" in err and "'.[mesh]'" in err and not out.exists()

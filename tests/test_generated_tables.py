@@ -88,3 +88,22 @@ def test_stored_results_were_made_from_committed_code(path):
     assert isinstance(prov.get("git_commit"), str) and len(prov["git_commit"]) == 40, prov.get("git_commit")
     assert prov.get("git_dirty") is False, f"{path.name}: made with uncommitted changes; rerun it at a commit"
     assert not prov.get("git_changed_during_run"), f"{path.name}: the code changed during its run; rerun it"
+
+
+def test_the_index_of_claims_is_the_one_their_stored_results_give(tmp_path):
+    """docs/_generated/claims.md (the validation index's table: each claim's last full run) is what
+    claims_index renders from the stored JSON now, so a claim rerun without it is caught; a claim with no stored
+    full run is listed as not run, and the durations are read from the provenance, not typed."""
+    import json
+    from validation import CLAIMS
+    from validation.claims_index import INDEX_NAME, claims_table
+    generated = ROOT / "docs" / "_generated"
+    assert (generated / INDEX_NAME).read_text() == claims_table(generated), \
+        "run `python -m validation render NAME` (or write_claims_table) after a claim's full run"
+    (tmp_path / "table1.json").write_text(json.dumps({"provenance": {"tier": "full", "wall_seconds": 1740.0,
+                                                                      "date_utc": "2026-01-02 03:04 UTC"}}))
+    (tmp_path / "laplace.json").write_text(json.dumps({"provenance": {"tier": "quick", "wall_seconds": 5.0}}))
+    rows = {line.split("|")[2].strip(" `"): line for line in claims_table(tmp_path).splitlines()[2:len(CLAIMS) + 2]}
+    assert set(rows) == set(CLAIMS)
+    assert "| 29 min, 2026-01-02 |" in rows["table1"] and "| not run |" in rows["laplace"]
+    assert "| not run |" in rows["search"]

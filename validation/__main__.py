@@ -1,4 +1,7 @@
-"""``python -m validation list | run NAME... | run --all | render NAME... | sync-readme`` (from the repository root)."""
+"""``python -m validation list | run NAME... | run --all | render NAME... | sync-readme`` (from the repository root).
+
+``run`` and ``render`` into ``docs/_generated/`` also rewrite its table of claims
+(:func:`validation.claims_index.write_claims_table`: each claim's last full run, from its stored provenance)."""
 from __future__ import annotations
 
 import argparse
@@ -7,6 +10,7 @@ from pathlib import Path
 
 from . import CLAIMS, claim
 from ._core import GENERATED, command_line, render_claim, run_claim
+from .claims_index import write_claims_table
 from .readme import sync
 
 
@@ -55,6 +59,8 @@ def main(argv=None) -> int:
                 build_parser().error(f"render: no stored results {args.out / (name + '.json')}; run the claim first")
             render_claim(claim(name), args.out, command_line(argv))
             print(f"{name}: rewrote {args.out / (name + '.md')} from its stored results")
+        if Path(args.out).resolve() == GENERATED.resolve():
+            print(f"rewrote {write_claims_table(args.out)}")
         return 0
     tier = args.tier or "full"
     names = list(CLAIMS) if args.all else args.names
@@ -77,6 +83,8 @@ def main(argv=None) -> int:
         for p in problems:
             print(f"{name}: implausible: {p}", file=sys.stderr)
         failed += [name] if problems else []
+    if Path(out).resolve() == GENERATED.resolve():
+        print(f"rewrote {write_claims_table(out)}")
     return 1 if failed else 0
 
 

@@ -24,7 +24,7 @@ from . import rounds_synthetic
 from ._core import fmt, md_table
 
 NAME = "search"
-TITLE = "Closing the loop: fast and full search"
+TITLE = "Closing the loop: the coarse and fast searches"
 #: Needs the measured slice (``sfem_filters.datasets``: set SFEM_FILTERS_DATA).
 NEEDS_DATA = True
 FULL_COST = "about 40-60 min"

@@ -15,7 +15,7 @@ extended).
 candidate fitted, no corrections, no backward steps and a 2-fold cross-validation (4 by
 default): a walk through the workflow, not the numbers of the validation pages. Full:
 ``sfem-filters dense example --json dense.json --figures dense/`` (all 35 frames, up to 5
-rounds, the coarse search: see the validation page "Closing the loop: fast and full search"), or here
+rounds, the coarse search: see the validation page "Closing the loop: the coarse and fast searches"), or here
 ``SFEM_DOCS_QUICK=0`` (all frames, 20 iterations, one
 round as the paper).
 

@@ -94,7 +94,7 @@ plt.show()
 # Radial strain per segment
 # -------------------------
 # Six 60-degree segments from the image's +x axis towards +y about the reference myocardium's
-# centre of mass. The conventional analysis smooths across a 3-7 pixel wall, which flattens radial
+# centre of mass. The conventional analysis smooths across a wall a few pixels thick, which flattens radial
 # strain most at its peak, later in the cycle than these frames (the validation page measures it over
 # the whole cycle); the band says how sure the route is in each segment and frame.
 labels = ours.labels

@@ -97,7 +97,7 @@ def add_parser(sub) -> None:
                         "iterations; fast: the same on the node-per-point mesh, a few times slower; full: every fit "
                         "to the end from the prior on the node-per-point mesh (--no-warm-start --screen-iterations "
                         "0, 20 iterations). The options below override the search's values; the docs' validation "
-                        "page 'Closing the loop: fast and full search' measures what each finds and costs")
+                        "page 'Closing the loop: the coarse and fast searches' measures what each finds and costs")
     d.add_argument("--mesh", choices=MESHES, default=None,
                    help="delaunay: Delaunay triangles, whose diagonal in each full pixel cell Qhull picks by the "
                         "coordinates (--search fast, full); radial: every diagonal towards the cavity "

@@ -3,6 +3,7 @@ pixel with its sd and 95% bands, beside the conventional analysis and the thin-p
 PATH is and how it is read: :mod:`sfem_filters.cli.strain_input`."""
 from __future__ import annotations
 
+import importlib.util
 import sys
 import time
 
@@ -11,6 +12,7 @@ import numpy as np
 from ..cardiac import dense_case_strain, dense_strain
 from ..cardiac.dense_model import PROCESS_PROFILES
 from ..cardiac.strain_route import BORDER_CORRESPONDENCES, PHASE_NOISE_LEVELS
+from ..fem.polygon_mesh import GMSH_REQUIREMENT
 from ..cardiac.contours_route import ContourRouteSettings, contour_spline_strain, contour_strain
 from ..imaging import conventional_from_displacement, mask_centre, truth_at_points
 from ..imaging.spline_strain import spline_strain
@@ -136,9 +138,19 @@ def add_parser(sub) -> None:
     _progress_options(s, "a line per step of the route")
 
 
+def _require_gmsh() -> None:
+    """Fail before any costly step when Gmsh, which both routes mesh the reference myocardium with, is not
+    installed: an ImportError naming the install."""
+    if importlib.util.find_spec("gmsh") is None:
+        raise ImportError(f"strain: meshes the reference myocardium with Gmsh, an optional dependency "
+                          f"(GPL-2.0-or-later) that is not installed: pip install '{GMSH_REQUIREMENT}' (from a clone of "
+                          "the repository: pip install -e '.[mesh]')")
+
+
 def cmd_strain(args) -> int:
     say = (lambda m: _message("strain", "progress", m)) if _progress(args) else (lambda m: None)
     t0 = time.perf_counter()
+    _require_gmsh()
     src = _strain_input(args, say)
     case, tracks = src["case"], src["tracks"]
     if args.route == "contours":       # the masks alone (no phase): tracked borders, interior from the physics

@@ -48,7 +48,7 @@ class Search:
 #: node-per-point mesh (what the command did before the searches). On synthetic checks drawn on a
 #: finer mesh than any estimator's, coarse finds the true effects where fast and full add one; on
 #: checks drawn on the node-per-point mesh (fast's and full's own discretisation) it finds others.
-#: The docs' validation page "Closing the loop: fast and full search" measures what each finds and costs.
+#: The docs' validation page "Closing the loop: the coarse and fast searches" measures what each finds and costs.
 SEARCHES = {"fast": Search(warm_start=True, screen_iterations=3, min_iterations=40),
             "coarse": Search(mesh="polar", warm_start=True, screen_iterations=3, min_iterations=40),
             "full": Search()}
