@@ -133,7 +133,11 @@ def as_mask(name: str, value, ndim: int, shape=None, nonempty: bool = False) -> 
     ``shape`` (ints or ``None`` for any size) checks the size; ``nonempty`` requires at least
     one True pixel (some tissue). Images are indexed (row = y, column = x).
     """
-    arr = np.asarray(value)
+    try:
+        arr = np.asarray(value)
+    except ValueError:                          # a list of frames of different sizes (numpy: "inhomogeneous")
+        raise ValueError(f"{name}: expected a rectangular {ndim}D mask (every frame and row of one size), got "
+                         f"frames or rows of different sizes") from None
     if arr.ndim != ndim:
         raise ValueError(f"{name}: expected a {ndim}D mask (boolean, rows = y, columns = x), got shape {arr.shape}")
     if arr.dtype != bool:

@@ -186,8 +186,8 @@ def markdown(results: dict) -> str:
         for suffix in ("", AVERAGED):
             names = [v + suffix for v in ("as given", "mirrored", "transposed")]
             same = [r for r in results["rows"] if r["case"] == case and r["variant"] in names]
-            if len(same) > 1:
-                g = [r["global_peak_error_Err"] for r in same]
+            g = [r["global_peak_error_Err"] for r in same if r["global_peak_error_Err"] is not None]
+            if len(same) > 1 and g:
                 label = f" with the masks' landmarks over {STARTS} contour starts" if suffix else ""
                 spread.append(f"{case}{label}: "
                               f"global peak error of Err from {min(g):+.2f} to {max(g):+.2f} over "
@@ -197,10 +197,11 @@ def markdown(results: dict) -> str:
         pair = {r["variant"]: r for r in results["rows"] if r["case"] == case and r["variant"] in (CUT, CUT_ALONE)}
         if len(pair) == 2:
             a, b = pair[CUT], pair[CUT_ALONE]
-            cut.append(f"{case}: pixel RMSE of Err {a['pixel_rmse_Err']:.2f} against {b['pixel_rmse_Err']:.2f}, "
-                       f"global peak error of Err {a['global_peak_error_Err']:+.2f} against "
-                       f"{b['global_peak_error_Err']:+.2f}, band coverage of Err {a['coverage_pct_Err']:.1f}% against "
-                       f"{b['coverage_pct_Err']:.1f}%")
+            cut.append(f"{case}: pixel RMSE of Err {fmt(a['pixel_rmse_Err'], '.2f')} against "
+                       f"{fmt(b['pixel_rmse_Err'], '.2f')}, global peak error of Err "
+                       f"{fmt(a['global_peak_error_Err'], '+.2f')} against {fmt(b['global_peak_error_Err'], '+.2f')}, "
+                       f"band coverage of Err {fmt(a['coverage_pct_Err'], '.1f')}% against "
+                       f"{fmt(b['coverage_pct_Err'], '.1f')}%")
     return (md_table(cols, body) + f"\n\nOne noise draw (SNR {results['snr']:g}, seed {results['seed']}) added to each "
             "case as given; every variant transforms those noisy images, so the rows of a case see the same noise. "
             "Strain in percentage points (Green-Lagrange), peak errors signed (estimate - truth), band coverage of the "

@@ -550,7 +550,7 @@ def border_masks_data(masks, reference_mask, n_frames: int, mesh: TriMesh, pixel
         The route's mesh of ``reference_mask`` (m).
     pixel_size_m : float
     """
-    m = _fusion_masks(masks, reference_mask, n_frames, every_frame=guide_px is None)
+    m, _ = _fusion_masks(masks, reference_mask, n_frames, every_frame=guide_px is None)
     k = integer("starts", starts, 1)
     if guide_px is not None:
         if k > 1:
@@ -564,12 +564,14 @@ def border_masks_data(masks, reference_mask, n_frames: int, mesh: TriMesh, pixel
     return data[0] if k == 1 else mean_border_data(data)
 
 
-def _fusion_masks(masks, reference_mask, n_frames: int, every_frame: bool = False) -> np.ndarray:
-    """The masks to fuse as (F + 1, H, W), the reference first, checked (each error names ``masks``).
+def _fusion_masks(masks, reference_mask, n_frames: int, every_frame: bool = False) -> tuple:
+    """The masks to fuse as (F + 1, H, W), the reference first, checked (each error names ``masks``), and
+    the indices in that stack of the frames' masks that cannot be mended (left out).
 
     The reference's and at least one frame's mask (``every_frame``: every frame's, for landmarks tracked
     from frame to frame) must be rings that can be mended (:func:`unusable_mask_frames`); checked here,
-    before any costly pass.
+    before any costly pass. The errors index the masks as given: with ``masks`` of (F, H, W), frame f is
+    ``masks[f]`` and the reference is ``reference_mask``.
     """
     ref = as_mask("reference_mask", reference_mask, 2, nonempty=True)
     F = int(n_frames)
@@ -581,19 +583,41 @@ def _fusion_masks(masks, reference_mask, n_frames: int, every_frame: bool = Fals
     if m.shape[0] == F + 1 and not np.array_equal(m[0], ref):
         raise ValueError("masks: expected masks[0] to be the reference mask (the one whose pixels are the tracks' "
                          "points), got a different mask")
-    if m.shape[0] == F:
+    shift = int(m.shape[0] == F)                          # (F, H, W): the user's masks[f] is the stack's f + 1
+    if shift:
         m = np.concatenate([ref[None], m])
     if not m[1:].any():                 # a frame without myocardium is one whose mask cannot be read (left out)
         raise ValueError("masks: expected myocardium in the frames' masks, got none in any")
-    bad, why = unusable_mask_frames(m)
+    bad, why = unusable_mask_frames(m, offset=shift)
     frames = [f for f in bad if f > 0]
     if 0 in bad:
-        raise ValueError(f"masks: expected the reference mask (masks[0]) to be one ring around one cavity ({why})")
+        where = "reference_mask" if shift else "masks[0]"
+        raise ValueError(f"masks: expected the reference mask ({where}) to be one ring around one cavity ({why})")
     if len(frames) == F or (every_frame and frames):
+        given = [f - shift for f in frames]
         raise ValueError(f"masks: expected {'every' if every_frame else 'at least one'} frame's mask that can be made "
-                         f"one ring around one cavity, got {'none' if len(frames) == F else f'masks{frames} not'} "
+                         f"one ring around one cavity, got {'none' if len(frames) == F else f'masks{given} not'} "
                          f"({why})")
-    return m
+    return m, frames
+
+
+#: Longest frame interval (s) a cine sequence may have: beyond it the times are taken to be in another unit.
+MAX_FRAME_INTERVAL_S = 1.0
+
+
+def _check_frame_times(frame_times_s, n_frames: int) -> np.ndarray:
+    """``tracks.frame_times_s`` checked: (F,) finite times (s) after the encoding, >= 0, strictly increasing, with
+    frame intervals of at most :data:`MAX_FRAME_INTERVAL_S` (times in ms are the usual slip). ValueError naming
+    ``tracks.frame_times_s`` otherwise."""
+    t = as_float_array("tracks.frame_times_s", frame_times_s, shape=(int(n_frames),))
+    if np.any(t < 0) or np.any(np.diff(t) <= 0):
+        raise ValueError(f"tracks.frame_times_s: expected times (s) after the encoding, >= 0 and strictly increasing, "
+                         f"got {np.round(t[:6], 4).tolist()}{' ...' if len(t) > 6 else ''}")
+    if len(t) > 1 and float(np.median(np.diff(t))) > MAX_FRAME_INTERVAL_S:
+        raise ValueError(f"tracks.frame_times_s: expected seconds (a cine frame interval is well under "
+                         f"{MAX_FRAME_INTERVAL_S:g} s), got a median interval of {float(np.median(np.diff(t))):g}: "
+                         "milliseconds?")
+    return t
 
 
 @limits_blas_threads
@@ -621,7 +645,9 @@ def dense_strain(tracks: LagrangianDisplacement, reference_mask, pixel_size_m: f
     masks : (F + 1, H, W) or (F, H, W) bool array, optional
         The myocardium masks of the reference and every frame (or of every frame), required with
         ``settings.border_masks`` (and only then): their border nodes' motion across the border
-        is stacked with the phase data (:func:`border_masks_data`).
+        is stacked with the phase data (:func:`border_masks_data`). With every frame's alone, the
+        checks' errors name your index (``masks[f]``, frame f); later warnings index the stack with
+        ``reference_mask`` prepended (frame f is ``masks[f + 1]`` there) and say so.
 
     Returns
     -------
@@ -633,6 +659,7 @@ def dense_strain(tracks: LagrangianDisplacement, reference_mask, pixel_size_m: f
     say = progress if progress is not None else (lambda msg: None)
     if not isinstance(tracks, LagrangianDisplacement):
         raise TypeError(f"tracks: expected a LagrangianDisplacement, got {type(tracks).__name__}")
+    _check_frame_times(tracks.frame_times_s, tracks.displacement.shape[0])
     s = positive("pixel_size_m", pixel_size_m, "m")
     mask = np.asarray(reference_mask, bool)
     rows, cols = np.nonzero(mask)
@@ -654,11 +681,15 @@ def dense_strain(tracks: LagrangianDisplacement, reference_mask, pixel_size_m: f
     mesh = reference_mesh(mask, s, cfg.mesh, cfg.element_px)
     border, guide, c_phase, mismatch = None, None, None, None
     if cfg.border_masks:
-        masks = _fusion_masks(masks, mask, tracks.displacement.shape[0],      # checked before any costly pass
-                              every_frame=cfg.border_correspondence == "landmarks")
-        mismatch = reference_mask_mismatch(masks)     # the masks' zero of the wall's thickness against the phase's
+        frames_only = len(masks) == tracks.displacement.shape[0]          # (F, H, W): the reference prepended
+        masks, unusable = _fusion_masks(masks, mask, tracks.displacement.shape[0],   # before any costly pass
+                                        every_frame=cfg.border_correspondence == "landmarks")
+        # the masks' zero of the wall's thickness against the phase's, from the frames whose masks are read
+        mismatch = reference_mask_mismatch(masks, exclude=unusable)
         if mismatch:
-            warnings.warn(f"{mismatch}; the masks' borders join the phase data", RuntimeWarning,
+            stack = (" (indices of the masks with reference_mask prepended: your masks[f] is masks[f + 1] here)"
+                     if frames_only else "")
+            warnings.warn(f"{mismatch}; the masks' borders join the phase data{stack}", RuntimeWarning,
                           stacklevel=user_stacklevel())
     if cfg.border_masks and cfg.border_correspondence == "phase":
         say("the phase data alone (one filter and smoother pass): where each border node is along the masks' "
@@ -736,7 +767,7 @@ def dense_strain(tracks: LagrangianDisplacement, reference_mask, pixel_size_m: f
     sm = smooth_backward(lin, fwd, outputs=outputs, covariance=True)
     c_ml = noise_scale(sm.nis, sm.n_obs) if cfg.noise_scale else 1.0         # step 6 (a)
     times = np.asarray(tracks.frame_times_s, float)
-    interval = float(np.median(np.diff(times))) if len(times) > 1 else float(times[0])
+    interval = float(np.median(np.diff(times)))                       # F >= 3 (build_dense_model), increasing
     run = nis_excess_min_frames(interval)
     excess = nis_excess_runs(sm.nis, sm.n_obs, scale=c_ml, min_frames=run)
     if excess:
@@ -874,13 +905,16 @@ def masks_move(masks) -> bool:
     return bool(np.any(m[1:] != m[:1]))
 
 
-def unusable_mask_frames(masks) -> tuple:
+def unusable_mask_frames(masks, offset: int = 0) -> tuple:
     """The masks that cannot be made one ring around one cavity, and the first reason.
 
     Parameters
     ----------
     masks : (F + 1, H, W) bool array
         The reference mask (index 0) then each frame's.
+    offset : {0, 1}
+        Subtracted from a frame's index where the reason names it: 1 when the caller's masks are the
+        frames' alone, (F, H, W), so that the reason names the caller's ``masks[f]``.
 
     Returns
     -------
@@ -890,10 +924,11 @@ def unusable_mask_frames(masks) -> tuple:
         included); ``reason``: its error for the first of them (None when there is none).
     """
     m = as_mask("masks", masks, ndim=3)
+    shift = integer("offset", offset, 0)
     bad, first = [], None
     for f in range(len(m)):
         try:
-            repair_myocardium_mask(m[f], "reference_mask" if f == 0 else f"masks[{f}]")
+            repair_myocardium_mask(m[f], "reference_mask" if f == 0 else f"masks[{f - shift}]")
         except ValueError as exc:
             bad.append(f)
             first = first or str(exc)

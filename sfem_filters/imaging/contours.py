@@ -388,16 +388,19 @@ def border_length(mask) -> float:
     return float(sum(np.sum(np.linalg.norm(np.diff(c, axis=0), axis=1)) for c in find_contours(m, 0.5)))
 
 
-def reference_mask_mismatch(masks, name: str = "masks") -> str | None:
+def reference_mask_mismatch(masks, name: str = "masks", exclude=()) -> str | None:
     """Why the reference mask (index 0) may not be the frames' own, or None when nothing says so.
 
     The reference configuration comes just before the first frame (DENSE encodes there), so the
     reference mask's area should differ from the first frame's by less than the frames' areas vary
     over the whole sequence, and by less than half a pixel of every border (the pixels' own
-    quantisation). Frames whose mask is empty are passed over. A reference mask drawn on another image, by another segmentation, or dilated or
-    eroded by a pixel breaks both: its area departs by about a pixel of border. Routes that read the
-    wall's thickness from the masks take it as the zero of radial strain, so every radial strain
-    would be off by about a pixel over the wall's thickness, without the data saying so.
+    quantisation). Frames whose mask is empty, and those in ``exclude`` (masks a route leaves out, such
+    as ones that cannot be mended), are passed over. A reference mask dilated or eroded by a pixel, or
+    drawn by another segmentation with another border convention, breaks both: its area departs by about
+    a pixel of border. Routes that read the wall's thickness from the masks take it as the zero of radial
+    strain, so every radial strain would be off by about a pixel over the wall's thickness, without the
+    data saying so. The check compares areas only: a reference of the right area drawn on another image,
+    or shifted, passes it.
 
     Parameters
     ----------
@@ -405,6 +408,8 @@ def reference_mask_mismatch(masks, name: str = "masks") -> str | None:
         Myocardium masks of the reference (index 0) and of each frame (index f + 1).
     name : str
         The argument's name in the message.
+    exclude : sequence of int
+        Indices in ``masks`` (>= 1) of frames to pass over.
 
     Returns
     -------
@@ -412,8 +417,13 @@ def reference_mask_mismatch(masks, name: str = "masks") -> str | None:
         A sentence naming the areas (pixels) and the two scales, or None.
     """
     m = as_mask(name, masks, 3)
+    if len(m) == 0:
+        raise ValueError(f"{name}: expected the reference mask first, (F + 1, H, W), got no mask (shape {m.shape})")
+    skip = {int(v) for v in exclude}
+    if any(not 1 <= v < len(m) for v in skip):
+        raise ValueError(f"exclude: expected frame indices of {name} from 1 to {len(m) - 1}, got {sorted(skip)}")
     areas = m.reshape(len(m), -1).sum(axis=1).astype(float)
-    frames = np.flatnonzero(areas[1:] > 0) + 1          # an empty frame mask says nothing about the reference
+    frames = np.array([f for f in range(1, len(m)) if areas[f] > 0 and f not in skip], int)   # say nothing of it
     if len(frames) == 0 or areas[0] == 0:
         return None
     k = int(frames[0])
@@ -426,5 +436,5 @@ def reference_mask_mismatch(masks, name: str = "masks") -> str | None:
     return (f"{name}[0] (the reference) holds {areas[0]:.0f} pixels and {name}[{k}] ({first}) {areas[k]:.0f}: "
             f"they differ by {jump:.0f}, more than the frames' areas vary over the sequence ({spread:.0f}) and more "
             f"than half a pixel of the reference's borders ({quantum:.0f}); the reference mask may not be these "
-            f"frames' (another image's or another segmentation's, or dilated or eroded), which shifts the zero of "
+            f"frames' (another segmentation's, or dilated or eroded), which shifts the zero of "
             f"radial strain")

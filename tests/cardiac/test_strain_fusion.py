@@ -7,6 +7,7 @@ the pixels whose reference radius lies in the wall. The phase tracks are made to
 cavity's signal leaking into the first layers' phase, as in DENSE-Sim): the masks are not.
 """
 import json
+import re
 import warnings
 from dataclasses import asdict, replace
 
@@ -136,6 +137,9 @@ def test_bad_masks_are_named(ring):
         assert np.all(np.isfinite(dense_strain(tracks, ref, PX, fused, masks=empty).Err))
     with pytest.raises(ValueError, match=r"masks\[4\]: expected some tissue"):   # landmarks need every frame's
         dense_strain(tracks, ref, PX, replace(fused, border_correspondence="landmarks"), masks=empty)
+    # the frames' masks alone, (F, H, W): the errors name the caller's index (the stack's is one more)
+    with pytest.raises(ValueError, match=r"got masks\[3\] not \(masks\[3\]: expected some tissue"):
+        dense_strain(tracks, ref, PX, replace(fused, border_correspondence="landmarks"), masks=empty[1:])
     empty[1:] = False
     with pytest.raises(ValueError, match=r"masks: expected myocardium in the frames' masks, got none in any"):
         dense_strain(tracks, ref, PX, fused, masks=empty)
@@ -478,14 +482,29 @@ def test_masks_that_disagree_with_the_phase_beyond_every_level_are_named():
 
 def test_a_reference_mask_thicker_than_every_frames_is_named_before_the_masks_join_the_phase(ring):
     """Frames' masks a pixel thinner than the reference (drawn by another hand): the route warns, naming both
-    areas, before any pass; the ring's own masks (their areas vary by the pixels' quantisation) do not."""
+    areas, before any pass (before its first filter pass's progress line); the ring's own masks (their areas vary by
+    the pixels' quantisation) do not. A frame whose mask cannot be read (a filled disc, left out of the data) does
+    not hide it, and frames given alone, (F, H, W), are told how the message indexes them."""
     ref, tracks, masks, err = ring
     assert reference_mask_mismatch(masks) is None
     thin = masks.copy()
     thin[1:] = [binary_erosion(m) for m in masks[1:]]
     cfg = StrainRouteSettings(element_px=2.0, border_masks=True, phase_noise_level="evidence",
                               process_profile="constant")
-    with pytest.warns(RuntimeWarning, match=rf"^masks\[0\] \(the reference\) holds {ref.sum()} pixels and masks\[1\] "
-                                            rf"\(the first frame\) {thin[1].sum()}.*the masks' borders join the phase"):
-        r = dense_strain(tracks, ref, PX, cfg, masks=thin)
+    warned_at = []
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        r = dense_strain(tracks, ref, PX, cfg, masks=thin,
+                         progress=lambda m: warned_at.append((m, sum("the reference" in str(w.message) for w in seen))))
+    hits = [str(w.message) for w in seen if "the reference" in str(w.message)]
+    assert len(hits) == 1 and re.match(rf"^masks\[0\] \(the reference\) holds {ref.sum()} pixels and masks\[1\] "
+                                       rf"\(the first frame\) {thin[1].sum()}.*the masks' borders join the phase",
+                                       hits[0])
+    passes = [n for m, n in warned_at if "the phase data alone" in m]
+    assert passes and passes[0] == 1                        # warned before the first filter pass began
     assert r.settings["reference_mask_mismatch"].startswith("masks[0] (the reference) holds")   # kept in the JSON
+    disc = thin.copy()
+    disc[3] = np.hypot(*(np.mgrid[0:SIZE, 0:SIZE] - np.array(CENTRE)[::-1, None, None])) <= R_OUT + 4
+    with pytest.warns(RuntimeWarning, match=r"^masks\[0\] \(the reference\).*join the phase data \(indices of "
+                                            r"the masks with reference_mask prepended"):
+        dense_strain(tracks, ref, PX, cfg, masks=disc[1:])

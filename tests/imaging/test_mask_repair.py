@@ -275,3 +275,21 @@ def test_a_reference_mask_is_not_named_when_the_frames_vary_as_much():
     assert "masks[2] (the first frame with tissue)" in reference_mask_mismatch(np.stack([thick, empty, annulus()]))
     with pytest.raises(ValueError, match="masks"):
         reference_mask_mismatch(annulus())
+
+
+def test_a_frame_left_out_does_not_hide_a_reference_a_pixel_thicker():
+    """A frame whose mask a route cannot read (passed in ``exclude``) sets neither the frames' spread nor the frame
+    compared: a filled disc among the frames would otherwise widen the spread past any reference's jump."""
+    thick = binary_dilation(annulus())
+    filled = annulus(inner=0.0, outer=14.0)
+    masks = np.stack([thick, annulus(), filled, annulus()])
+    assert reference_mask_mismatch(masks) is None                          # the disc's area swamps the jump
+    assert "masks[1] (the first frame)" in reference_mask_mismatch(masks, exclude=[2])
+    assert reference_mask_mismatch(np.stack([annulus(), annulus(), filled, annulus()]), exclude=[2]) is None
+    for bad in ([0], [4]):
+        with pytest.raises(ValueError, match="exclude"):
+            reference_mask_mismatch(masks, exclude=bad)
+    with pytest.raises(ValueError, match="masks"):
+        reference_mask_mismatch(np.zeros((0, 8, 8), bool))
+    with pytest.raises(ValueError, match="masks: expected a rectangular 3D mask.*different sizes"):
+        reference_mask_mismatch([annulus(), annulus(n=50)])
