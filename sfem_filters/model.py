@@ -267,10 +267,12 @@ class SFEMModel(LinearObservation):
     # ------------------------------------------------------------------ configuration
     @property
     def n_frames(self) -> int:
+        """Number of frames (rows of ``loads``)."""
         return len(self.loads)
 
     @property
     def estimates_material(self) -> bool:
+        """True when the state carries material parameters theta to estimate (a ``parameterisation`` was given)."""
         return self.parameterisation is not None
 
     def theta_of(self, z) -> np.ndarray:

@@ -63,6 +63,7 @@ class BatchReport:
     timings: dict = field(default_factory=dict)
 
     def summary_line(self) -> str:
+        """One line for the log: jobs run, skipped and failed, the result folder, wall time (s) and scheduler."""
         out = f"{len(self.ran)} run, {len(self.skipped)} skipped (result exists), {len(self.failed)} failed"
         return f"{out}; results in {self.directory} ({self.seconds:.1f} s, scheduler {self.scheduler})"
 

@@ -146,11 +146,14 @@ class Replicate:
 
     @property
     def nees(self) -> float:
+        """Normalised estimation error squared ``d^T P_theta^-1 d``, ``d = theta_hat - theta_true``
+        (distributed as chi2(p) for a calibrated posterior)."""
         d = self.theta_hat - self.theta_true
         return float(d @ sla.cho_solve(sla.cho_factor(self.P_theta), d))
 
     @property
     def inside(self) -> np.ndarray:
+        """(p,) bool: whether each parameter's truth lies in its 95% interval ``theta_hat +- 1.96 sd``."""
         return np.abs(self.theta_hat - self.theta_true) <= 1.96 * np.sqrt(np.diag(self.P_theta))
 
 
@@ -164,14 +167,17 @@ class Calibration:
 
     @property
     def n(self) -> int:
+        """Number of replicates N."""
         return len(self.replicates)
 
     @property
     def p(self) -> int:
+        """Number of parameters p (the length of theta)."""
         return len(self.replicates[0].theta_true)
 
     @property
     def anees_over_p(self) -> float:
+        """Mean NEES over the replicates divided by p: 1 for a calibrated posterior (see :attr:`anees_band`)."""
         return float(np.mean([r.nees for r in self.replicates]) / self.p)
 
     @property
@@ -182,19 +188,33 @@ class Calibration:
 
     @property
     def coverage(self) -> float:
+        """Fraction of (replicate, parameter) pairs whose truth lies in its 95% interval: 0.95 when calibrated."""
         return float(np.mean([r.inside for r in self.replicates]))
 
     @property
     def coverage_interval(self) -> tuple:
+        """95% Wilson interval ``(low, high)`` of :attr:`coverage` over the N p (replicate, parameter) pairs."""
         inside = np.concatenate([r.inside for r in self.replicates])
         return wilson_interval(int(inside.sum()), len(inside))
 
     @property
     def strain_coverage(self) -> float:
+        """Mean over the replicates of the fraction of true strains inside their 95% interval (0.95 when
+        calibrated); NaN when no replicate's strain was checked (only the annulus problem checks it)."""
         vals = [r.strain_inside for r in self.replicates if np.isfinite(r.strain_inside)]
         return float(np.mean(vals)) if vals else np.nan
 
     def summary(self) -> dict:
+        """The calibration's numbers as plain values (one row of the report).
+
+        Returns
+        -------
+        dict
+            ``problem``, ``estimator``, ``n``, ``p``, ``anees_over_p`` and its calibrated ``anees_band``,
+            ``coverage`` and its ``coverage_interval``, ``strain_coverage``, the number of ``converged``
+            replicates, the medians ``process_noise_scale_median`` and ``seconds_median`` (s), and the
+            prior-data check's keys (:meth:`prior_check_summary`).
+        """
         lo, hi = self.anees_band
         clo, chi = self.coverage_interval
         return {"problem": self.problem, "estimator": self.estimator, "n": self.n, "p": self.p,

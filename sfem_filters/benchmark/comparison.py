@@ -45,10 +45,22 @@ class StrategyRun:
 
 @dataclass
 class Comparison:
+    """Outcome of :func:`run_comparison`: the pinned benchmark (``bench``) and the run of each row of the
+    comparison (``runs``, name -> :class:`StrategyRun`)."""
+
     bench: Benchmark
     runs: dict
 
     def as_json(self) -> dict:
+        """The comparison as plain JSON-able values.
+
+        Returns
+        -------
+        dict
+            ``seed`` and ``refine`` of the benchmark, the reported ``frame`` (1-based), ``n_nodes``, the
+            observation noise ``noise_mm`` (mm), and ``strategies``: strategy name -> its metrics (KS test of
+            e_yy at that frame, RMSE of displacement in mm and of e_yy as a fraction, run time in s, ...).
+        """
         return {"seed": self.bench.seed, "refine": self.bench.refine, "frame": REPORT_FRAME,
                 "n_nodes": self.bench.mesh.n_nodes,
                 "noise_mm": self.bench.noise_std * 1e3,

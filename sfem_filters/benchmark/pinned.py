@@ -65,6 +65,7 @@ class Benchmark:
 
     @property
     def n_frames(self) -> int:
+        """Number of frames (rows of ``loads``)."""
         return len(self.loads)
 
 

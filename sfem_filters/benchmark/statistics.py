@@ -42,6 +42,7 @@ class KSResult:
     exact: bool = True   # False when scipy could not compute the exact p and approximated it
 
     def as_dict(self) -> dict:
+        """The fields as a dict: ``D``, ``p_exact``, ``p_asymptotic``, ``H``, ``alpha``, ``exact``."""
         return asdict(self)
 
 

@@ -76,10 +76,12 @@ class Effect:
 
     @property
     def n_amplitudes(self) -> int:
+        """Number k of amplitudes (columns of ``loads``)."""
         return self.loads.shape[1]
 
     @property
     def n_states(self) -> int:
+        """Number of states: the k amplitudes, and k rates with ``rate_std``."""
         return self.n_amplitudes * (1 if self.rate_std is None else 2)
 
     def transition(self) -> np.ndarray:
@@ -102,12 +104,17 @@ class Effect:
         return np.concatenate([v, np.full(self.n_amplitudes, rate_value)])
 
     def process_variances(self) -> np.ndarray:
+        """Per-frame random-walk variances of the states, (n_states,): ``process_std^2`` for the amplitudes
+        (``unit`` squared), ``rate_std^2`` for the rates ((unit per frame) squared)."""
         return self._expand(self.process_std, self.rate_std or 0.0) ** 2
 
     def initial_variances(self) -> np.ndarray:
+        """Initial variances of the states, (n_states,): ``initial_std^2`` for the amplitudes (``unit``
+        squared), ``rate_std^2`` for the rates ((unit per frame) squared)."""
         return self._expand(self.initial_std, self.rate_std or 0.0) ** 2
 
     def initial_states(self) -> np.ndarray:
+        """Initial values of the states, (n_states,): ``initial`` for the amplitudes (``unit``), 0 for the rates."""
         return self._expand(self.initial, 0.0)
 
 

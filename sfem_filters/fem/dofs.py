@@ -45,12 +45,14 @@ class DofMap:
 
     @property
     def free(self) -> np.ndarray:
+        """Global indices of the free dofs, ascending."""
         mask = np.ones(self.n_dofs, bool)
         mask[self.fixed] = False
         return np.flatnonzero(mask)
 
     @property
     def n_free(self) -> int:
+        """Number of free dofs."""
         return self.n_dofs - len(self.fixed)
 
     def free_index(self) -> np.ndarray:

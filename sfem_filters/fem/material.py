@@ -69,6 +69,7 @@ class Material:
 
     @property
     def n_elements(self) -> int:
+        """Number of elements (the length of ``E`` and ``nu``)."""
         return len(self.E)
 
 
@@ -220,14 +221,17 @@ class Parameterisation:
 
     @property
     def n_elements(self) -> int:
+        """Number of elements the map covers (rows of the bases)."""
         return self.basis_E.shape[0]
 
     @property
     def n_E(self) -> int:
+        """Number of log E parameters (columns of ``basis_E``, a stiffness level included); they come first in theta."""
         return self.basis_E.shape[1]
 
     @property
     def n_params(self) -> int:
+        """Number of parameters: the :attr:`n_E` log E ones followed by the logit(2 nu) ones."""
         return self.basis_E.shape[1] + self.basis_nu.shape[1]
 
     def material(self, theta) -> Material:

@@ -81,14 +81,17 @@ class TriMesh:
 
     @property
     def n_nodes(self) -> int:
+        """Number of nodes."""
         return len(self.nodes)
 
     @property
     def n_elements(self) -> int:
+        """Number of triangles."""
         return len(self.elements)
 
     @property
     def n_dofs(self) -> int:
+        """Number of global dofs: two per node (x and y displacement)."""
         return 2 * len(self.nodes)
 
     @property

@@ -100,6 +100,7 @@ class ModalSystem:
 
     @property
     def n(self) -> int:
+        """Number of free dofs (the size of M and K); the state ``[U; U']`` has 2 n entries."""
         return self.M.shape[0]
 
     def step(self, x, w):

@@ -140,6 +140,7 @@ class ProfileHessian:
         return sla.eigh(self.hessian, self.gauss_newton, eigvals_only=True)
 
     def positive_definite(self) -> bool:
+        """True when the exact Hessian is positive definite (has a Cholesky factor): the cost is locally convex."""
         try:
             np.linalg.cholesky(self.hessian)
         except np.linalg.LinAlgError:

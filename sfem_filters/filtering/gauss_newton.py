@@ -100,6 +100,15 @@ class StructuredSecant:
         self.s = self.g = None
 
     def taken(self, step, g):
+        """Record the step just taken and the gradient where it started, for the next :meth:`update`.
+
+        Parameters
+        ----------
+        step : (p,) array
+            The step taken in theta.
+        g : (p,) array
+            The gradient of the profile cost before the step.
+        """
         self.s, self.g = np.array(step, float), np.array(g, float)
 
     def state(self) -> dict:
@@ -109,11 +118,34 @@ class StructuredSecant:
                 "secant_g": empty if self.g is None else self.g}
 
     def restore(self, state) -> None:
+        """Set the correction and the last step from a checkpoint.
+
+        Parameters
+        ----------
+        state : mapping
+            The arrays of :meth:`state` (``secant_S``, ``secant_s``, ``secant_g``).
+        """
         self.S = np.array(state["secant_S"], float)
         if np.size(state["secant_s"]):
             self.s, self.g = np.array(state["secant_s"], float), np.array(state["secant_g"], float)
 
     def update(self, H, g) -> np.ndarray:
+        """Update the correction ``S`` with the gradient change since the last step, and return it.
+
+        Skipped before the first step and when ``y^T s <= 0`` (``s`` the last step, ``y`` the gradient's change).
+
+        Parameters
+        ----------
+        H : (p, p) array
+            The Gauss-Newton Hessian at the new point.
+        g : (p,) array
+            The gradient of the profile cost at the new point.
+
+        Returns
+        -------
+        (p, p) array
+            The symmetric correction ``S``: ``H + S`` models the full Hessian.
+        """
         if self.s is not None:
             s, y = self.s, g - self.g
             ys = float(y @ s)

@@ -24,6 +24,25 @@ class History:
     KEYS = ("loop", "frame", "x", "P_diag", "innovation", "S", "nis", "n_obs")
 
     def append(self, loop, frame, x, P, innovation, S, nis, n_obs):
+        """Add the row of one update: the posterior after frame ``frame`` of pass ``loop``.
+
+        Parameters
+        ----------
+        loop, frame : int
+            Pass over the data and frame index (both from 0).
+        x : (n,) array
+            Posterior state.
+        P : (n, n) or (n,) array
+            Posterior covariance or its diagonal; only the variances are kept.
+        innovation : (m,) array
+            ``y - h(x_prior)``, NaN where unobserved.
+        S : (m, m) array
+            Innovation covariance, NaN rows and columns where unobserved.
+        nis : float
+            Normalised innovation squared (NaN without observations).
+        n_obs : int
+            Number of observations in the update.
+        """
         self.loop.append(loop)
         self.frame.append(frame)
         self.x.append(np.array(x, float))
@@ -35,10 +54,18 @@ class History:
         self.n_obs.append(n_obs)
 
     def as_arrays(self) -> dict:
+        """Every column as an array with one row per (loop, frame), key -> array for the names in ``KEYS``."""
         return {k: np.asarray(getattr(self, k)) for k in self.KEYS}
 
     @classmethod
     def from_arrays(cls, arrays) -> "History":
+        """A History from the arrays of :meth:`as_arrays` (for example read back from a checkpoint).
+
+        Parameters
+        ----------
+        arrays : mapping
+            Key -> array for every name in ``KEYS``, one row per (loop, frame).
+        """
         h = cls()
         for k in cls.KEYS:
             getattr(h, k).extend(list(np.asarray(arrays[k])))

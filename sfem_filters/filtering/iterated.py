@@ -217,6 +217,8 @@ class IteratedSmoother:
                              f"step), got {self.max_extrapolation!r}")
 
     def trajectory_settings(self) -> dict:
+        """The settings that shape the iterates: the checkpoint fingerprint's part (method, damping, the
+        safeguards' settings, and ``max_extrapolation`` when it is not 1)."""
         guard = self.safeguards if self.safeguards is not None else Safeguards()
         out = {"method": "iterated_smoother", "damping": float(self.damping), "max_damping": float(self.max_damping),
                **guard.settings()}

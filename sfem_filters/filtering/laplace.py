@@ -113,6 +113,8 @@ class SmootherResult:
 
     @property
     def rel_changes(self) -> list:
+        """Relative change of the physical parameters (E in Pa and nu) at each accepted iteration (for tables
+        shared with the cyclic EKF)."""
         return [r["rel_change"] for r in self.records]
 
     @property

@@ -134,6 +134,7 @@ class LinearGaussianModel(LinearObservation):
 
     @property
     def n_frames(self) -> int:
+        """Length of the sequence (frames)."""
         return self._n_frames
 
     def with_process_noise(self, scale: float) -> "LinearGaussianModel":
@@ -150,9 +151,22 @@ class LinearGaussianModel(LinearObservation):
 
     @property
     def estimates_material(self) -> bool:
+        """True when the state carries unknown parameters theta (p > 0)."""
         return self.dim_theta > 0
 
     def theta_of(self, z) -> np.ndarray:
+        """Parameters theta of an augmented state.
+
+        Parameters
+        ----------
+        z : (dim_state,) array
+            An augmented state ``[x; theta]``.
+
+        Returns
+        -------
+        (p,) array
+            Its last p entries (empty when the model has no parameters).
+        """
         return np.asarray(z, float).ravel()[self.n_restart:]
 
     def fx(self, z, t):

@@ -74,22 +74,27 @@ class LinearisedModel:
 
     @property
     def n_frames(self) -> int:
+        """Number of frames (one R per frame)."""
         return len(self.R)
 
     @property
     def n_restart(self) -> int:
+        """Size n_r of the restart part xi."""
         return len(self.xi0)
 
     @property
     def n_params(self) -> int:
+        """Number p of static parameters theta."""
         return len(self.theta0)
 
     @property
     def dim_state(self) -> int:
+        """Size of the state ``[xi; theta]``: n_r + p."""
         return self.n_restart + self.n_params
 
     @property
     def dim_obs(self) -> int:
+        """Number m of observations per frame (rows of H)."""
         return self.H.shape[0]
 
     def Q_at(self, t: int) -> np.ndarray:

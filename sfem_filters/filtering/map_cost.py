@@ -39,6 +39,17 @@ class InverseRoot:
             self.L, self.U = None, U[:, keep] / np.sqrt(lam[keep])
 
     def norm2(self, x) -> float:
+        """Squared Mahalanobis norm ``x^T C^-1 x`` (pseudo-inverse for a singular C).
+
+        Parameters
+        ----------
+        x : (n,) or (k, n) array
+            A vector, or k vectors as rows (their squared norms are summed).
+
+        Returns
+        -------
+        float
+        """
         x = np.asarray(x, float)
         if self.L is not None:
             v = sla.solve_triangular(self.L, x.T, lower=True)

@@ -67,6 +67,19 @@ class Safeguards:
                 "stop_on_divergence": bool(self.stop_on_divergence)}
 
     def check_covariance(self, engine, loop, t):
+        """Check the engine's covariance after a step, and repair or reject it.
+
+        When P has no Cholesky factor, ``covariance_repair="higham"`` resets the engine to the nearest
+        positive semi-definite P plus ``jitter`` times its mean variance, logs ``(loop, t)`` in ``repairs``
+        and warns (RuntimeWarning); ``"none"`` raises FloatingPointError.
+
+        Parameters
+        ----------
+        engine : Engine
+            The filter engine: its ``P`` is checked and, when repaired, reset.
+        loop, t : int
+            Pass over the data and frame, for the log and the messages.
+        """
         if engine.cholesky() is not None:     # the structured engine keeps it for its next step
             return
         P = engine.P
@@ -79,6 +92,23 @@ class Safeguards:
         warnings.warn(f"covariance repaired (nearest PSD, Higham) at loop {loop}, frame {t}", RuntimeWarning)
 
     def check_nis(self, nis_run: list, loop, t, nis, m):
+        """Watch the normalised innovations squared (NIS) for divergence.
+
+        Counts the frames in a row whose NIS exceeds the ``divergence_level`` quantile of chi2(m); when the
+        run reaches ``divergence_frames``, logs ``(loop, t)`` in ``divergences`` and warns (RuntimeWarning),
+        or raises :class:`FilterDivergence` with ``stop_on_divergence``.
+
+        Parameters
+        ----------
+        nis_run : list
+            The frames of the current run of exceedances, updated in place (one list per pass).
+        loop, t : int
+            Pass over the data and frame.
+        nis : float
+            This frame's NIS.
+        m : int
+            Number of observations in the update (0: no data, which ends a run).
+        """
         if m and nis > stats.chi2.ppf(self.divergence_level, m):
             nis_run.append(t)
         else:

@@ -105,10 +105,12 @@ class DenseCase:
 
     @property
     def n_frames(self) -> int:
+        """Number of frames F."""
         return self.phases.shape[1]
 
     @property
     def shape(self) -> tuple:
+        """Image size (H, W) in pixels."""
         return self.phases.shape[2:]
 
     @property
@@ -128,6 +130,7 @@ class DenseCase:
 
     @property
     def has_truth(self) -> bool:
+        """True when both ground-truth strains, ``truth_ecc`` and ``truth_err``, are present."""
         return self.truth_ecc is not None and self.truth_err is not None
 
 

@@ -42,10 +42,12 @@ class ImageSeries:
 
     @property
     def n_frames(self) -> int:
+        """Number of frames F (of ``masks``, else of ``magnitude``)."""
         return len(self.masks if self.masks is not None else self.magnitude)
 
     @property
     def shape(self) -> tuple:
+        """Image size (H, W) in pixels."""
         return (self.masks if self.masks is not None else self.magnitude).shape[1:3]
 
 

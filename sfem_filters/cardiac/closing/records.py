@@ -107,6 +107,7 @@ class Round:
 
     @property
     def effects(self) -> tuple:
+        """Names of the effects of the round's model (``variant.effects``)."""
         return self.variant.effects
 
     @property
@@ -117,6 +118,16 @@ class Round:
         return "baseline" if self.added is None else f"+ {self.added}"
 
     def as_json(self) -> dict:
+        """The round as plain JSON-able values (an entry of ``rounds`` in :meth:`LoopResult.as_json`).
+
+        Returns
+        -------
+        dict
+            ``round`` (its number), the model's settings (:meth:`~sfem_filters.cardiac.specs.ModelSpec.as_json`),
+            ``added``, ``removed``, ``backward``, ``replaced``, ``log_evidence`` (nats), ``threshold`` (None
+            when not finite), ``tried``, ``cross_validation``, ``ranking``, the run's held-out errors (px),
+            innovation and shear-strain diagnostics, and ``versus_spline``.
+        """
         m = self.run.metrics
         return {"round": self.number, **self.variant.as_json(), "added": self.added,
                 "removed": self.removed, "backward": list(self.backward), "replaced": list(self.replaced), "log_evidence": self.log_evidence,
@@ -178,6 +189,7 @@ class LoopResult:
 
     @property
     def baseline(self) -> Run:
+        """The run of round 0, the baseline model."""
         return self.rounds[0].run
 
     @property
@@ -187,6 +199,7 @@ class LoopResult:
 
     @property
     def effects(self) -> list:
+        """Names of the final model's effects (those of the last round)."""
         return list(self.rounds[-1].effects)
 
 
