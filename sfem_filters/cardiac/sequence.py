@@ -75,13 +75,17 @@ class Sequence:
 
     @property
     def n_frames(self) -> int:
+        """Number of frames F."""
         return self.displacement.shape[0]
 
     @property
     def n_points(self) -> int:
+        """Number of tracked points P."""
         return self.points.shape[0]
 
     def to_dict(self) -> dict:
+        """The format's keys that are set, key -> value in the sequence's own units (``extra`` left out;
+        :func:`save_sequence` writes both)."""
         out = {}
         for f in fields(self):
             if f.name == "extra":
@@ -230,11 +234,12 @@ def load_sequence(path) -> Sequence:
 
 def save_sequence(seq: Sequence, path) -> str:
     """Write a sequence in the documented format (compressed npz), creating its directory; returns the
-    path written (``path``, with ``.npz`` appended when it lacks it, as numpy does)."""
+    path written (``path``, with ``.npz`` appended when it lacks it, as numpy does). The ``extra`` keys
+    (such as ``frame_times_s``) are written beside the format's, so a file read and saved again keeps them."""
     path = os.fspath(path)
     written = path if path.endswith(".npz") else path + ".npz"
     os.makedirs(os.path.dirname(os.path.abspath(written)), exist_ok=True)
-    np.savez_compressed(written, **seq.to_dict())
+    np.savez_compressed(written, **{**seq.extra, **seq.to_dict()})
     return written
 
 
