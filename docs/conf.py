@@ -203,11 +203,58 @@ def write_api_pages(app=None, config=None) -> None:
 
 
 # -- unresolved external references render as literal text ----------------------------------------
+def _object_at(path: str):
+    """The object a dotted path names (``sfem_filters.cardiac.measured.build_model``), or None."""
+    parts = path.split(".")
+    for i in range(len(parts), 0, -1):
+        try:
+            obj = importlib.import_module(".".join(parts[:i]))
+        except ImportError:
+            continue
+        for attr in parts[i:]:
+            obj = getattr(obj, attr, None)
+            if obj is None:
+                return None
+        return obj
+    return None
+
+
+_HOMES = {}
+
+
+def _documented_as(target: str) -> str | None:
+    """Where the object a docstring names by its defining module's path is documented: the namespace of
+    the API pages whose ``__all__`` exports the same object under the same name (its home), or None."""
+    if not _HOMES:
+        _HOMES.update(api_homes())
+    name = target.rsplit(".", 1)[-1]
+    obj = _object_at(target)
+    if obj is None:
+        return None
+    for ns, names in _HOMES.items():
+        if names.get(name) == ns and _same(getattr(importlib.import_module(ns), name, None), obj):
+            return f"{ns}.{name}"
+    return None
+
+
 def _literal_for_unresolved(app, env, node, contnode):
     """numpy/scipy/filterpy objects named in roles (no intersphinx here): keep them as plain code,
-    without a warning, instead of a broken link."""
-    if node.get("refdomain") == "py" and not str(node.get("reftarget", "")).startswith("sfem_filters"):
+    without a warning, instead of a broken link. A library object named by the path of the module that
+    defines it (docstrings do: ``sfem_filters.cardiac.measured.build_model``) links to the page where it
+    is documented (``sfem_filters.cardiac.build_model``)."""
+    if node.get("refdomain") != "py":
+        return None
+    target = str(node.get("reftarget", ""))
+    if not target.startswith("sfem_filters"):
         return contnode if isinstance(contnode, nodes.literal) else nodes.literal("", contnode.astext())
+    home = _documented_as(target)
+    if home is None or home == target:
+        return None
+    domain = env.get_domain("py")
+    for role in (node.get("reftype"), "obj"):
+        found = domain.resolve_xref(env, node.get("refdoc"), app.builder, role, home, node, contnode)
+        if found is not None:
+            return found
     return None
 
 
