@@ -241,16 +241,25 @@ def _literal_for_unresolved(app, env, node, contnode):
     """numpy/scipy/filterpy objects named in roles (no intersphinx here): keep them as plain code,
     without a warning, instead of a broken link. A library object named by the path of the module that
     defines it (docstrings do: ``sfem_filters.cardiac.measured.build_model``) links to the page where it
-    is documented (``sfem_filters.cardiac.build_model``)."""
+    is documented (``sfem_filters.cardiac.build_model``), and a module without a page of its own to the
+    package that exports its names."""
     if node.get("refdomain") != "py":
         return None
     target = str(node.get("reftarget", ""))
     if not target.startswith("sfem_filters"):
         return contnode if isinstance(contnode, nodes.literal) else nodes.literal("", contnode.astext())
+    domain = env.get_domain("py")
+    if node.get("reftype") == "mod":              # a module without a page: the package that exports its names
+        parent = target
+        while "." in parent:
+            parent = parent.rsplit(".", 1)[0]
+            found = domain.resolve_xref(env, node.get("refdoc"), app.builder, "mod", parent, node, contnode)
+            if found is not None:
+                return found
+        return None
     home = _documented_as(target)
     if home is None or home == target:
         return None
-    domain = env.get_domain("py")
     for role in (node.get("reftype"), "obj"):
         found = domain.resolve_xref(env, node.get("refdoc"), app.builder, role, home, node, contnode)
         if found is not None:

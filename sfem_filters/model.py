@@ -85,7 +85,7 @@ class SFEMModel(LinearObservation):
     prior_std : (float, float)
         P3(0) standard deviations of theta_E (log E) and theta_nu (logit 2 nu) (diagonal P3).
     prior_cov : (n_params, n_params) array, optional
-        A full P3(0) instead, e.g. :func:`sfem_filters.material.correlated_prior`.
+        A full P3(0) instead, e.g. :func:`sfem_filters.fem.material.correlated_prior`.
     material_process_std : (float, float)
         Process noise of theta per frame (default 0: the material is constant).
     penalty : (n_dofs, n_dofs) sparse matrix, optional
@@ -97,7 +97,7 @@ class SFEMModel(LinearObservation):
     jacobian : {"modal", "expm_frechet"}
         How M_t is computed: the exact modal Daleckii-Krein form (fast) or one
         ``scipy.linalg.expm_frechet`` per parameter (reference).
-    effects : sequence of :class:`sfem_filters.effects.Effect`
+    effects : sequence of :class:`sfem_filters.cardiac.effects.Effect`
         Extra model terms, each a load ``G_e eta_e`` (N) linear in its states ``eta_e``
         (random walks), appended to the state after the kinematics: ``z = [x; eta; theta]``.
     velocity_operator : (n_obs, n_dofs) array or sparse matrix, optional

@@ -53,7 +53,8 @@ def test_strain_writes_the_issue_json_with_bands_around_the_curves(short_case, t
     # our peaks and their frames' times as the JSON has them, with the band of the curve there
     g, ms = d["global"], 1e3 * np.array(d["frame_times_s"], float)
     k = int(np.nanargmin(np.array(g["Ecc"], float)))
-    assert (f"global peak Ecc {100 * g['Ecc'][k]:.2f}% at {ms[k]:.0f} ms (95% band of the curve there: "
+    assert (f"global peak Ecc {100 * g['Ecc'][k]:.2f}% at {ms[k]:.0f} ms (95% band of the curve at that frame, "
+            "not of the peak: "
             f"{100 * g['Ecc_lo'][k]:.2f} to {100 * g['Ecc_hi'][k]:.2f}%)") in printed.out
     labels = np.array(d["labels"])
     assert labels.shape == (P,) and set(labels) <= set(range(6))

@@ -226,7 +226,8 @@ def cmd_strain(args) -> int:
                  f"Err {100 * np.nanmax(np.asarray(tg['Err'], float)):.2f}%")
     ms = 1e3 * np.asarray(ours.frame_times_s, float)
     print(f"{len(ours.points)} reference pixels x {len(ours.frame_times_s)} frames; global peak Ecc "
-          f"{100 * g['Ecc'][peak_cc]:.2f}% at {ms[peak_cc]:.0f} ms (95% band of the curve there: "
+          f"{100 * g['Ecc'][peak_cc]:.2f}% at {ms[peak_cc]:.0f} ms (95% band of the curve at that frame, "
+          "not of the peak: "
           f"{100 * g['Ecc_lo'][peak_cc]:.2f} to {100 * g['Ecc_hi'][peak_cc]:.2f}%), Err {100 * g['Err'][peak_rr]:.2f}% "
           f"at {ms[peak_rr]:.0f} ms ({100 * g['Err_lo'][peak_rr]:.2f} to {100 * g['Err_hi'][peak_rr]:.2f}%); "
           f"conventional (sigma {args.conventional_sigma:g} px): Ecc {100 * np.nanmin(conv.global_Ecc):.2f}%, "

@@ -247,7 +247,7 @@ def track_borders(borders, options: TrackingOptions | None = None) -> BoundaryTr
 
 
 def track_masks(masks, options: TrackingOptions | None = None) -> BoundaryTracks:
-    """Contours of every mask (:func:`sfem_filters.contours.mask_borders`), then :func:`track_borders`.
+    """Contours of every mask (:func:`sfem_filters.imaging.contours.mask_borders`), then :func:`track_borders`.
 
     Parameters
     ----------
