@@ -250,12 +250,16 @@ def _literal_for_unresolved(app, env, node, contnode):
         return contnode if isinstance(contnode, nodes.literal) else nodes.literal("", contnode.astext())
     domain = env.get_domain("py")
     if node.get("reftype") == "mod":              # a module without a page: the package that exports its names
+        try:
+            module = importlib.import_module(target)
+        except ImportError:                       # a typo stays unresolved (a warning in a nitpicky build)
+            return None
+        own = set(getattr(module, "__all__", ()))
         parent = target
         while "." in parent:
             parent = parent.rsplit(".", 1)[0]
-            found = domain.resolve_xref(env, node.get("refdoc"), app.builder, "mod", parent, node, contnode)
-            if found is not None:
-                return found
+            if own & set(getattr(importlib.import_module(parent), "__all__", ())):
+                return domain.resolve_xref(env, node.get("refdoc"), app.builder, "mod", parent, node, contnode)
         return None
     home = _documented_as(target)
     if home is None or home == target:

@@ -10,7 +10,7 @@ from pathlib import Path
 
 from . import CLAIMS, claim
 from ._core import GENERATED, command_line, render_claim, run_claim
-from .claims_index import write_claims_table
+from .claims_index import last_full_run, write_claims_table
 from .readme import sync
 
 
@@ -44,7 +44,9 @@ def main(argv=None) -> int:
     if args.verb == "list":
         for name in CLAIMS:
             mod = claim(name)
-            print(f"{name:<21}{mod.TITLE}  (full tier: {mod.FULL_COST})")
+            last = last_full_run(name)
+            cost = f"last full run {last}" if last else f"full tier not run here; estimated {mod.FULL_COST}"
+            print(f"{name:<21}{mod.TITLE}  ({cost})")
         return 0
     if args.verb == "sync-readme":
         changed = sync()
@@ -73,18 +75,20 @@ def main(argv=None) -> int:
         build_parser().error("run --quick: give --out DIR (the quick tier never writes over docs/_generated/)")
     out = args.out or GENERATED
     failed = []
-    for name in names:
-        mod = claim(name)
-        print(f"{name}: {tier} tier ...", flush=True)
-        payload = run_claim(mod, tier, out, command_line(argv))
-        problems = mod.check(payload["results"], tier)
-        print(f"{name}: wrote {out / (name + '.json')} and .md in {payload['provenance']['wall_seconds']:.1f} s",
-              flush=True)
-        for p in problems:
-            print(f"{name}: implausible: {p}", file=sys.stderr)
-        failed += [name] if problems else []
-    if Path(out).resolve() == GENERATED.resolve():
-        print(f"rewrote {write_claims_table(out)}")
+    try:
+        for name in names:
+            mod = claim(name)
+            print(f"{name}: {tier} tier ...", flush=True)
+            payload = run_claim(mod, tier, out, command_line(argv))
+            problems = mod.check(payload["results"], tier)
+            print(f"{name}: wrote {out / (name + '.json')} and .md in {payload['provenance']['wall_seconds']:.1f} s",
+                  flush=True)
+            for p in problems:
+                print(f"{name}: implausible: {p}", file=sys.stderr)
+            failed += [name] if problems else []
+    finally:                                      # the claims run before a failing one are in the index too
+        if Path(out).resolve() == GENERATED.resolve():
+            print(f"rewrote {write_claims_table(out)}")
     return 1 if failed else 0
 
 

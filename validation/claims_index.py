@@ -14,7 +14,7 @@ from pathlib import Path
 from . import CLAIMS, claim
 from ._core import GENERATED
 
-__all__ = ["claims_table", "write_claims_table", "INDEX_NAME"]
+__all__ = ["claims_table", "last_full_run", "write_claims_table", "INDEX_NAME"]
 
 #: The generated table's file name under ``docs/_generated/``.
 INDEX_NAME = "claims.md"
@@ -25,17 +25,24 @@ def _duration(seconds: float) -> str:
     return f"{seconds:.0f} s" if seconds < 120 else f"{seconds / 60:.0f} min"
 
 
+def last_full_run(name: str, folder: Path = GENERATED) -> str | None:
+    """``"29 min, 2026-11-27"``: the wall time and date of claim ``name``'s last full run, from its stored
+    provenance in ``folder``; None where no full run is stored."""
+    path = Path(folder) / f"{name}.json"
+    if not path.is_file():
+        return None
+    prov = json.loads(path.read_text()).get("provenance", {})
+    if prov.get("tier") != "full" or prov.get("wall_seconds") is None:
+        return None
+    return f"{_duration(float(prov['wall_seconds']))}, {str(prov.get('date_utc', ''))[:10]}"
+
+
 def claims_table(folder: Path = GENERATED) -> str:
     """The Markdown table of every claim: page link, name, the last full run's wall time and date (from the
     stored JSON's provenance in ``folder``), or "not run" where no full run is stored."""
     rows = ["| claim | name | last full run |", "|---|---|---|"]
     for name in CLAIMS:
-        path = Path(folder) / f"{name}.json"
-        took = "not run"
-        if path.is_file():
-            prov = json.loads(path.read_text()).get("provenance", {})
-            if prov.get("tier") == "full" and prov.get("wall_seconds") is not None:
-                took = f"{_duration(float(prov['wall_seconds']))}, {str(prov.get('date_utc', ''))[:10]}"
+        took = last_full_run(name, folder) or "not run"
         rows.append(f"| [{claim(name).TITLE}]({name}.md) | `{name}` | {took} |")
     return "\n".join(rows) + ("\n\nLast full run: the wall time of the claim's full tier as its stored provenance "
                               "records it, on the machine and at the load its page's header names.\n")

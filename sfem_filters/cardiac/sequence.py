@@ -236,6 +236,14 @@ def save_sequence(seq: Sequence, path) -> str:
     """Write a sequence in the documented format (compressed npz), creating its directory; returns the
     path written (``path``, with ``.npz`` appended when it lacks it, as numpy does). The ``extra`` keys
     (such as ``frame_times_s``) are written beside the format's, so a file read and saved again keeps them."""
+    taken = sorted(k for k in seq.extra if k in FORMAT_KEYS or k in ("file", "allow_pickle"))
+    if taken:
+        raise ValueError(f"seq.extra: keys {taken} are the format's own (or numpy's arguments); give a format key as "
+                         "the Sequence's field, and name other data otherwise")
+    for k, v in seq.extra.items():
+        if np.asarray(v).dtype == object:
+            raise ValueError(f"seq.extra[{k!r}]: expected numbers, booleans or text (what load_sequence reads "
+                             f"without pickling), got {type(v).__name__}")
     path = os.fspath(path)
     written = path if path.endswith(".npz") else path + ".npz"
     os.makedirs(os.path.dirname(os.path.abspath(written)), exist_ok=True)

@@ -550,7 +550,7 @@ def border_masks_data(masks, reference_mask, n_frames: int, mesh: TriMesh, pixel
         The route's mesh of ``reference_mask`` (m).
     pixel_size_m : float
     """
-    m, _ = _fusion_masks(masks, reference_mask, n_frames, every_frame=guide_px is None)
+    m, _, _ = _fusion_masks(masks, reference_mask, n_frames, every_frame=guide_px is None)
     k = integer("starts", starts, 1)
     if guide_px is not None:
         if k > 1:
@@ -565,8 +565,9 @@ def border_masks_data(masks, reference_mask, n_frames: int, mesh: TriMesh, pixel
 
 
 def _fusion_masks(masks, reference_mask, n_frames: int, every_frame: bool = False) -> tuple:
-    """The masks to fuse as (F + 1, H, W), the reference first, checked (each error names ``masks``), and
-    the indices in that stack of the frames' masks that cannot be mended (left out).
+    """The masks to fuse as (F + 1, H, W), the reference first, checked (each error names ``masks``), the
+    indices in that stack of the frames' masks that cannot be mended (left out), and whether the reference
+    was prepended (``masks`` given as the frames' alone, (F, H, W)).
 
     The reference's and at least one frame's mask (``every_frame``: every frame's, for landmarks tracked
     from frame to frame) must be rings that can be mended (:func:`unusable_mask_frames`); checked here,
@@ -598,7 +599,7 @@ def _fusion_masks(masks, reference_mask, n_frames: int, every_frame: bool = Fals
         raise ValueError(f"masks: expected {'every' if every_frame else 'at least one'} frame's mask that can be made "
                          f"one ring around one cavity, got {'none' if len(frames) == F else f'masks{given} not'} "
                          f"({why})")
-    return m, frames
+    return m, frames, bool(shift)
 
 
 #: Longest frame interval (s) a cine sequence may have: beyond it the times are taken to be in another unit.
@@ -681,9 +682,8 @@ def dense_strain(tracks: LagrangianDisplacement, reference_mask, pixel_size_m: f
     mesh = reference_mesh(mask, s, cfg.mesh, cfg.element_px)
     border, guide, c_phase, mismatch = None, None, None, None
     if cfg.border_masks:
-        frames_only = len(masks) == tracks.displacement.shape[0]          # (F, H, W): the reference prepended
-        masks, unusable = _fusion_masks(masks, mask, tracks.displacement.shape[0],   # before any costly pass
-                                        every_frame=cfg.border_correspondence == "landmarks")
+        masks, unusable, frames_only = _fusion_masks(     # checked before any costly pass
+            masks, mask, tracks.displacement.shape[0], every_frame=cfg.border_correspondence == "landmarks")
         # the masks' zero of the wall's thickness against the phase's, from the frames whose masks are read
         mismatch = reference_mask_mismatch(masks, exclude=unusable)
         if mismatch:

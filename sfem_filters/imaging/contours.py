@@ -18,7 +18,7 @@ import numpy as np
 from scipy.ndimage import binary_closing, distance_transform_edt, gaussian_filter1d
 from skimage.measure import find_contours, label
 
-from .._validate import as_float_array, as_mask, user_stacklevel
+from .._validate import as_float_array, as_mask, integer, user_stacklevel
 from ..geometry import polygon_centroid, signed_area
 
 
@@ -408,8 +408,8 @@ def reference_mask_mismatch(masks, name: str = "masks", exclude=()) -> str | Non
         Myocardium masks of the reference (index 0) and of each frame (index f + 1).
     name : str
         The argument's name in the message.
-    exclude : sequence of int
-        Indices in ``masks`` (>= 1) of frames to pass over.
+    exclude : sequence of int, optional
+        Indices in ``masks`` (>= 1) of frames to pass over (None: none).
 
     Returns
     -------
@@ -419,8 +419,8 @@ def reference_mask_mismatch(masks, name: str = "masks", exclude=()) -> str | Non
     m = as_mask(name, masks, 3)
     if len(m) == 0:
         raise ValueError(f"{name}: expected the reference mask first, (F + 1, H, W), got no mask (shape {m.shape})")
-    skip = {int(v) for v in exclude}
-    if any(not 1 <= v < len(m) for v in skip):
+    skip = {integer("exclude", v, 1) for v in (() if exclude is None else exclude)}
+    if any(v >= len(m) for v in skip):
         raise ValueError(f"exclude: expected frame indices of {name} from 1 to {len(m) - 1}, got {sorted(skip)}")
     areas = m.reshape(len(m), -1).sum(axis=1).astype(float)
     frames = np.array([f for f in range(1, len(m)) if areas[f] > 0 and f not in skip], int)   # say nothing of it

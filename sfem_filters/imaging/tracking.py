@@ -8,7 +8,7 @@ smoothing step of shape-based tracking: a confident match pulls its neighbours, 
 one follows them), and the points move on to the next frame. Chaining the steps gives
 trajectories over the whole cycle.
 
-Units are pixels (x = column, y = row), as in :mod:`sfem_filters.contours`.
+Units are pixels (x = column, y = row), as in :mod:`sfem_filters.imaging.contours`.
 """
 from __future__ import annotations
 

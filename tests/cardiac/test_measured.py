@@ -62,6 +62,13 @@ def test_sequence_round_trip(tmp_path):
     again = load_sequence(save_sequence(load_sequence(tmp_path / "t.npz"), tmp_path / "again.npz"))
     np.testing.assert_array_equal(again.extra["frame_times_s"], times)
     np.testing.assert_array_equal(again.displacement, seq.displacement)
+    # what a file could not hold, or would read back as something else, is refused before writing
+    for extra, match in (({"velocity": seq.displacement}, r"seq.extra: keys \['velocity'\]"),
+                         ({"file": 1.0}, r"seq.extra: keys \['file'\]"),
+                         ({"note": {"a": 1}}, r"seq.extra\['note'\]: expected numbers")):
+        with pytest.raises(ValueError, match=match):
+            save_sequence(dataclasses.replace(seq, extra=extra), tmp_path / "refused.npz")
+    assert not (tmp_path / "refused.npz").exists()
 
 
 @given(start=st.floats(0.0, 0.1), step=st.floats(1e-3, 0.1), frames=st.integers(3, 12),

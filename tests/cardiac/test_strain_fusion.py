@@ -145,6 +145,9 @@ def test_bad_masks_are_named(ring):
         dense_strain(tracks, ref, PX, fused, masks=empty)
     with pytest.raises(ValueError, match="masks: expected a boolean mask"):
         dense_strain(tracks, ref, PX, fused, masks=masks * 2)
+    for junk in (True, 3.0):
+        with pytest.raises(ValueError, match="masks: expected a 3D mask"):
+            dense_strain(tracks, ref, PX, fused, masks=junk)
     with pytest.raises(TypeError, match="border_masks: expected True or False"):
         StrainRouteSettings(border_masks="yes")
     mesh = reference_mesh(ref, PX, "gmsh", 2.0)

@@ -286,7 +286,8 @@ def test_a_frame_left_out_does_not_hide_a_reference_a_pixel_thicker():
     assert reference_mask_mismatch(masks) is None                          # the disc's area swamps the jump
     assert "masks[1] (the first frame)" in reference_mask_mismatch(masks, exclude=[2])
     assert reference_mask_mismatch(np.stack([annulus(), annulus(), filled, annulus()]), exclude=[2]) is None
-    for bad in ([0], [4]):
+    assert reference_mask_mismatch(masks, exclude=None) == reference_mask_mismatch(masks)
+    for bad in ([0], [4], [1.7], ["2"]):
         with pytest.raises(ValueError, match="exclude"):
             reference_mask_mismatch(masks, exclude=bad)
     with pytest.raises(ValueError, match="masks"):
