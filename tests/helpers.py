@@ -198,3 +198,17 @@ def write_case_frames(src, dst, frames: int, stride: int = 1):
     with open(dst / "config.yaml", "w") as f:
         yaml.safe_dump(config, f)
     return dst
+
+
+def count_calls(monkeypatch, module, name: str) -> list:
+    """Replace ``module.name`` (looked up at call time by the code under test) with a wrapper that records each
+    call; returns the list it appends to, so a test can see how much work a run did (e.g. that a resumed run
+    did not start over)."""
+    real = getattr(module, name)
+    calls = []
+
+    def counted(*args, **kwargs):
+        calls.append(1)
+        return real(*args, **kwargs)
+    monkeypatch.setattr(module, name, counted)
+    return calls

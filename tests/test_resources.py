@@ -255,15 +255,32 @@ def test_frame_threads_refuses_a_bad_number_by_name(bad, error):
 
 
 def test_a_linearisation_is_the_same_to_the_bit_on_threads():
-    """Each frame's sensitivity (Eq. 33) is its own: taken on three threads, every M_t is the same."""
+    """Each frame's sensitivity (Eq. 33) is its own: taken on three threads (which the frames did run on), every
+    M_t is the same."""
     from helpers import small_model
     from sfem_filters.resources import frame_threads
     rng = np.random.default_rng(3)
     model = small_model(rng, n_frames=9)
     z = np.tile(model.x0, (model.n_frames, 1))
     z[:, :model.dim_x] += 1e-4 * rng.standard_normal((model.n_frames, model.dim_x))
-    one = model.linearise(z)
-    with frame_threads(3):
-        three = model.linearise(z)
+    import threading
+    import sfem_filters.model as model_module
+    real_map, seen = model_module.frame_map, set()
+
+    def spied(fn, items):                     # the frames' work, with the thread each frame ran on
+        def on_thread(i):
+            seen.add(threading.get_ident())
+            return fn(i)
+        return real_map(on_thread, items)
+    model_module.frame_map = spied
+    try:
+        one = model.linearise(z)
+        assert seen == {threading.get_ident()}                  # one thread: this one
+        seen.clear()
+        with frame_threads(3):
+            three = model.linearise(z)
+    finally:
+        model_module.frame_map = real_map
+    assert len(seen) > 1                                        # the frames did run side by side
     assert one.M.shape[0] == model.n_frames - 1 and np.abs(one.M).max() > 0
     assert np.array_equal(one.M, three.M)

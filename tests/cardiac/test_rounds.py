@@ -302,13 +302,17 @@ def test_a_round_keeps_the_first_passing_candidate_or_the_best_of_those_fitted(s
 
 @pytest.mark.parametrize("selection", ["first", "best"])
 def test_fits_side_by_side_take_the_same_path_and_give_the_same_figures(selection):
-    """``workers=2`` fits a round's candidates and backward steps in two processes: the same rounds,
+    """``workers=2`` fits a round's candidates and backward steps in two processes (the pool starts; a fall-back
+    to one process would be a warning, an error here): the same rounds,
     the same candidates tried (with ``first`` none reported after the first kept, though more ran),
     and every figure of the report the same to the last bit."""
     seq = annulus_sequence(["active_polar", "cavity_pressure"], amplitude=[(0.15, -0.3), (0.5,)], n_frames=5, seed=1)
     kw = dict(candidates=["active_polar", "cavity_pressure", "active_radial"], parameterisation="none", max_rounds=2,
               max_iterations=3, corrections=False, selection=selection, max_tries=3, folds=3)
-    one, two = (closing.closing_the_loop(seq, *specs_from(**kw), workers=w) for w in (1, 2))
+    one = closing.closing_the_loop(seq, *specs_from(**kw), workers=1)
+    with warnings.catch_warnings():          # the pool must start: a fall-back to one process is a failure here
+        warnings.filterwarnings("error", message=".*one after the other")
+        two = closing.closing_the_loop(seq, *specs_from(**kw), workers=2)
     assert [r.added for r in two.rounds] == [r.added for r in one.rounds]
     assert len(two.rounds) > 2 or two.rounds[1].backward        # a round and a backward step (or its try)
     # every figure but the wall times (the one thing that depends on the run, not the data)

@@ -1,11 +1,12 @@
 """Filtering with the model: filterpy plug-in, structured engine, cyclic loops, checkpoints."""
 import numpy as np
 import pytest
-from helpers import random_block_mesh, small_model
+from helpers import count_calls, random_block_mesh, small_model
 from helpers import simulate as _simulate
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+import sfem_filters.filtering.cyclic as cyclic_module
 from sfem_filters.benchmark.pinned import benchmark_model, pinned_benchmark
 from sfem_filters.filtering import (
     ENGINES,
@@ -159,8 +160,8 @@ def test_missing_observations_are_dropped_not_zeroed(bench):
         cyclic_estimate(model, y[:, :3])
 
 
-def test_checkpoint_resume_is_bit_identical(tmp_path, bench):
-    """Stopping after 3 loops and resuming ends exactly as the uninterrupted run."""
+def test_checkpoint_resume_is_bit_identical(tmp_path, bench, monkeypatch):
+    """Stopping after 3 loops and resuming ends exactly as the uninterrupted run, running only the 2 loops left."""
     model = benchmark_model(bench, "joint_ekf")
     with pytest.warns(RuntimeWarning, match="did not converge"):
         full = cyclic_estimate(model, bench.observations, max_loops=5, tol=1e-12)
@@ -169,9 +170,11 @@ def test_checkpoint_resume_is_bit_identical(tmp_path, bench):
         cyclic_estimate(benchmark_model(bench, "joint_ekf"), bench.observations, max_loops=3, tol=1e-12,
                         checkpoint=str(ckpt))
     assert int(load_checkpoint(ckpt)["loops_done"]) == 3
+    loops = count_calls(monkeypatch, cyclic_module, "filter_loop")
     with pytest.warns(RuntimeWarning, match="did not converge"):
         resumed = cyclic_estimate(benchmark_model(bench, "joint_ekf"), bench.observations, max_loops=5,
                                   tol=1e-12, checkpoint=str(ckpt))
+    assert len(loops) == 5 - 3                      # it went on from the checkpoint, not from the start
     assert resumed.loops == full.loops == 5
     np.testing.assert_array_equal(resumed.theta, full.theta)
     np.testing.assert_array_equal(resumed.P_theta, full.P_theta)

@@ -12,6 +12,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+import sfem_filters.filtering.cyclic as cyclic_module
+from helpers import count_calls
 from sfem_filters.benchmark.pinned import benchmark_model, pinned_benchmark
 from sfem_filters.filtering import (
     ENGINES,
@@ -36,8 +38,8 @@ RUN = textwrap.dedent("""
 """)
 
 
-def test_killed_run_resumes_to_the_uninterrupted_result(tmp_path):
-    """SIGKILL during a loop; resuming from the last checkpoint ends bit-identical."""
+def test_killed_run_resumes_to_the_uninterrupted_result(tmp_path, monkeypatch):
+    """SIGKILL during a loop; resuming from the last checkpoint runs only the loops left and ends bit-identical."""
     ckpt = str(tmp_path / "run.npz")
     env = dict(os.environ, PYTHONPATH=ROOT + os.pathsep + os.environ.get("PYTHONPATH", ""))
     proc = subprocess.Popen([sys.executable, "-c", RUN, ckpt, "8"], env=env)
@@ -55,10 +57,12 @@ def test_killed_run_resumes_to_the_uninterrupted_result(tmp_path):
     done = int(load_checkpoint(ckpt)["loops_done"])
     assert 2 <= done < 8, "the run was not interrupted mid-way"
     b = pinned_benchmark(0)
+    loops = count_calls(monkeypatch, cyclic_module, "filter_loop")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         resumed = cyclic_estimate(benchmark_model(b, "joint_ekf"), b.observations, max_loops=8, tol=1e-12,
                                   checkpoint=ckpt)
+        assert len(loops) == 8 - done               # it went on from the checkpoint, not from the start
         full = cyclic_estimate(benchmark_model(b, "joint_ekf"), b.observations, max_loops=8, tol=1e-12)
     np.testing.assert_array_equal(resumed.theta, full.theta)
     np.testing.assert_array_equal(resumed.P_theta, full.P_theta)

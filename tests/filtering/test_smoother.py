@@ -5,11 +5,12 @@ import warnings
 import numpy as np
 import pytest
 import scipy.sparse as sp
-from helpers import bias_model
+from helpers import bias_model, count_calls
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import sfem_filters.fem.modal_stiffness as modal_stiffness_module
+import sfem_filters.filtering.gauss_newton as gauss_newton_module
 import sfem_filters.model as model_module
 from sfem_filters import fem
 from sfem_filters.benchmark.pinned import benchmark_model, pinned_benchmark
@@ -468,19 +469,24 @@ def test_extrapolated_steps_reach_the_same_mode_with_a_falling_cost():
     assert abs(on.theta[k] - off.theta[k]) < 0.05 * np.sqrt(off.P_theta[k, k])
 
 
-def test_checkpoint_resumes_to_the_uninterrupted_result(pinned, tmp_path):
+def test_checkpoint_resumes_to_the_uninterrupted_result(pinned, tmp_path, monkeypatch):
     """Stopped after 2 iterations and resumed (a larger limit is a stopping rule, not part of the
-    fingerprint): the same mode, covariance and records as one uninterrupted run; a checkpoint of
+    fingerprint): the same mode, covariance and records as one uninterrupted run, with fewer filter
+    passes than it (the resumed run goes on from the checkpoint, not from the start); a checkpoint of
     another model is refused."""
     m = benchmark_model(pinned, "joint_ekf", parameterisation=Parameterisation.per_region(pinned.middle))
+    passes = count_calls(monkeypatch, gauss_newton_module, "profile_pass")
     full = IteratedSmoother().run(m, pinned.observations)
+    n_full = len(passes)
     path = str(tmp_path / "smoother.npz")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         part = IteratedSmoother(max_iterations=2).run(m, pinned.observations, checkpoint=path)
     assert part.iterations == 2 and not part.converged and os.path.exists(path)
     assert int(load_checkpoint(path)["loops_done"]) == 2
+    passes.clear()
     resumed = IteratedSmoother().run(m, pinned.observations, checkpoint=path)
+    assert 0 < len(passes) < n_full, (len(passes), n_full)
     assert resumed.iterations == full.iterations
     np.testing.assert_array_equal(resumed.states, full.states)
     np.testing.assert_array_equal(resumed.P_theta, full.P_theta)

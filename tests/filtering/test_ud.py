@@ -5,10 +5,11 @@ import warnings
 import mpmath as mp
 import numpy as np
 import pytest
-from helpers import random_block_mesh, simulate, small_model
+from helpers import count_calls, random_block_mesh, simulate, small_model
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+import sfem_filters.filtering.cyclic as cyclic_module
 from sfem_filters.filtering import (
     ENGINES,
     LinearGaussianModel,
@@ -127,7 +128,7 @@ def test_ud_factors_stay_nonnegative_and_P_is_their_product():
         np.testing.assert_array_equal(eng.P, 0.5 * ((U * d) @ U.T + ((U * d) @ U.T).T))
 
 
-def test_ud_cyclic_run_checkpoints_and_resumes_bit_identical(tmp_path):
+def test_ud_cyclic_run_checkpoints_and_resumes_bit_identical(tmp_path, monkeypatch):
     rng = np.random.default_rng(11)
     model = small_model(rng, mesh=random_block_mesh(rng, n_interior=2), noise=1e-5, n_frames=5)
     y = simulate(model, rng, 1e-5)
@@ -138,7 +139,9 @@ def test_ud_cyclic_run_checkpoints_and_resumes_bit_identical(tmp_path):
         ckpt = str(tmp_path / "ud.npz")
         cyclic_estimate(model, y, max_loops=2, tol=1e-12, engine="ud", checkpoint=ckpt)
         assert int(load_checkpoint(ckpt)["loops_done"]) == 2
+        loops = count_calls(monkeypatch, cyclic_module, "filter_loop")
         resumed = cyclic_estimate(model, y, max_loops=4, tol=1e-12, engine="ud", checkpoint=ckpt)
+        assert len(loops) == 4 - 2                  # it went on from the checkpoint, not from the start
         # a checkpoint of the U-D run is not taken for a Joseph-form run
         with pytest.raises(ValueError, match="belongs to a different model or data set"):
             cyclic_estimate(model, y, max_loops=4, tol=1e-12, engine="structured", checkpoint=ckpt)
