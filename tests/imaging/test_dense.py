@@ -315,8 +315,9 @@ def test_noise_sd_and_confidence_follow_the_noise():
 @pytest.mark.xfail(strict=True, reason="known: the tracks' sd is the pixels' phase noise, not that of the phase "
                    "interpolated at each track's sub-pixel position (a weighted mean of up to four pixels, variance "
                    "down to a quarter), so it overstates the error by about 3/2; the DENSE route scales its data's sd "
-                   "by their own maximum-likelihood level, so its bands do not rest on it, but fixing it moves every "
-                   "strain claim's numbers (a regeneration)")
+                   "by their own maximum-likelihood level, so its bands do not rest on it. A fix must also model that "
+                   "neighbouring tracks share pixels (correlated data the nodal fit takes as independent), and it "
+                   "moves every strain claim's numbers (a regeneration)")
 def test_the_reported_sd_is_the_actual_error():
     case, exact = render_affine(affine_sequence(n=3, stretch=0.1, turn_deg=4))
     noisy = add_complex_noise(case, snr=12.0, seed=1)
