@@ -283,7 +283,8 @@ class StrainRouteSettings:
     Attributes
     ----------
     mesh : {"gmsh", "pixels"}
-        Mesh chosen apart from the pixels, or one node per pixel.
+        Mesh chosen apart from the pixels, or one node per pixel (its border half a pixel inside the
+        mask's, so only with the point observation, ``resolution_px=1``).
     element_px : float
         Target element edge (pixels) of the ``"gmsh"`` mesh. 2.5 px: two elements or more across
         a 5-7 pixel wall, about six data per node, and a state small enough for the 3-minute
@@ -421,6 +422,12 @@ class StrainRouteSettings:
                              f"border_correspondence='landmarks', got border_starts={self.border_starts} with "
                              f"{self.border_correspondence!r} (guided border data have no contour start)")
         object.__setattr__(self, "resolution_px", check_resolution_px(self.resolution_px))
+        if self.mesh == "pixels" and self.resolution_px > 1:
+            raise ValueError(f"resolution_px: the point spread's observation needs the mesh to reach the mask's own "
+                             f"border (mesh='gmsh'); the node-per-pixel mesh ends at the outer pixels' centres, half a "
+                             f"pixel inside it, so the point spread would read that half pixel of tissue as background "
+                             f"(measured: a spurious radial strain of several percent at the first frames). Give "
+                             f"resolution_px=1 with mesh='pixels', got {self.resolution_px:g}")
         if self.E is not None:
             positive("E", self.E, "Pa")
         if not 0 < self.nu < 0.5:

@@ -94,7 +94,8 @@ def _import_gmsh():
         import gmsh                                   # optional dependency (GPL-2.0-or-later)
     except ImportError as exc:                        # pragma: no cover - depends on the environment
         raise ImportError(f"polygon_mesh needs Gmsh: pip install '{GMSH_REQUIREMENT}' (GPL-2.0-or-later, an optional "
-                          "dependency); or use the node-per-pixel mesh, which needs nothing more") from exc
+                          "dependency); or use the node-per-pixel mesh, which needs nothing more (in the DENSE route "
+                          "only with the point observation, resolution_px=1)") from exc
     return gmsh
 
 

@@ -118,6 +118,10 @@ def test_image_settings_take_the_acquisition_and_fuse_masks_only_when_they_move(
     assert forced.border_masks and forced.phase_noise_level == forced.mask_noise_level == "evidence"
     with pytest.raises(TypeError, match="case: expected a DenseCase"):
         image_settings(case.masks)
+    # the node-per-pixel mesh ends half a pixel inside the mask: the point spread would read that as background
+    with pytest.raises(ValueError, match="resolution_px: the point spread's observation needs .*mesh='gmsh'"):
+        image_settings(case, mesh="pixels")
+    assert image_settings(case, mesh="pixels", resolution_px=1.0).mesh == "pixels"
     with pytest.raises(ValueError, match="masks"):
         masks_move(case.masks[0])
 
