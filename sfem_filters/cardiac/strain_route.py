@@ -7,7 +7,8 @@ The DENSE route, as a library function, :func:`dense_strain`:
    borders (:func:`sfem_filters.imaging.contours.mask_borders`, level 1/2, so every pixel centre
    lies inside) meshed by Gmsh (:func:`sfem_filters.fem.polygon_mesh.polygon_mesh`, default
    element edge 2 px), or the node-per-pixel mesh (``mesh="pixels"``,
-   :func:`sfem_filters.cardiac.myocardium.tissue_mesh`).
+   :func:`sfem_filters.cardiac.myocardium.tissue_mesh`), with the point observation only: its border
+   lies half a pixel inside the mask's, which the point spread would read as background.
 2. **Observations.** Every tracked reference pixel is observed through the element shape
    functions, ``D`` of Eq. 12 as an interpolation
    (:func:`sfem_filters.fem.observation.point_observation_matrix`), each datum with its own noise sd
