@@ -122,7 +122,7 @@ from .measured import NOMINAL
 from .strain_route import (Z95, DenseStrain, NodalFitModel, compliant_modulus, element_gradient_operator,
                            linearised_rows, observation_points, reference_mesh, strain_and_sd)
 # the DENSE route's rows of the element gradients and curves for the smoother's variances (the same maths here)
-from .strain_route import _covariance_from_rows, _curve_rows, _element_of, _gradient_rows
+from .strain_route import _check_frame_times, _covariance_from_rows, _curve_rows, _element_of, _gradient_rows
 
 __all__ = ["ContourRouteSettings", "ContourStrain", "contour_strain", "contour_landmark_tracks", "elastic_extension",
            "elastic_prior", "border_node_data", "landmark_sd", "mask_border_data", "contour_spline_strain",
@@ -276,9 +276,7 @@ def _check_inputs(masks, pixel_size_m, frame_times_s) -> tuple:
                          f"masks of shape {m.shape}, got {len(t)}")
     if len(t) < 3:
         raise ValueError(f"frame_times_s: expected at least 3 frames, got {len(t)}")
-    if np.any(np.diff(t) <= 0) or t[0] <= 0:
-        raise ValueError("frame_times_s: expected strictly increasing times (s) after the reference at t = 0")
-    return m, s, t
+    return m, s, _check_frame_times(t, len(t), "frame_times_s", after_zero=True)
 
 
 def elastic_extension(mesh: TriMesh, boundary_dofs, nu: float) -> np.ndarray:

@@ -614,16 +614,17 @@ def _fusion_masks(masks, reference_mask, n_frames: int, every_frame: bool = Fals
 MAX_FRAME_INTERVAL_S = 1.0
 
 
-def _check_frame_times(frame_times_s, n_frames: int) -> np.ndarray:
-    """``tracks.frame_times_s`` checked: (F,) finite times (s) after the encoding, >= 0, strictly increasing, with
-    frame intervals of at most :data:`MAX_FRAME_INTERVAL_S` (times in ms are the usual slip). ValueError naming
-    ``tracks.frame_times_s`` otherwise."""
-    t = as_float_array("tracks.frame_times_s", frame_times_s, shape=(int(n_frames),))
-    if np.any(t < 0) or np.any(np.diff(t) <= 0):
-        raise ValueError(f"tracks.frame_times_s: expected times (s) after the encoding, >= 0 and strictly increasing, "
-                         f"got {np.round(t[:6], 4).tolist()}{' ...' if len(t) > 6 else ''}")
+def _check_frame_times(frame_times_s, n_frames: int, name: str = "tracks.frame_times_s",
+                       after_zero: bool = False) -> np.ndarray:
+    """``frame_times_s`` checked (both routes): (F,) finite times (s) after the encoding, >= 0 (> 0 with
+    ``after_zero``: the reference at t = 0 is not a frame), strictly increasing, with frame intervals of at
+    most :data:`MAX_FRAME_INTERVAL_S` (times in ms are the usual slip). ValueError naming ``name`` otherwise."""
+    t = as_float_array(name, frame_times_s, shape=(int(n_frames),))
+    if np.any(t <= 0 if after_zero else t < 0) or np.any(np.diff(t) <= 0):
+        raise ValueError(f"{name}: expected times (s) after the encoding, {'> 0' if after_zero else '>= 0'} and "
+                         f"strictly increasing, got {np.round(t[:6], 4).tolist()}{' ...' if len(t) > 6 else ''}")
     if len(t) > 1 and float(np.median(np.diff(t))) > MAX_FRAME_INTERVAL_S:
-        raise ValueError(f"tracks.frame_times_s: expected seconds (a cine frame interval is well under "
+        raise ValueError(f"{name}: expected seconds (a cine frame interval is well under "
                          f"{MAX_FRAME_INTERVAL_S:g} s), got a median interval of {float(np.median(np.diff(t))):g}: "
                          "milliseconds?")
     return t

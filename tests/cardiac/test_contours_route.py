@@ -163,6 +163,8 @@ def test_the_result_has_the_issue_json_names_and_finite_bands(ring):
     (lambda m, t: (np.concatenate([np.zeros_like(m[:1]), m[1:]]), t), r"masks\[0\]"),   # empty reference
     (lambda m, t: (m, t[::-1]), "frame_times_s"),                        # not increasing
     (lambda m, t: (m, t[:-1]), "frame_times_s"),                         # one time short
+    (lambda m, t: (m, 1e3 * t), r"frame_times_s: expected seconds .* milliseconds\?"),   # times in ms
+    (lambda m, t: (m, t - t[0]), r"frame_times_s: expected times \(s\) after the encoding, > 0"),  # a frame at 0
 ])
 def test_bad_input_names_the_argument(change, name):
     masks, times, _, _ = ring_sequence(frames=4)
