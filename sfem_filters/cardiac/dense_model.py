@@ -550,7 +550,7 @@ def build_dense_model(mesh: TriMesh, tracks: LagrangianDisplacement, pixel_size_
     if F < 3:
         raise ValueError(f"tracks: expected at least 3 frames, got {F}")
     floor_px = temporal_noise_floor(tracks.displacement)
-    sd = np.asarray(tracks.sd, float)
+    sd = np.asarray(tracks.pixel_sd, float)      # the tracks share pixels: a smooth fit sees the pixels' noise
     sd_rms = float(np.sqrt(np.nanmean(sd ** 2)))
     sd_scale = max(1.0, floor_px / sd_rms)
     gain = np.maximum(np.abs(scaling.gain), 0.1 * scaling.tissue)      # a datum the background all but cancels

@@ -12,7 +12,7 @@ The DENSE route, as a library function, :func:`dense_strain`:
 2. **Observations.** Every tracked reference pixel is observed through the element shape
    functions, ``D`` of Eq. 12 as an interpolation
    (:func:`sfem_filters.fem.observation.point_observation_matrix`), each datum with its own noise sd
-   (:class:`sfem_filters.imaging.dense.LagrangianDisplacement` ``sd``), untracked ones missing.
+   (:class:`sfem_filters.imaging.dense.LagrangianDisplacement` ``pixel_sd``, step 3), untracked ones missing.
    The likelihood of the ~2P pixel data of a frame is, as a function of the nodal displacements
    ``U``, that of one Gaussian datum per free dof: the weighted least-squares fit ``U_t^ =
    J_t^-1 D^T W_t y_t`` with covariance ``R_t = J_t^-1``, ``J_t = D^T W_t D``, ``W_t`` the data's
@@ -96,7 +96,9 @@ The DENSE route, as a library function, :func:`dense_strain`:
      carry the motion (mass and mass damping: a damped constant-velocity prior);
    * *effects*: none by default (``effects=`` adds catalogue effects; a compliant tissue has no
      elastic balance for an active stress);
-   * *noise*: each datum's sd is the tracks' sd scaled up to the tracks' temporal noise floor
+   * *noise*: each datum's sd is the sd of the pixels behind it (``LagrangianDisplacement.pixel_sd``:
+     neighbouring tracks interpolate shared pixels, so a fit smooth over a pixel sees their noise,
+     not the smaller noise of each interpolated datum alone) scaled up to the tracks' temporal noise floor
      (:func:`temporal_noise_floor`, which also holds the phase texture the magnitude-based sd
      misses); process noise a fraction ``q`` of that floor per frame, on the velocity over the
      frame interval: 0.1 by default (the library's rule for measured data), or, with
@@ -892,7 +894,9 @@ def _without_stray_pixels(tracks: LagrangianDisplacement, reference_mask) -> tup
     conf[:, stray] = np.nan
     sd = np.array(tracks.sd, float)
     sd[:, stray] = np.nan
-    return replace(tracks, displacement=disp, sd=sd, confidence=conf,
+    psd = np.array(tracks.pixel_sd, float)
+    psd[:, stray] = np.nan
+    return replace(tracks, displacement=disp, sd=sd, pixel_sd=psd, confidence=conf,
                    n_untracked=int(np.count_nonzero(np.isnan(disp[..., 0])))), int(stray.sum())
 
 

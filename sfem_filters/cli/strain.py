@@ -250,9 +250,11 @@ def cmd_strain(args) -> int:
 
 def _dense_spline(tracks, centre, start_deg: float, say) -> dict:
     """The yardstick of the DENSE route: the thin-plate spline through the same observed points (every
-    tracked reference pixel, with the tracks' sd), its strain at the reference pixels, as the ``spline`` block."""
+    tracked reference pixel, with the sd of the pixels behind each: the tracks share pixels, so on the curves'
+    scale their errors are those of independent data at that sd, not at the smaller sd of each interpolated
+    datum alone), its strain at the reference pixels, as the ``spline`` block."""
     say("thin-plate spline through the same observed points (the tracked reference pixels)")
-    s = spline_strain(tracks.points, tracks.displacement, tracks.points, sd_px=tracks.sd, centre=centre,
+    s = spline_strain(tracks.points, tracks.displacement, tracks.points, sd_px=tracks.pixel_sd, centre=centre,
                       start_deg=start_deg, frame_times_s=tracks.frame_times_s)
     return spline_block(s, "the tracked reference pixels (every datum the dense route observes), with their sd")
 

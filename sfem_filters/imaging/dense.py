@@ -51,7 +51,8 @@ from .dense_io import (DEFAULT_RESOLUTION_PX, DICOM_SUBFOLDERS, PHASE_TOLERANCE,
 __all__ = ["DenseCase", "make_dense_case", "read_dense_sim", "read_dense_dicom", "read_dense_dicom_folder",
            "dense_masks", "dense_series_kind", "DICOM_SUBFOLDERS", "add_complex_noise",
            "LagrangianDisplacement", "unwrap_frames", "carry_offsets", "eulerian_displacement", "extend_field",
-           "invert_eulerian", "estimate_noise_sd", "phase_quality", "phase_to_displacement", "reference_points",
+           "invert_eulerian", "interpolation_variance_factor", "estimate_noise_sd", "phase_quality",
+           "phase_to_displacement", "reference_points",
            "tracks_on_pixel_grid", "truth_at_points", "PHASE_TOLERANCE", "DEFAULT_RESOLUTION_PX", "check_resolution_px",
            "dicom_resolution_px", "FWHM_PER_SD", "PSF_SAMPLES_PER_PX", "PSF_RADIUS_SD", "psf_sigma_px", "psf_samples",
            "BackgroundSignal", "background_signal", "BACKGROUND_COHERENCE_SE", "edge_spread_resolution"]
@@ -249,6 +250,31 @@ def _bilinear(image, x, y) -> np.ndarray:
     return ndimage.map_coordinates(image, [y, x], order=1, mode="constant", cval=np.nan)
 
 
+def interpolation_variance_factor(points) -> np.ndarray:
+    """``sum w^2`` of the bilinear weights ``w`` at each point: the variance of an interpolated value over a pixel's.
+
+    At ``(x, y)`` with fractional parts ``(a, b)`` the weights are the products of ``(1 - a, a)``
+    and ``(1 - b, b)``, so ``sum w^2 = ((1 - a)^2 + a^2) ((1 - b)^2 + b^2)``: 1 at a pixel centre,
+    1/4 midway between four, 4/9 on average over uniform positions (independent pixel noise).
+
+    Parameters
+    ----------
+    points : (P, 2) array
+        Positions (pixels, x = column, y = row); NaN gives NaN.
+
+    Returns
+    -------
+    (P,) array in [1/4, 1]
+
+    >>> interpolation_variance_factor([[3.0, 4.0], [3.5, 4.5], [3.5, 4.0]]).tolist()
+    [1.0, 0.25, 0.5]
+    """
+    p = as_float_array("points", points, shape=(None, 2), allow_nan=True)
+    a = p - np.floor(p)
+    g = (1.0 - a) ** 2 + a ** 2
+    return g[:, 0] * g[:, 1]
+
+
 def invert_eulerian(field, points, start=None, max_iter: int = 100, tol: float = 1e-6) -> np.ndarray:
     """Lagrangian displacement of reference points from an Eulerian field: solve ``x = X + u(x)``.
 
@@ -425,7 +451,10 @@ class LagrangianDisplacement:
     displacement : (F, P, 2) array
         ``x - X`` at each frame (pixels); NaN where a point could not be tracked.
     sd : (F, P, 2) array
-        Noise sd of each component (pixels), from the local magnitude SNR.
+        Noise sd of each component (pixels) of the datum on its own: the phase noise of the pixels
+        behind it (``pixel_sd``) through the bilinear interpolation at its tracked position, whose
+        weights ``w`` (up to four pixels) reduce the variance by ``sum w^2`` (1 at a pixel centre, 1/4
+        midway between four).
     confidence : (F, P) array
         Phase quality in [0, 1] at the tracked position (:func:`phase_quality`, the smaller
         of the two encodings); NaN where untracked.
@@ -434,6 +463,14 @@ class LagrangianDisplacement:
         Number of (frame, point) pairs with NaN displacement.
     noise_sd : (2,) array
         Estimated (or given) complex noise sd of each encoding (magnitude units).
+    pixel_sd : (F, P, 2) array, optional
+        Noise sd of each component (pixels) of the pixels behind the datum, from the local
+        magnitude SNR; the weight of the data in a fit of a field that is smooth over a pixel
+        (the DENSE route's nodal fit, the spline). Neighbouring tracks interpolate shared pixels,
+        so their errors correlate: the interpolation smooths the noise at the pixel scale but
+        keeps all of it at larger scales (the weights sum to 1), so a mean over many tracks has
+        the error of independent data at ``pixel_sd``, not at ``sd``. Default (None): ``sd``, for
+        data that share no pixels.
     """
 
     points: np.ndarray
@@ -443,6 +480,13 @@ class LagrangianDisplacement:
     frame_times_s: np.ndarray
     n_untracked: int
     noise_sd: np.ndarray
+    pixel_sd: np.ndarray | None = None
+
+    def __post_init__(self):
+        if self.pixel_sd is None:
+            object.__setattr__(self, "pixel_sd", self.sd)
+        elif np.shape(self.pixel_sd) != np.shape(self.sd):
+            raise ValueError(f"pixel_sd: expected the shape of sd {np.shape(self.sd)}, got {np.shape(self.pixel_sd)}")
 
 
 def reference_points(mask) -> np.ndarray:
@@ -577,10 +621,13 @@ def phase_to_displacement(case: DenseCase, noise_sd=None, rings: int = 2) -> Lag
     is :func:`phase_quality` (the smaller over the encodings) at the pixel nearest its tracked
     position, or, where that pixel lies outside the frame's mask (an extrapolated datum), at the
     nearest mask pixel scaled by ``1 - d / (rings + 1)``, ``d`` the distance (pixels) to the
-    mask. The sd of each datum:
-    phase sd ``noise_sd / m(x)`` per encoding (``m`` the magnitude interpolated at the tracked
-    position, capped at ``pi / sqrt 3``, the sd of a uniform phase), mapped through ``D^-1 /
-    (2 pi ke)`` and the pixel size. ``noise_sd`` defaults to :func:`estimate_noise_sd` of each
+    mask. The sd of the pixels behind each datum (``pixel_sd``): phase sd ``noise_sd / m(x)`` per
+    encoding (``m`` the magnitude interpolated at the tracked position, capped at ``pi / sqrt 3``,
+    the sd of a uniform phase), mapped through ``D^-1 / (2 pi ke)`` and the pixel size; the
+    datum's own (``sd``) is that times ``sqrt(sum w^2)``, ``w`` the bilinear weights at the tracked
+    position (:func:`interpolation_variance_factor`). To first order in the noise; the inversion's
+    own Jacobian (the deformation gradient, which maps an Eulerian error at ``x`` to the
+    Lagrangian one) is left out. ``noise_sd`` defaults to :func:`estimate_noise_sd` of each
     encoding.
 
     Parameters
@@ -606,6 +653,7 @@ def phase_to_displacement(case: DenseCase, noise_sd=None, rings: int = 2) -> Lag
     to_px = 1.0 / (2 * np.pi * case.ke_per_m * case.pixel_size_m)
     disp = np.full((F, P, 2), np.nan)
     sd = np.full((F, P, 2), np.nan)
+    psd = np.full((F, P, 2), np.nan)
     conf = np.full((F, P), np.nan)
     prev = None
     for f in range(F):
@@ -617,17 +665,20 @@ def phase_to_displacement(case: DenseCase, noise_sd=None, rings: int = 2) -> Lag
         mag = np.maximum(_bilinear(case.magnitude[f], x[:, 0], x[:, 1]), 0.0)
         with np.errstate(divide="ignore"):
             sphi = np.minimum(noise[None, :] / mag[:, None], np.pi / np.sqrt(3))      # (P, 2) rad
-        sd[f] = np.sqrt((sphi[:, None, :] ** 2 * dinv[None] ** 2).sum(axis=2)) * to_px
+        psd[f] = np.sqrt((sphi[:, None, :] ** 2 * dinv[None] ** 2).sum(axis=2)) * to_px
+        sd[f] = psd[f] * np.sqrt(interpolation_variance_factor(x))[:, None]
         r = np.clip(np.round(x[:, 1]).astype(int), 0, case.shape[0] - 1)
         c = np.clip(np.round(x[:, 0]).astype(int), 0, case.shape[1] - 1)
         dist, (nr, nc) = ndimage.distance_transform_edt(~masks[f], return_indices=True)
         conf[f] = quality[f, nr[r, c], nc[r, c]] * np.clip(1 - dist[r, c] / (rings + 1), 0.0, 1.0)
         sd[f][~ok] = np.nan
+        psd[f][~ok] = np.nan
         conf[f][~ok] = np.nan
         prev = np.where(np.isfinite(d), d, prev if prev is not None else 0.0)
     n_bad = int((~np.isfinite(disp).all(axis=2)).sum())
     return LagrangianDisplacement(points=X, displacement=disp, sd=sd, confidence=conf,
-                                  frame_times_s=case.frame_times_s.copy(), n_untracked=n_bad, noise_sd=noise)
+                                  frame_times_s=case.frame_times_s.copy(), n_untracked=n_bad, noise_sd=noise,
+                                  pixel_sd=psd)
 
 
 # ------------------------------------------------------------------ the acquisition's point spread
