@@ -49,9 +49,10 @@ exclude_patterns = ["_build", "Thumbs.db", ".DS_Store", "tutorials/*.ipynb", "tu
                     "tutorials/*.zip", "tutorials/*.md5", "tutorials/*.pickle", "tutorials/*.json", "**/README.md",
                     "tutorials_src", "frozen", "_generated"]   # the last two are included by other pages
 templates_path = ["_templates"]
-# No network: no intersphinx. Roles naming numpy/scipy/filterpy objects do not resolve and render as
-# literal text (nitpicky is off; see also _literal_for_unresolved below).
-nitpicky = False
+# No network: no intersphinx. Roles naming numpy/scipy/filterpy objects render as literal text
+# (_literal_for_unresolved below), so the build can be nitpicky: a library name that links nowhere
+# (a typo, a name in no __all__) is a warning, and with -W an error.
+nitpicky = True
 default_role = "py:obj"
 suppress_warnings = ["config.cache"]
 
@@ -62,6 +63,7 @@ myst_heading_anchors = 3
 # -- autodoc / autosummary / numpydoc --------------------------------------------------------------
 autosummary_generate = True
 autosummary_imported_members = True
+autosummary_ignore_module_all = False     # a module's page (sfem_filters.filtering.diagnostics) lists its __all__ only
 autodoc_default_options = {"members": True, "show-inheritance": True}
 autodoc_typehints = "none"               # the numpy docstrings say the types and units
 autodoc_member_order = "bysource"
@@ -246,28 +248,48 @@ def _literal_for_unresolved(app, env, node, contnode):
     if node.get("refdomain") != "py":
         return None
     target = str(node.get("reftarget", ""))
+    literal = contnode if isinstance(contnode, nodes.literal) else nodes.literal("", contnode.astext())
     if not target.startswith("sfem_filters"):
-        return contnode if isinstance(contnode, nodes.literal) else nodes.literal("", contnode.astext())
+        return literal
+    if any(part.startswith("_") for part in target.split(".")):
+        return literal                            # a private base class or helper: named, not linked
     domain = env.get_domain("py")
+
+    def resolve(role, path):
+        return domain.resolve_xref(env, node.get("refdoc"), app.builder, role, path, node, contnode)
+
     if node.get("reftype") == "mod":              # a module without a page: the package that exports its names
         try:
             module = importlib.import_module(target)
         except ImportError:                       # a typo stays unresolved (a warning in a nitpicky build)
             return None
-        own = set(getattr(module, "__all__", ()))
+        own = set(getattr(module, "__all__", ())) or {
+            name for name, obj in vars(module).items()
+            if not name.startswith("_") and getattr(obj, "__module__", None) == target}
+        parents = []
         parent = target
         while "." in parent:
             parent = parent.rsplit(".", 1)[0]
-            if own & set(getattr(importlib.import_module(parent), "__all__", ())):
-                return domain.resolve_xref(env, node.get("refdoc"), app.builder, "mod", parent, node, contnode)
+            parents.append(parent)
+        exporting = [p for p in parents if own & set(getattr(importlib.import_module(p), "__all__", ()))]
+        for p in exporting + parents:             # else the nearest package with a page of its own
+            found = resolve("mod", p)
+            if found is not None:
+                return found
         return None
     home = _documented_as(target)
-    if home is None or home == target:
-        return None
-    for role in (node.get("reftype"), "obj"):
-        found = domain.resolve_xref(env, node.get("refdoc"), app.builder, role, home, node, contnode)
-        if found is not None:
-            return found
+    if home is not None and home != target:
+        for role in (node.get("reftype"), "obj"):
+            found = resolve(role, home)
+            if found is not None:
+                return found
+    owner, member = target.rsplit(".", 1)
+    if isinstance(_object_at(owner), type):       # a method or attribute: on its class's page, else the class
+        home = _documented_as(owner) or owner
+        for role, path in ((node.get("reftype"), f"{home}.{member}"), ("obj", f"{home}.{member}"), ("class", home)):
+            found = resolve(role, path)
+            if found is not None:
+                return found
     return None
 
 

@@ -94,6 +94,14 @@ from .contours_route import ContourRouteSettings, ContourStrain, contour_spline_
 from .strain_route import DenseStrain, StrainRouteSettings, dense_case_strain, dense_strain, image_settings, \
     route_settings
 
+from .border_data import guided_border_data, mask_border_data, mean_border_data
+from .closing import STIFF_SPRINGS
+from .dense_model import (MASK_LEVELS, compliant_modulus, mask_noise_level_ml, observation_operator,
+                          observation_points, phase_only_pass, reference_mesh, temporal_noise_floor)
+from .measured import ESTIMATORS, default_max_iterations, exact_posterior
+from .specs import check_specs
+from .strain_bands import strain_and_sd
+from .effects import EXPLICIT_ONLY
 __all__ = ["Sequence", "make_sequence", "load_sequence", "save_sequence", "example_path", "moved_on_lattice", "LVGeometry",
            "lv_geometry", "mesh_from_points", "tissue_mesh", "polar_mesh", "NotStarShapedError", "mesh_from_mask", "contour_landmarks", "Effect", "CATALOGUE",
            "build_effects", "NOMINAL", "PARAMETERISATIONS", "DRIVES", "OBSERVE", "MESHES", "Setup", "Run", "prepare",
@@ -107,4 +115,10 @@ __all__ = ["Sequence", "make_sequence", "load_sequence", "save_sequence", "examp
            "compare_fusion", "annulus_mask", "annulus_sequence", "deformed_masks", "dense_strain",
            "dense_case_strain", "image_settings", "route_settings", "DenseStrain", "contour_strain", "ContourStrain",
            "ContourRouteSettings", "contour_spline_strain",
-           "StrainRouteSettings"]
+           "StrainRouteSettings",
+           "guided_border_data", "mask_border_data", "mean_border_data", "STIFF_SPRINGS", "MASK_LEVELS",
+           "mask_noise_level_ml", "phase_only_pass", "compliant_modulus", "reference_mesh",
+           "temporal_noise_floor", "ESTIMATORS", "default_max_iterations", "exact_posterior", "check_specs",
+           "strain_and_sd",
+           "EXPLICIT_ONLY",
+           "observation_operator", "observation_points"]

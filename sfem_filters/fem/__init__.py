@@ -46,6 +46,8 @@ from .statespace import (ModalSystem, StiffnessPlan, continuous_matrices, discre
                          stiffness_plan)
 from .strain import element_strains, nodal_average, nodal_strains
 
+from .restart_state import restart_outputs
+from .strain import nodal_strain_operator
 __all__ = ["TriMesh", "check_mesh", "rectangle_mesh", "delaunay_mesh", "delaunay_triangles", "lattice_mesh",
            "lattice_offset", "mesh_quality", "triangle_angles", "polygon_mesh", "circle_polygon", "resample_polygon",
            "edge_lengths",
@@ -56,4 +58,6 @@ __all__ = ["TriMesh", "check_mesh", "rectangle_mesh", "delaunay_mesh", "delaunay
            "StiffnessPlan", "stiffness_plan", "continuous_matrices", "discretize_zoh", "reference_sensitivity",
            "node_observation_matrix", "interpolation_matrix",
            "point_observation_matrix", "locate_points", "blurred_observation_matrix", "sample_interpolation",
-           "element_strains", "nodal_average", "nodal_strains"]
+           "element_strains", "nodal_average", "nodal_strains",
+           "restart_outputs",
+           "nodal_strain_operator"]

@@ -71,6 +71,10 @@ from .structured import StructuredEngine, joseph_update
 from .ud import UDEngine, bierman_update, mwgs, psd_factor, ud_factor
 from .unscented import UKFEngine, make_ukf
 
+from .base import DenseEngine
+from .gauss_newton import EXTRAPOLATE_DECREMENT, EXTRAPOLATE_GAIN
+from .iterated import NOISE_LEVELS
+from .memory import check_memory, covariance_interval
 __all__ = ["ROUKFEngine", "simplex_points", "UKFEngine", "make_ukf", "diagnostics", "Engine", "CyclicEKF", "CyclicResult", "cyclic_estimate", "filter_loop", "check_observations",
            "FilterpyEngine", "SFEMExtendedKalmanFilter", "StructuredEngine", "UDEngine", "ENGINES", "make_engine",
            "History", "LinearGaussianModel", "LinearObservation", "LjungCoupling", "LJUNG_MAX_PARAMS",
@@ -84,4 +88,6 @@ __all__ = ["ROUKFEngine", "simplex_points", "UKFEngine", "make_ukf", "diagnostic
            "Linearisable", "OutputOperators", "ScalableProcessNoise", "scaled_process_noise",
            "ScalableMeasurementNoise", "scaled_measurement_noise", "MarginalCheck", "laplace_check", "log_likelihood", "log_posterior",
            "ProfileHessian", "profile_hessian", "profile_pass", "optimal_trajectory", "gauss_newton_pass", "exact_laplace",
-           "with_covariance", "step_in_sd", "ProcessNoiseProfile", "process_profile"]
+           "with_covariance", "step_in_sd", "ProcessNoiseProfile", "process_profile",
+           "DenseEngine", "EXTRAPOLATE_DECREMENT", "EXTRAPOLATE_GAIN", "NOISE_LEVELS", "covariance_interval",
+           "check_memory"]

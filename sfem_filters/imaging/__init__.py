@@ -49,6 +49,9 @@ from .readers import ImageSeries, make_image_series, read_images
 from .segmentation import dice, segment_sequence
 from .tracking import BoundaryTracks, TrackingOptions, track_borders, track_masks
 
+from .dense import background_signal, interpolation_variance_factor, psf_samples, psf_sigma_px
+from .strain import displacement_gradient
+from .contours import closest_on_polyline
 __all__ = ["bending_energy", "segment_bending_energy", "goodness_uniqueness", "match_confidence",
            "local_phase_coherence", "velocity_coherence", "weighted_std", "Borders", "check_myocardium_mask",
            "repair_myocardium_mask", "reference_mask_mismatch", "curvature", "mask_borders", "resample_closed",
@@ -63,4 +66,6 @@ __all__ = ["bending_energy", "segment_bending_energy", "goodness_uniqueness", "m
            "curve_peak", "ConventionalStrain", "conventional_analysis", "conventional_from_displacement",
            "peaks", "truth_block", "spline_block", "with_peaks", "strain_csv", "SplineStrain", "spline_strain",
            "StrainEstimate",
-           "tps_gradient_operators"]
+           "tps_gradient_operators",
+           "background_signal", "psf_sigma_px", "displacement_gradient",
+           "closest_on_polyline", "psf_samples", "interpolation_variance_factor"]
