@@ -167,9 +167,11 @@ The DENSE route, as a library function, :func:`dense_strain`:
    per curve (global and each segment), the mean over the curve's pixels of the *linearised*
    disagreement ``(F e) . ((G_fd - G) e)`` (:func:`linearised_disagreement`; the Green difference
    carries the noise's variance as a bias, which widened the bands as the SNR fell), whose
-   square, less the curve's own noise variance from its second differences in time
-   (:func:`curve_noise_variance`, at the curve's level so that the noise's correlation over the
-   pixels is in it), estimates the estimate's excess mean square error. Its variance is
+   square, less the noise variance left in the disagreement (the curve's own from its second
+   differences in time, :func:`curve_noise_variance`, at the curve's level so that the noise's
+   correlation over the pixels is in it, less the estimate's own smoothed variance: the estimate
+   follows part of the same data's noise, the smoothed residual's ``R - H P_s H^T``), estimates the
+   estimate's excess mean square error. Its variance is
    ``tau0^2 + k^2 m_t^2 + j^2 c_t^2`` (a constant part; one proportional to the curve's square, the
    bias of a smoothing scaling with what it flattens; and one proportional to the curve's bend ``c``,
    its second difference over the frames, :func:`curve_curvature`: a smoother's bias at a kink, such
@@ -479,11 +481,18 @@ class DenseRouteStrain(DenseStrain):
         return out
 
 
-def curve_discrepancy(diffs, estimates, details: bool = False, curvature: bool = True):
+def curve_discrepancy(diffs, estimates, details: bool = False, curvature: bool = True, model_sd=None):
     """(tau0^2, k^2, j^2) of the global curve (row 0) and of each segment (the others), the segments partially pooled.
 
     Each curve's noise variance is its own (:func:`curve_noise_variance` of its disagreement), and so
-    is its bend (:func:`curve_curvature` of its estimate). The segments' excess is fitted twice by
+    is its bend (:func:`curve_curvature` of its estimate). With ``model_sd``, the disagreement's noise
+    variance at frame t is that less the estimate's own variance ``model_sd_t^2`` (clipped at 0): the
+    estimate is made from the same data as the reference and follows part of its noise, so the noise
+    left in ``reference - estimate`` is the reference's less the estimate's (the smoothed residual's
+    covariance ``R - H P_s H^T``); subtracting the reference's whole noise variance understated the
+    excess by ``model_sd^2``, the more so the closer the smoother follows the data (at a coarser frame
+    rate: measured on DENSE-Sim at every 2nd frame, the route's segment bands then covered the truth in
+    83-84% of segment-frames of Ecc, the validation page of the variants). The segments' excess is fitted twice by
     :func:`discrepancy_variance`: once to the moments of all their frames (the pooled model; one
     segment's frames alone give a noisy moment, which the non-negativity clips upwards) and once to
     each segment's own. Each segment then takes ``w_g`` of its own parameters and ``1 - w_g`` of the
@@ -503,13 +512,18 @@ def curve_discrepancy(diffs, estimates, details: bool = False, curvature: bool =
         Also return a dict with the pooled segments' ``(tau0^2, k^2, j^2)`` and the weights ``w_g``.
     curvature : bool
         Include the bend term ``j^2 c_t^2`` (False: ``j^2 = 0``, the rule before it).
+    model_sd : (F, 1 + S) array, optional
+        The smoother's own sd of each curve per frame (with its noise scale), in the units of
+        ``diffs``; None: the reference's whole noise variance is subtracted (the rule before).
     """
     d = as_float_array("diffs", diffs, shape=(None, None), allow_nan=True)
     m = as_float_array("estimates", estimates, shape=d.shape, allow_nan=True)
+    own_var = (np.zeros_like(d) if model_sd is None
+               else as_float_array("model_sd", model_sd, shape=d.shape, allow_nan=True) ** 2)
     c = curve_curvature(m) if curvature else np.zeros_like(m)           # each curve's own bend (columns)
     tau = np.zeros((d.shape[1], 3))
     usable = [g for g in range(d.shape[1]) if np.sum(np.isfinite(d[1:-1, g] - 0.5 * (d[:-2, g] + d[2:, g]))) >= 1]
-    v = {g: curve_noise_variance(d[:, g]) for g in usable}
+    v = {g: np.maximum(curve_noise_variance(d[:, g]) - own_var[:, g], 0.0) for g in usable}   # (F,) each
     if 0 in v:
         tau[0] = discrepancy_variance(d[:, 0], m[:, 0], v[0], curvature and c[:, 0])
     segs = [g for g in usable if g > 0]
@@ -517,7 +531,7 @@ def curve_discrepancy(diffs, estimates, details: bool = False, curvature: bool =
     if segs:
         pooled = np.array(discrepancy_variance(np.concatenate([d[:, g] for g in segs]),
                                                np.concatenate([m[:, g] for g in segs]),
-                                               np.concatenate([np.full(d.shape[0], v[g]) for g in segs]),
+                                               np.concatenate([v[g] for g in segs]),
                                                curvature and np.concatenate([c[:, g] for g in segs])))
         tau[1:] = pooled
         own = np.array([discrepancy_variance(d[:, g], m[:, g], v[g], curvature and c[:, g]) for g in segs])
@@ -812,7 +826,7 @@ def dense_strain(tracks: LagrangianDisplacement, reference_mask, pixel_size_m: f
         m_all = np.stack([means[q][:, g].mean(axis=1) if g.size else np.full(F, np.nan) for g in groups], axis=1)
         sd_all = sd_curves[:, q_i * (1 + N_SEGMENTS):(q_i + 1) * (1 + N_SEGMENTS)]
         d_all = np.stack([global_curve(diffs[q][:, g]) if g.size else np.full(F, np.nan) for g in groups], axis=1)
-        tau, pool = (curve_discrepancy(d_all, m_all, details=True) if cfg.discrepancy
+        tau, pool = (curve_discrepancy(d_all, m_all, details=True, model_sd=sd_all) if cfg.discrepancy
                      else (np.zeros((len(groups), 3)), {"pooled": np.zeros(3), "weights": np.zeros(N_SEGMENTS)}))
         # a pixel takes its segment's excess (its own finite differences are far too noisy to tell), with its
         # own estimate's value and bend
@@ -843,7 +857,8 @@ def dense_strain(tracks: LagrangianDisplacement, reference_mask, pixel_size_m: f
                     "sd": "delta method at the posterior mean, full smoothed covariance of U"
                           + (" (x the ML noise scale)" if cfg.noise_scale else "")
                           + (", plus the excess error variance against the linearised unsmoothed "
-                             "finite-difference strain, less its noise variance" if cfg.discrepancy else ""),
+                             "finite-difference strain, less its noise variance (the reference's, less the "
+                             "estimate's own)" if cfg.discrepancy else ""),
                     "noise_scale_ml": c_ml,
                     "reference_pixels_not_observed": int(n_stray),
                     "reference_mask_mismatch": mismatch,

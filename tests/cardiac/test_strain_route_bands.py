@@ -270,6 +270,26 @@ def test_curve_discrepancy_shares_one_model_over_the_segments_and_finds_the_glob
     assert tau[0, 0] + tau[0, 1] * np.mean(m[:, 0] ** 2) < 0.1 * tau[1, 1] * np.mean(m[:, 1] ** 2)
 
 
+def test_curve_discrepancy_leaves_the_estimates_own_share_of_the_noise_in_the_excess():
+    """An estimate made from the same data follows part of their noise: ``reference - estimate`` keeps
+    the reference's noise less the estimate's own variance (the smoothed residual's ``R - H P H^T``).
+    Given the estimate's sd, the constant bias is found; without it, it is understated by that variance."""
+    rng = np.random.default_rng(3)
+    F, S, h, b = 4000, 6, 5, 0.7                           # frames, segments, smoother width, bias
+    n = rng.standard_normal((F + h - 1, 1 + S))             # the reference's white noise, variance 1
+    e = np.stack([np.convolve(n[:, g], np.ones(h) / h, mode="valid") for g in range(1 + S)], axis=1)
+    n = n[h // 2:F + h // 2]                                # the noise of frame t, centred in e's window
+    d = n - (b + e)                                         # reference - estimate: estimate = truth + b + e
+    m = np.zeros((F, 1 + S))                                # no relative or bend part to find
+    own_sd = np.full((F, 1 + S), np.sqrt(1.0 / h))          # the smoother's sd: var(e) = 1 / h
+    with_own = curve_discrepancy(d, m, curvature=False, model_sd=own_sd)
+    without = curve_discrepancy(d, m, curvature=False)
+    assert with_own[:, 0] == pytest.approx(b ** 2, rel=0.15)
+    assert without[:, 0] == pytest.approx(b ** 2 - 1.0 / h, rel=0.2)
+    with pytest.raises(ValueError, match="model_sd: expected shape"):
+        curve_discrepancy(d, m, model_sd=own_sd[:, :3])
+
+
 def test_discrepancy_errors_name_the_argument():
     with pytest.raises(ValueError, match="estimate: expected shape"):
         discrepancy_variance(np.zeros(5), np.zeros(4), 0.0)
