@@ -213,7 +213,9 @@ def figure(rows, path) -> str:
         for k, (key, name, colour, dx) in enumerate(rules):
             vals = [[r[key] for r in rows if (r["case"], r["snr"]) == g and r["quantity"] == q] for g in groups]
             mean = np.array([np.mean(v) for v in vals])
-            lo, hi = mean - np.array([min(v) for v in vals]), np.array([max(v) for v in vals]) - mean
+            # clipped at 0: seeds that agree (all at 100%, say) leave a mean a rounding error off their min
+            lo = np.maximum(mean - np.array([min(v) for v in vals]), 0.0)
+            hi = np.maximum(np.array([max(v) for v in vals]) - mean, 0.0)
             ax.errorbar(x + dx, mean, yerr=[lo, hi], fmt="o", color=colour, capsize=3, label=name)
         ax.set_xticks(x, labels)
         ax.set_ylabel("segment-frames inside the 95% band [%]")
