@@ -491,8 +491,8 @@ def curve_discrepancy(diffs, estimates, details: bool = False, curvature: bool =
     left in ``reference - estimate`` is the reference's less the estimate's (the smoothed residual's
     covariance ``R - H P_s H^T``); subtracting the reference's whole noise variance understated the
     excess by ``model_sd^2``, the more so the closer the smoother follows the data (at a coarser frame
-    rate: measured on DENSE-Sim at every 2nd frame, the route's segment bands then covered the truth in
-    83-84% of segment-frames of Ecc, the validation page of the variants). The segments' excess is fitted twice by
+    rate: the validation pages of the bands and of the variants measure both rules on DENSE-Sim). The
+    segments' excess is fitted twice by
     :func:`discrepancy_variance`: once to the moments of all their frames (the pooled model; one
     segment's frames alone give a noisy moment, which the non-negativity clips upwards) and once to
     each segment's own. Each segment then takes ``w_g`` of its own parameters and ``1 - w_g`` of the
